@@ -1,0 +1,97 @@
+"""The blueprint raster: class ids on square cells, row 0 at the highest y (north up)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from stages.common.capture import UNKNOWN
+from stages.common.errors import BlunfError
+
+
+@dataclass(frozen=True)
+class Grid:
+    """Square cells of `cell` metres; `origin` = world (x_min, y_min) of the lower-left corner."""
+
+    origin: tuple[float, float]
+    cell: float
+    shape: tuple[int, int]  # (rows H, cols W)
+
+    @staticmethod
+    def covering(xy_min: np.ndarray, xy_max: np.ndarray, cell: float, pad: float = 0.0) -> Grid:
+        """The smallest grid of `cell` metres covering [xy_min, xy_max] plus `pad` metres."""
+        if not cell > 0:
+            raise BlunfError(f"blueprint cell must be > 0 metres, got {cell}")
+        lo = np.asarray(xy_min, np.float64) - pad
+        hi = np.asarray(xy_max, np.float64) + pad
+        lo = np.floor(lo / cell) * cell
+        w, h = (np.ceil((hi - lo) / cell - 1e-9).astype(int) + 0).clip(min=1)
+        return Grid((float(lo[0]), float(lo[1])), float(cell), (int(h), int(w)))
+
+    def centers(self) -> np.ndarray:
+        """World (x, y) of every cell centre. Returns float64 [H, W, 2]."""
+        h, w = self.shape
+        x = self.origin[0] + (np.arange(w) + 0.5) * self.cell
+        y = self.origin[1] + (h - np.arange(h) - 0.5) * self.cell
+        xx, yy = np.meshgrid(x, y)
+        return np.stack([xx, yy], axis=-1)
+
+    def cell_of(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(row, col, inside) of world points xy [N, 2]; row/col are clipped where outside."""
+        xy = np.asarray(xy, np.float64)
+        h, w = self.shape
+        col = np.floor((xy[:, 0] - self.origin[0]) / self.cell).astype(np.int64)
+        row = h - 1 - np.floor((xy[:, 1] - self.origin[1]) / self.cell).astype(np.int64)
+        inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        return row.clip(0, h - 1), col.clip(0, w - 1), inside
+
+    def to_json(self) -> dict:
+        return {"origin": list(self.origin), "cell": self.cell, "shape": list(self.shape)}
+
+    @staticmethod
+    def from_json(d: dict) -> Grid:
+        return Grid((float(d["origin"][0]), float(d["origin"][1])), float(d["cell"]),
+                    (int(d["shape"][0]), int(d["shape"][1])))
+
+
+@dataclass(frozen=True)
+class Blueprint:
+    """labels uint8 [H, W] (UNKNOWN = 255 unseen) on `grid`, with the class table."""
+
+    labels: np.ndarray
+    grid: Grid
+    classes: dict[int, str] = field(default_factory=dict)
+
+    def sample(self, xy: np.ndarray) -> np.ndarray:
+        """Label at world points xy [N, 2] (nearest cell); UNKNOWN outside the raster."""
+        row, col, inside = self.grid.cell_of(xy)
+        out = self.labels[row, col].copy()
+        out[~inside] = UNKNOWN
+        return out
+
+    def resample(self, grid: Grid) -> np.ndarray:
+        """This plan read at the cell centres of another grid. Returns uint8 [H', W']."""
+        c = grid.centers().reshape(-1, 2)
+        return self.sample(c).reshape(grid.shape)
+
+    def save(self, path: Path) -> None:
+        np.savez_compressed(
+            path, labels=self.labels.astype(np.uint8), cell=np.float64(self.grid.cell),
+            origin=np.asarray(self.grid.origin, np.float64),
+            classes=json.dumps({str(k): v for k, v in sorted(self.classes.items())}),
+        )
+
+    @staticmethod
+    def load(path: Path) -> Blueprint:
+        try:
+            z = np.load(path, allow_pickle=False)
+            labels = z["labels"].astype(np.uint8)
+            grid = Grid((float(z["origin"][0]), float(z["origin"][1])), float(z["cell"]),
+                        (labels.shape[0], labels.shape[1]))
+            classes = {int(k): v for k, v in json.loads(str(z["classes"])).items()}
+        except (OSError, KeyError, ValueError) as e:
+            raise BlunfError(f"{path}: not a blueprint .npz ({e})") from None
+        return Blueprint(labels, grid, classes)

@@ -1,0 +1,125 @@
+"""Pinhole cameras and the projection Π between pixels with depth and world points.
+
+Conventions: camera-to-world 4x4 poses, OpenCV camera axes (x right, y down, z forward),
+world in metres with z up. Written in numpy (a few matrix products) because every caller
+holds numpy arrays; kornia's equivalents would only add torch round trips.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from stages.common.errors import BlunfError
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics in pixels, with optional OpenCV distortion (k1, k2, p1, p2[, k3])."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    dist: tuple[float, ...] = field(default=())
+
+    def __post_init__(self) -> None:
+        vals = (self.fx, self.fy, self.cx, self.cy)
+        if not all(np.isfinite(v) for v in vals) or self.fx <= 0 or self.fy <= 0:
+            raise BlunfError(f"intrinsics: focal lengths must be finite and > 0, got {vals}")
+        if self.width <= 0 or self.height <= 0:
+            raise BlunfError(f"intrinsics: image size must be > 0, got {self.width}x{self.height}")
+
+    @property
+    def K(self) -> np.ndarray:
+        """[3, 3] float64 calibration matrix."""
+        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1]], np.float64)
+
+    def scaled(self, width: int, height: int) -> Intrinsics:
+        """The same camera at another resolution."""
+        sx, sy = width / self.width, height / self.height
+        return Intrinsics(self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, width, height,
+                          self.dist)
+
+    def to_json(self) -> dict:
+        d = {k: getattr(self, k) for k in ("fx", "fy", "cx", "cy", "width", "height")}
+        if self.dist:
+            d["dist"] = list(self.dist)
+        return d
+
+    @staticmethod
+    def from_json(d: dict, where: str = "intrinsics") -> Intrinsics:
+        try:
+            return Intrinsics(float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]),
+                              int(d["width"]), int(d["height"]), tuple(float(x) for x in d.get("dist", ())))
+        except KeyError as e:
+            raise BlunfError(f"{where}: missing field {e.args[0]!r}") from None
+        except (TypeError, ValueError) as e:
+            raise BlunfError(f"{where}: bad value ({e})") from None
+
+
+def check_pose(pose: np.ndarray, where: str) -> np.ndarray:
+    """Validate a 4x4 camera-to-world rigid (or similarity) transform. Returns float64 [4, 4]."""
+    p = np.asarray(pose, np.float64)
+    if p.shape != (4, 4) or not np.all(np.isfinite(p)):
+        raise BlunfError(f"{where}: pose must be a finite 4x4 matrix")
+    if not np.allclose(p[3], [0, 0, 0, 1], atol=1e-6):
+        raise BlunfError(f"{where}: pose last row must be [0, 0, 0, 1]")
+    r = p[:3, :3]
+    s = np.cbrt(np.linalg.det(r))
+    if not s > 1e-9 or not np.allclose(r.T @ r / s**2, np.eye(3), atol=1e-3):
+        raise BlunfError(f"{where}: pose rotation is not orthonormal")
+    return p
+
+
+def pixel_grid(width: int, height: int, stride: int = 1) -> np.ndarray:
+    """Pixel centres (u, v) of a strided grid, starting at stride // 2. Returns [H', W', 2]."""
+    u = np.arange(stride // 2, width, stride, dtype=np.float64)
+    v = np.arange(stride // 2, height, stride, dtype=np.float64)
+    uu, vv = np.meshgrid(u, v)
+    return np.stack([uu, vv], axis=-1)
+
+
+def unproject(uv: np.ndarray, depth: np.ndarray, K: np.ndarray, c2w: np.ndarray) -> np.ndarray:
+    """Π: pixels with depth (z along the optical axis, metres) to world points.
+
+    Args:
+        uv: [N, 2] pixel coordinates (u right, v down; integer = pixel centre).
+        depth: [N] depth in metres.
+        K: [3, 3] intrinsics. c2w: [4, 4] camera-to-world.
+    Returns:
+        [N, 3] world points (float64).
+    """
+    uv = np.asarray(uv, np.float64)
+    d = np.asarray(depth, np.float64)
+    x = (uv[:, 0] - K[0, 2]) / K[0, 0]
+    y = (uv[:, 1] - K[1, 2]) / K[1, 1]
+    pc = np.stack([x * d, y * d, d], axis=-1)  # [N, 3] camera frame
+    return pc @ c2w[:3, :3].T + c2w[:3, 3]
+
+
+def project(points: np.ndarray, K: np.ndarray, c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Π⁻¹: world points to pixels. Returns (uv [N, 2], depth [N]); depth <= 0 is behind."""
+    w2c = np.linalg.inv(c2w)
+    pc = np.asarray(points, np.float64) @ w2c[:3, :3].T + w2c[:3, 3]  # [N, 3]
+    z = pc[:, 2]
+    safe = np.where(np.abs(z) > 1e-12, z, 1e-12)
+    u = K[0, 0] * pc[:, 0] / safe + K[0, 2]
+    v = K[1, 1] * pc[:, 1] / safe + K[1, 2]
+    return np.stack([u, v], axis=-1), z
+
+
+def depth_to_points(depth: np.ndarray, K: np.ndarray, c2w: np.ndarray, stride: int = 1
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """All valid pixels of a depth map to world points.
+
+    Returns (points [N, 3] float64, flat pixel indices [N] into the strided grid).
+    """
+    h, w = depth.shape
+    uv = pixel_grid(w, h, stride).reshape(-1, 2)
+    d = depth[stride // 2 :: stride, stride // 2 :: stride].reshape(-1)
+    keep = np.flatnonzero(np.isfinite(d) & (d > 0))
+    return unproject(uv[keep], d[keep], K, c2w), keep

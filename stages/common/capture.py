@@ -1,0 +1,258 @@
+"""The capture: frames (image, optional depth / labels / pose) with intrinsics and a label table.
+
+`Capture` is what every stage passes along as `frames.json`: paths point into the capture
+folder (read in place, never written), poses are camera-to-world 4x4 in the current world.
+The project's own layout (DESIGN.md) is read by `read_layout` and written by `write_layout`.
+"""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from stages.common.camera import Intrinsics, check_pose
+from stages.common.errors import BlunfError
+from stages.common.io import read_json, write_json
+
+IMAGE_EXTS = (".jpg", ".jpeg", ".png")
+DEPTH_EXTS = (".png", ".npy")
+UNKNOWN = 255  # blueprint / label value for unknown or unseen
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One view. `pose` is camera-to-world [4, 4] or None when not known yet."""
+
+    stem: str
+    image: Path
+    intrinsics: Intrinsics
+    depth: Path | None = None
+    label: Path | None = None
+    pose: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class Capture:
+    """Frames plus what applies to all of them."""
+
+    root: Path
+    frames: tuple[Frame, ...]
+    classes: dict[int, str] = field(default_factory=dict)  # label id -> class name
+    ignore: tuple[int, ...] = ()  # label ids never projected (e.g. ceiling)
+    gravity: tuple[float, float, float] | None = None  # world direction of gravity (unit)
+    depth_scale: float = 1000.0  # PNG depth units per metre
+    depth_invalid: tuple[int, ...] = (65535,)  # PNG codes meaning "no reading"
+    gt: Path | None = None  # ground-truth folder, when the capture has one
+    kind: str = "blunf"  # layout it was read from
+
+    @property
+    def has_poses(self) -> bool:
+        return bool(self.frames) and all(f.pose is not None for f in self.frames)
+
+    @property
+    def has_depth(self) -> bool:
+        return bool(self.frames) and all(f.depth is not None for f in self.frames)
+
+    @property
+    def has_labels(self) -> bool:
+        return bool(self.frames) and all(f.label is not None for f in self.frames)
+
+    def with_frames(self, frames: list[Frame] | tuple[Frame, ...]) -> Capture:
+        return replace(self, frames=tuple(frames))
+
+    def poses(self) -> np.ndarray:
+        """[C, 4, 4] camera-to-world poses (all must be known)."""
+        missing = [f.stem for f in self.frames if f.pose is None]
+        if missing:
+            raise BlunfError(f"{self.root}: no pose for frame {missing[0]!r}")
+        return np.stack([np.asarray(f.pose) for f in self.frames])
+
+    # ---- frames.json: how stages hand a capture to each other --------------------------
+    def to_json(self) -> dict:
+        return {
+            "root": str(self.root),
+            "kind": self.kind,
+            "classes": {str(k): v for k, v in sorted(self.classes.items())},
+            "ignore": list(self.ignore),
+            "gravity": list(self.gravity) if self.gravity is not None else None,
+            "depth_scale": self.depth_scale,
+            "depth_invalid": list(self.depth_invalid),
+            "gt": str(self.gt) if self.gt else None,
+            "frames": [
+                {
+                    "stem": f.stem,
+                    "image": str(f.image),
+                    "depth": str(f.depth) if f.depth else None,
+                    "label": str(f.label) if f.label else None,
+                    "intrinsics": f.intrinsics.to_json(),
+                    "pose": np.asarray(f.pose).tolist() if f.pose is not None else None,
+                }
+                for f in self.frames
+            ],
+        }
+
+    @staticmethod
+    def from_json(d: dict) -> Capture:
+        frames = tuple(
+            Frame(
+                stem=f["stem"],
+                image=Path(f["image"]),
+                intrinsics=Intrinsics.from_json(f["intrinsics"]),
+                depth=Path(f["depth"]) if f.get("depth") else None,
+                label=Path(f["label"]) if f.get("label") else None,
+                pose=np.asarray(f["pose"], np.float64) if f.get("pose") is not None else None,
+            )
+            for f in d["frames"]
+        )
+        g = d.get("gravity")
+        return Capture(
+            root=Path(d["root"]),
+            frames=frames,
+            classes={int(k): v for k, v in d.get("classes", {}).items()},
+            ignore=tuple(d.get("ignore", ())),
+            gravity=tuple(g) if g is not None else None,  # type: ignore[arg-type]
+            depth_scale=float(d.get("depth_scale", 1000.0)),
+            depth_invalid=tuple(d.get("depth_invalid", (65535,))),
+            gt=Path(d["gt"]) if d.get("gt") else None,
+            kind=d.get("kind", "blunf"),
+        )
+
+    def save(self, path: Path) -> None:
+        write_json(path, self.to_json())
+
+    @staticmethod
+    def load(path: Path) -> Capture:
+        return Capture.from_json(read_json(path))
+
+
+def _find(folder: Path, stem: str, exts: tuple[str, ...]) -> Path | None:
+    for e in exts:
+        p = folder / f"{stem}{e}"
+        if p.exists():
+            return p
+    return None
+
+
+def _inside(root: Path, p: Path) -> Path:
+    """Resolve p and refuse it when it leaves the capture folder (e.g. a symlink outside)."""
+    rp = p.resolve()
+    if not rp.is_relative_to(root.resolve()):
+        raise BlunfError(f"{p}: points outside the capture folder {root}")
+    return p
+
+
+def read_layout(root: Path) -> Capture:
+    """Read a capture in the project's own layout (DESIGN.md)."""
+    root = Path(root)
+    img_dir = root / "images"
+    if not img_dir.is_dir():
+        raise BlunfError(f"{root}: not a capture (no images/ folder)")
+    images = sorted(p for p in img_dir.iterdir() if p.suffix.lower() in IMAGE_EXTS)
+    if not images:
+        raise BlunfError(f"{img_dir}: no .jpg or .png images")
+    cams = read_json(root / "cameras.json") if (root / "cameras.json").exists() else {}
+    where = str(root / "cameras.json")
+    shared = cams.get("intrinsics")
+    per_frame = cams.get("frames", {})
+    if not isinstance(per_frame, dict):
+        raise BlunfError(f"{where}: 'frames' must map image stems to entries")
+    frames = []
+    for img in images:
+        _inside(root, img)
+        stem = img.stem
+        entry = per_frame.get(stem, {})
+        intr_d = entry.get("intrinsics", shared)
+        if intr_d is None:
+            raise BlunfError(
+                f"{where}: no intrinsics for {img.name} (give 'intrinsics' in cameras.json)"
+            )
+        intr = Intrinsics.from_json(intr_d, f"{where} intrinsics of {stem}")
+        pose = entry.get("pose")
+        pose_a = check_pose(np.asarray(pose, np.float64), f"{where} pose of {stem}") if pose else None
+        depth = _find(root / "depth", stem, DEPTH_EXTS)
+        label = _find(root / "labels", stem, (".png",))
+        frames.append(
+            Frame(stem=stem, image=img, intrinsics=intr,
+                  depth=_inside(root, depth) if depth else None,
+                  label=_inside(root, label) if label else None, pose=pose_a)
+        )
+    has_pose = [f.pose is not None for f in frames]
+    if any(has_pose) and not all(has_pose):
+        missing = next(f.stem for f in frames if f.pose is None)
+        raise BlunfError(f"{where}: poses given for some frames but not for {missing!r}")
+    classes: dict[int, str] = {}
+    ignore: tuple[int, ...] = ()
+    if (root / "labels.json").exists():
+        lj = read_json(root / "labels.json")
+        try:
+            classes = {int(k): str(v) for k, v in lj.get("classes", {}).items()}
+            ignore = tuple(int(i) for i in lj.get("ignore", []))
+        except (TypeError, ValueError, AttributeError) as e:
+            raise BlunfError(f"{root / 'labels.json'}: bad class table ({e})") from None
+    g = cams.get("gravity")
+    gravity = _unit(g, f"{where} gravity") if g is not None else None
+    return Capture(
+        root=root, frames=tuple(frames), classes=classes, ignore=ignore, gravity=gravity,
+        depth_scale=float(cams.get("depth_scale", 1000.0)),
+        depth_invalid=tuple(int(x) for x in cams.get("depth_invalid", [65535])),
+        gt=root / "gt" if (root / "gt").is_dir() else None, kind="blunf",
+    )
+
+
+def _unit(v: object, where: str) -> tuple[float, float, float]:
+    a = np.asarray(v, np.float64)
+    if a.shape != (3,) or not np.all(np.isfinite(a)) or np.linalg.norm(a) < 1e-9:
+        raise BlunfError(f"{where}: must be a finite non-zero 3-vector, got {v}")
+    a = a / np.linalg.norm(a)
+    return (float(a[0]), float(a[1]), float(a[2]))
+
+
+def write_layout(cap: Capture, out: Path, with_poses: bool = True) -> Path:
+    """Write a capture in the project's layout (copying files). Returns `out`.
+
+    Frames' intrinsics go to cameras.json (shared when all equal). Writes into a temp
+    folder and renames it into place, so a failure leaves nothing half-written.
+    """
+    out = Path(out)
+    if out.exists() and any(out.iterdir()):
+        raise BlunfError(f"{out}: output folder exists and is not empty")
+    tmp = out.parent / f".{out.name}.tmp"
+    shutil.rmtree(tmp, ignore_errors=True)
+    (tmp / "images").mkdir(parents=True)
+    intr = {f.intrinsics for f in cap.frames}
+    shared = len(intr) == 1
+    cams: dict = {"intrinsics": next(iter(intr)).to_json()} if shared else {}
+    cams["frames"] = {}
+    for f in cap.frames:
+        shutil.copyfile(f.image, tmp / "images" / f"{f.stem}{f.image.suffix.lower()}")
+        if f.depth is not None:
+            (tmp / "depth").mkdir(exist_ok=True)
+            shutil.copyfile(f.depth, tmp / "depth" / f"{f.stem}{f.depth.suffix.lower()}")
+        if f.label is not None:
+            (tmp / "labels").mkdir(exist_ok=True)
+            shutil.copyfile(f.label, tmp / "labels" / f"{f.stem}.png")
+        entry: dict = {}
+        if not shared:
+            entry["intrinsics"] = f.intrinsics.to_json()
+        if with_poses and f.pose is not None:
+            entry["pose"] = np.asarray(f.pose).tolist()
+        cams["frames"][f.stem] = entry
+    if cap.gravity is not None:
+        cams["gravity"] = list(cap.gravity)
+    cams["depth_scale"] = cap.depth_scale
+    cams["depth_invalid"] = list(cap.depth_invalid)
+    write_json(tmp / "cameras.json", cams)
+    if cap.classes:
+        write_json(tmp / "labels.json",
+                   {"classes": {str(k): v for k, v in sorted(cap.classes.items())},
+                    "ignore": list(cap.ignore)})
+    if cap.gt is not None and Path(cap.gt).is_dir():
+        shutil.copytree(cap.gt, tmp / "gt")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if out.exists():
+        out.rmdir()
+    tmp.rename(out)
+    return out

@@ -1,0 +1,127 @@
+"""Reading and writing images, depth maps and label maps, with errors that name the file."""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from PIL import Image, UnidentifiedImageError
+
+from stages.common.errors import BlunfError
+
+# Depth readings at or beyond this range (metres) are treated as invalid.
+MAX_DEPTH_M = 20.0
+
+
+def _open(path: Path) -> Image.Image:
+    try:
+        img = Image.open(path)
+        img.load()
+        return img
+    except FileNotFoundError:
+        raise BlunfError(f"{path}: file not found") from None
+    except (UnidentifiedImageError, OSError, SyntaxError) as e:
+        raise BlunfError(f"{path}: not a readable image ({e.__class__.__name__})") from None
+
+
+def read_image(path: Path) -> np.ndarray:
+    """Read an RGB image. Returns uint8 [H, W, 3]."""
+    return np.asarray(_open(Path(path)).convert("RGB"))
+
+
+def image_size(path: Path) -> tuple[int, int]:
+    """(width, height) of an image file, reading only its header."""
+    try:
+        with Image.open(path) as img:
+            return img.size
+    except FileNotFoundError:
+        raise BlunfError(f"{path}: file not found") from None
+    except (UnidentifiedImageError, OSError) as e:
+        raise BlunfError(f"{path}: not a readable image ({e.__class__.__name__})") from None
+
+
+def read_depth(path: Path, scale: float = 1000.0, invalid: tuple[int, ...] = (65535,)) -> np.ndarray:
+    """Read a depth map in metres. Returns float32 [H, W]; invalid readings are 0.
+
+    PNG depth is divided by `scale` (units per metre). Zero, the `invalid` codes, NaN, inf,
+    negative values and readings beyond MAX_DEPTH_M all become 0 (missing).
+    """
+    path = Path(path)
+    if path.suffix == ".npy":
+        try:
+            d = np.load(path).astype(np.float32)
+        except (OSError, ValueError) as e:
+            raise BlunfError(f"{path}: not a readable .npy depth map ({e})") from None
+        if d.ndim != 2:
+            raise BlunfError(f"{path}: depth must be 2-D, got shape {d.shape}")
+    else:
+        raw = np.asarray(_open(path))
+        if raw.ndim != 2:
+            raise BlunfError(f"{path}: depth PNG must be single-channel, got shape {raw.shape}")
+        bad = np.isin(raw, np.asarray(invalid, dtype=raw.dtype)) if invalid else np.zeros(raw.shape, bool)
+        d = raw.astype(np.float32) / np.float32(scale)
+        d[bad] = 0.0
+    d[~np.isfinite(d) | (d < 0) | (d >= MAX_DEPTH_M)] = 0.0
+    return d
+
+
+def write_depth_png(path: Path, depth_m: np.ndarray) -> None:
+    """Write float metres [H, W] as uint16 millimetres (0 = missing)."""
+    d = np.nan_to_num(np.asarray(depth_m, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    mm = np.clip(np.round(d * 1000.0), 0, 65534).astype(np.uint16)
+    Image.fromarray(mm).save(path)
+
+
+def read_label(path: Path) -> np.ndarray:
+    """Read a per-pixel id map (class or instance). Returns int32 [H, W]."""
+    img = _open(Path(path))
+    a = np.asarray(img)
+    if a.ndim == 3:
+        raise BlunfError(f"{path}: label map must be single-channel ids, got a colour image")
+    return a.astype(np.int32)
+
+
+def write_label_png(path: Path, labels: np.ndarray) -> None:
+    """Write ids [H, W] as uint8 PNG (uint16 when an id exceeds 255)."""
+    a = np.asarray(labels)
+    dtype = np.uint8 if a.max(initial=0) <= 255 else np.uint16
+    Image.fromarray(a.astype(dtype)).save(path)
+
+
+def write_image(path: Path, rgb: np.ndarray) -> None:
+    """Write uint8 [H, W, 3] RGB."""
+    Image.fromarray(np.asarray(rgb, np.uint8)).save(path)
+
+
+def read_json(path: Path) -> Any:
+    try:
+        with open(path) as f:
+            return json.load(f)
+    except FileNotFoundError:
+        raise BlunfError(f"{path}: file not found") from None
+    except json.JSONDecodeError as e:
+        raise BlunfError(f"{path}: invalid JSON at line {e.lineno}: {e.msg}") from None
+
+
+def write_json(path: Path, data: Any) -> None:
+    """Write JSON atomically (temp file in the same folder, then rename)."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+    with os.fdopen(fd, "w") as f:
+        json.dump(data, f, indent=1, default=_json_default)
+        f.write("\n")
+    os.replace(tmp, path)
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o)}")
