@@ -10,6 +10,7 @@ import numpy as np
 
 from stages.common.capture import UNKNOWN
 from stages.common.errors import BlunfError
+from stages.common.io import save_npz
 
 
 @dataclass(frozen=True)
@@ -53,8 +54,11 @@ class Grid:
 
     @staticmethod
     def from_json(d: dict) -> Grid:
-        return Grid((float(d["origin"][0]), float(d["origin"][1])), float(d["cell"]),
-                    (int(d["shape"][0]), int(d["shape"][1])))
+        return Grid(
+            (float(d["origin"][0]), float(d["origin"][1])),
+            float(d["cell"]),
+            (int(d["shape"][0]), int(d["shape"][1])),
+        )
 
 
 @dataclass(frozen=True)
@@ -78,8 +82,10 @@ class Blueprint:
         return self.sample(c).reshape(grid.shape)
 
     def save(self, path: Path) -> None:
-        np.savez_compressed(
-            path, labels=self.labels.astype(np.uint8), cell=np.float64(self.grid.cell),
+        save_npz(
+            path,
+            labels=self.labels.astype(np.uint8),
+            cell=np.float64(self.grid.cell),
             origin=np.asarray(self.grid.origin, np.float64),
             classes=json.dumps({str(k): v for k, v in sorted(self.classes.items())}),
         )
@@ -89,8 +95,11 @@ class Blueprint:
         try:
             z = np.load(path, allow_pickle=False)
             labels = z["labels"].astype(np.uint8)
-            grid = Grid((float(z["origin"][0]), float(z["origin"][1])), float(z["cell"]),
-                        (labels.shape[0], labels.shape[1]))
+            grid = Grid(
+                (float(z["origin"][0]), float(z["origin"][1])),
+                float(z["cell"]),
+                (labels.shape[0], labels.shape[1]),
+            )
             classes = {int(k): v for k, v in json.loads(str(z["classes"])).items()}
         except (OSError, KeyError, ValueError) as e:
             raise BlunfError(f"{path}: not a blueprint .npz ({e})") from None

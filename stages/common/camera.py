@@ -41,8 +41,9 @@ class Intrinsics:
     def scaled(self, width: int, height: int) -> Intrinsics:
         """The same camera at another resolution."""
         sx, sy = width / self.width, height / self.height
-        return Intrinsics(self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, width, height,
-                          self.dist)
+        return Intrinsics(
+            self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, width, height, self.dist
+        )
 
     def to_json(self) -> dict:
         d = {k: getattr(self, k) for k in ("fx", "fy", "cx", "cy", "width", "height")}
@@ -53,8 +54,15 @@ class Intrinsics:
     @staticmethod
     def from_json(d: dict, where: str = "intrinsics") -> Intrinsics:
         try:
-            return Intrinsics(float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]),
-                              int(d["width"]), int(d["height"]), tuple(float(x) for x in d.get("dist", ())))
+            return Intrinsics(
+                float(d["fx"]),
+                float(d["fy"]),
+                float(d["cx"]),
+                float(d["cy"]),
+                int(d["width"]),
+                int(d["height"]),
+                tuple(float(x) for x in d.get("dist", ())),
+            )
         except KeyError as e:
             raise BlunfError(f"{where}: missing field {e.args[0]!r}") from None
         except (TypeError, ValueError) as e:
@@ -112,8 +120,9 @@ def project(points: np.ndarray, K: np.ndarray, c2w: np.ndarray) -> tuple[np.ndar
     return np.stack([u, v], axis=-1), z
 
 
-def depth_to_points(depth: np.ndarray, K: np.ndarray, c2w: np.ndarray, stride: int = 1
-                    ) -> tuple[np.ndarray, np.ndarray]:
+def depth_to_points(
+    depth: np.ndarray, K: np.ndarray, c2w: np.ndarray, stride: int = 1
+) -> tuple[np.ndarray, np.ndarray]:
     """All valid pixels of a depth map to world points.
 
     Returns (points [N, 3] float64, flat pixel indices [N] into the strided grid).

@@ -121,11 +121,37 @@ class Capture:
         )
 
     def save(self, path: Path) -> None:
-        write_json(path, self.to_json())
+        """Write frames.json. Paths inside its own folder are stored relative to it, so a
+        stage folder written under a temp name stays valid once renamed into place."""
+        base = Path(path).parent.resolve()
+
+        def rel(p: str | None) -> str | None:
+            if p is None:
+                return None
+            rp = Path(p).resolve()
+            return str(rp.relative_to(base)) if rp.is_relative_to(base) else str(rp)
+
+        d = self.to_json()
+        for f in d["frames"]:
+            for k in ("image", "depth", "label"):
+                f[k] = rel(f[k])
+        d["gt"] = rel(d["gt"])
+        write_json(path, d)
 
     @staticmethod
     def load(path: Path) -> Capture:
-        return Capture.from_json(read_json(path))
+        """Read frames.json; relative paths are taken from its folder."""
+        base = Path(path).parent.resolve()
+        d = read_json(path)
+
+        def absp(p: str | None) -> str | None:
+            return None if p is None else str(base / p)
+
+        for f in d["frames"]:
+            for k in ("image", "depth", "label"):
+                f[k] = absp(f.get(k))
+        d["gt"] = absp(d.get("gt"))
+        return Capture.from_json(d)
 
 
 def _find(folder: Path, stem: str, exts: tuple[str, ...]) -> Path | None:
@@ -171,13 +197,20 @@ def read_layout(root: Path) -> Capture:
             )
         intr = Intrinsics.from_json(intr_d, f"{where} intrinsics of {stem}")
         pose = entry.get("pose")
-        pose_a = check_pose(np.asarray(pose, np.float64), f"{where} pose of {stem}") if pose else None
+        pose_a = (
+            check_pose(np.asarray(pose, np.float64), f"{where} pose of {stem}") if pose else None
+        )
         depth = _find(root / "depth", stem, DEPTH_EXTS)
         label = _find(root / "labels", stem, (".png",))
         frames.append(
-            Frame(stem=stem, image=img, intrinsics=intr,
-                  depth=_inside(root, depth) if depth else None,
-                  label=_inside(root, label) if label else None, pose=pose_a)
+            Frame(
+                stem=stem,
+                image=img,
+                intrinsics=intr,
+                depth=_inside(root, depth) if depth else None,
+                label=_inside(root, label) if label else None,
+                pose=pose_a,
+            )
         )
     has_pose = [f.pose is not None for f in frames]
     if any(has_pose) and not all(has_pose):
@@ -195,10 +228,15 @@ def read_layout(root: Path) -> Capture:
     g = cams.get("gravity")
     gravity = _unit(g, f"{where} gravity") if g is not None else None
     return Capture(
-        root=root, frames=tuple(frames), classes=classes, ignore=ignore, gravity=gravity,
+        root=root,
+        frames=tuple(frames),
+        classes=classes,
+        ignore=ignore,
+        gravity=gravity,
         depth_scale=float(cams.get("depth_scale", 1000.0)),
         depth_invalid=tuple(int(x) for x in cams.get("depth_invalid", [65535])),
-        gt=root / "gt" if (root / "gt").is_dir() else None, kind="blunf",
+        gt=root / "gt" if (root / "gt").is_dir() else None,
+        kind="blunf",
     )
 
 
@@ -246,9 +284,13 @@ def write_layout(cap: Capture, out: Path, with_poses: bool = True) -> Path:
     cams["depth_invalid"] = list(cap.depth_invalid)
     write_json(tmp / "cameras.json", cams)
     if cap.classes:
-        write_json(tmp / "labels.json",
-                   {"classes": {str(k): v for k, v in sorted(cap.classes.items())},
-                    "ignore": list(cap.ignore)})
+        write_json(
+            tmp / "labels.json",
+            {
+                "classes": {str(k): v for k, v in sorted(cap.classes.items())},
+                "ignore": list(cap.ignore),
+            },
+        )
     if cap.gt is not None and Path(cap.gt).is_dir():
         shutil.copytree(cap.gt, tmp / "gt")
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import tempfile
+import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -44,7 +46,9 @@ def image_size(path: Path) -> tuple[int, int]:
         raise BlunfError(f"{path}: not a readable image ({e.__class__.__name__})") from None
 
 
-def read_depth(path: Path, scale: float = 1000.0, invalid: tuple[int, ...] = (65535,)) -> np.ndarray:
+def read_depth(
+    path: Path, scale: float = 1000.0, invalid: tuple[int, ...] = (65535,)
+) -> np.ndarray:
     """Read a depth map in metres. Returns float32 [H, W]; invalid readings are 0.
 
     PNG depth is divided by `scale` (units per metre). Zero, the `invalid` codes, NaN, inf,
@@ -62,7 +66,11 @@ def read_depth(path: Path, scale: float = 1000.0, invalid: tuple[int, ...] = (65
         raw = np.asarray(_open(path))
         if raw.ndim != 2:
             raise BlunfError(f"{path}: depth PNG must be single-channel, got shape {raw.shape}")
-        bad = np.isin(raw, np.asarray(invalid, dtype=raw.dtype)) if invalid else np.zeros(raw.shape, bool)
+        bad = (
+            np.isin(raw, np.asarray(invalid, dtype=raw.dtype))
+            if invalid
+            else np.zeros(raw.shape, bool)
+        )
         d = raw.astype(np.float32) / np.float32(scale)
         d[bad] = 0.0
     d[~np.isfinite(d) | (d < 0) | (d >= MAX_DEPTH_M)] = 0.0
@@ -108,13 +116,26 @@ def read_json(path: Path) -> Any:
 
 
 def write_json(path: Path, data: Any) -> None:
-    """Write JSON atomically (temp file in the same folder, then rename)."""
+    """Write JSON atomically (temp file in the same folder, then rename), mode 0644."""
     path = Path(path)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
     with os.fdopen(fd, "w") as f:
         json.dump(data, f, indent=1, default=_json_default)
         f.write("\n")
+    os.chmod(tmp, 0o644)
     os.replace(tmp, path)
+
+
+def save_npz(path: Path, **arrays: Any) -> None:
+    """np.savez_compressed with fixed member timestamps: equal contents give equal bytes
+    (numpy stamps the current time, which would make cached outputs differ run to run)."""
+    with zipfile.ZipFile(path, "w") as z:
+        for name, a in arrays.items():
+            buf = io.BytesIO()
+            np.lib.format.write_array(buf, np.asanyarray(a), allow_pickle=False)
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.compress_type = zipfile.ZIP_DEFLATED
+            z.writestr(info, buf.getvalue())
 
 
 def _json_default(o: Any) -> Any:

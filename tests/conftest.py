@@ -1,0 +1,28 @@
+"""Shared fixtures: one tiny procedural room per test session (exact ground truth)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+os.environ.setdefault("BLUNF_THREADS", "1")
+
+
+def shared_capture(name: str) -> Path:
+    """A real capture in ../shared/data, or a clean skip when this checkout does not have it."""
+    p = SHARED_DATA / name
+    if not p.is_dir():
+        pytest.skip(f"real capture {p} not present (it lives beside the project, not in it)")
+    return p
+
+
+@pytest.fixture(scope="session")
+def tiny_room(tmp_path_factory) -> Path:
+    """A 16-view 96x72 procedural room: small enough for the default suite."""
+    from stages.synth import make_room
+
+    return make_room(tmp_path_factory.mktemp("room") / "capture", views=16, seed=3, size=(96, 72))
