@@ -1,0 +1,168 @@
+"""`blunf` / `python -m pipeline`: run, synth, bench, import.
+
+User errors (BlunfError, a bad argument, a missing file) end with one line naming the file or
+value at fault and exit status 2; nothing half-written is left in the cache.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ctypes
+import json
+import logging
+import os
+import sys
+from pathlib import Path
+
+from stages.common.errors import BlunfError
+
+log = logging.getLogger("blunf")
+
+
+def _size(s: str) -> tuple[int, int]:
+    try:
+        w, h = (int(x) for x in s.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--size {s!r}: expected WxH, e.g. 320x240") from None
+    if w < 8 or h < 8 or w > 8192 or h > 8192:
+        raise argparse.ArgumentTypeError(f"--size {s!r}: each side must be in 8..8192")
+    return w, h
+
+
+def _positive(s: str) -> int:
+    try:
+        v = int(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{s!r} is not an integer") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"{s!r} must be >= 1")
+    return v
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(2, f"blunf: error: {message}\n")
+
+
+def parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="blunf", description="Photos of an indoor scene to an editable blueprint.")
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = p.add_subparsers(dest="cmd", required=True, parser_class=_Parser)
+
+    r = sub.add_parser("run", help="build the blueprint of a capture")
+    r.add_argument("capture", type=Path)
+    r.add_argument("--out", type=Path, required=True, help="run folder (cache, report, outputs)")
+    r.add_argument("--config", type=Path, help="YAML overriding the defaults (configs/*.yaml)")
+    r.add_argument("--set", dest="sets", action="append", default=[], metavar="STAGE.KEY=VALUE")
+    r.add_argument("--edits", type=Path, help="edit spec (YAML)")
+    r.add_argument("--frames", type=_positive, help="use N views spread along the capture")
+
+    s = sub.add_parser("synth", help="make a procedural room with exact ground truth")
+    s.add_argument("out", type=Path)
+    s.add_argument("--views", type=_positive, default=60)
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--size", type=_size, default=(320, 240), help="WxH (default 320x240)")
+
+    b = sub.add_parser("bench", help="run time against error table")
+    b.add_argument("--out", type=Path, default=Path("runs/bench"))
+    b.add_argument("--quick", action="store_true", help="a small grid (minutes)")
+
+    i = sub.add_parser("import", help="convert another layout into a blunf capture")
+    i.add_argument("kind", help="7scenes, replica-vmap, colmap, nerfstudio")
+    i.add_argument("src", type=Path)
+    i.add_argument("out", type=Path)
+    return p
+
+
+def setup_runtime(threads: int = 0) -> int:
+    """Size torch/Open3D threads to the free cores and raise glibc's malloc thresholds."""
+    n = threads or _free_cores()
+    os.environ.setdefault("OMP_NUM_THREADS", str(n))
+    try:
+        import torch
+
+        torch.set_num_threads(n)
+    except ImportError:  # torch is a hard dependency; only stages that train import it later
+        raise BlunfError("torch is not installed: run `make setup`") from None
+    try:  # M_TRIM_THRESHOLD = -1, M_MMAP_THRESHOLD = -3: keep big tensors in the heap
+        libc = ctypes.CDLL("libc.so.6")
+        libc.mallopt(-3, 32 * 1024 * 1024)
+        libc.mallopt(-1, 4 * 1024 * 1024 * 1024 - 1)
+    except OSError:
+        pass
+    return n
+
+
+def _free_cores() -> int:
+    """Cores this process may use minus those busy with other work (1 min load average)."""
+    env = os.environ.get("BLUNF_THREADS") or os.environ.get("OMP_NUM_THREADS")
+    if env and env.isdigit() and int(env) > 0:
+        return int(env)
+    ncpu = len(os.sched_getaffinity(0))
+    busy = int(os.getloadavg()[0] + 0.5)
+    return max(1, ncpu - busy)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(asctime)s %(name)s: %(message)s",
+        datefmt="%H:%M:%S",
+    )
+    try:
+        return _dispatch(args)
+    except BlunfError as e:
+        print(f"blunf: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("blunf: interrupted", file=sys.stderr)
+        return 130
+
+
+def _dispatch(args: argparse.Namespace) -> int:
+    if args.cmd == "run":
+        from pipeline.config import load_config
+        from pipeline.run import run
+
+        sets = list(args.sets)
+        if args.frames:
+            sets.append(f"ingest.frames={args.frames}")
+        cfg = load_config(args.config, sets)
+        if args.edits is not None and not args.edits.is_file():
+            raise BlunfError(f"{args.edits}: edit spec not found")
+        n = setup_runtime(cfg.run.threads)
+        log.info("threads: %d", n)
+        report = run(args.capture, args.out, cfg, args.edits)
+        summary = {k: v for k, v in report.metrics.items()}
+        print(
+            json.dumps(
+                {
+                    "blueprint": str(args.out / "blueprint.png"),
+                    "report": str(args.out / "report.json"),
+                    "stages": {f"{s.name}:{s.impl}": s.status for s in report.stages},
+                    "metrics": summary,
+                },
+                indent=1,
+            )
+        )
+        return 0
+    if args.cmd == "synth":
+        from stages.synth import make_room
+
+        setup_runtime()
+        out = make_room(args.out, views=args.views, seed=args.seed, size=args.size)
+        print(out)
+        return 0
+    if args.cmd == "import":
+        from stages.ingest import import_capture
+
+        print(import_capture(args.kind, args.src, args.out))
+        return 0
+    if args.cmd == "bench":
+        from pipeline.bench import bench
+
+        setup_runtime()
+        print(bench(args.out, quick=args.quick))
+        return 0
+    raise BlunfError(f"unknown command {args.cmd!r}")

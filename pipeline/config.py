@@ -1,0 +1,213 @@
+"""Typed run configuration: stage dataclass defaults, overridden by one YAML file and --set.
+
+Every stage's config is a frozen dataclass owned by the stage (`stages/<stage>/config.py`);
+this module only assembles them and applies overrides. An unknown key is an error naming the
+key and where it came from.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field, fields, is_dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from stages.common.errors import BlunfError
+
+
+@dataclass(frozen=True)
+class RunSection:
+    """What the pipeline itself decides (not any one stage)."""
+
+    # Blueprint methods to run, each reported under its name; the first is the product's plan.
+    methods: tuple[str, ...] = ("blunf", "mvr")
+    # CPU threads for torch and Open3D; 0 = the cores this process may use.
+    threads: int = 0
+
+
+def stage_configs() -> dict[str, type]:
+    """Stage name -> its config dataclass, in pipeline order (the one place that lists them)."""
+    from stages.align.config import AlignConfig
+    from stages.blueprint.config import BlueprintConfig
+    from stages.evaluate.config import EvaluateConfig
+    from stages.export.config import ExportConfig
+    from stages.fusion.config import FusionConfig
+    from stages.ingest.config import IngestConfig
+    from stages.poses.config import PosesConfig
+    from stages.project.config import ProjectConfig
+
+    return {
+        "ingest": IngestConfig,
+        "poses": PosesConfig,
+        "align": AlignConfig,
+        "fusion": FusionConfig,
+        "project": ProjectConfig,
+        "blueprint": BlueprintConfig,
+        "evaluate": EvaluateConfig,
+        "export": ExportConfig,
+    }
+
+
+@dataclass(frozen=True)
+class Config:
+    """The resolved configuration of a run: one section per stage plus `run`."""
+
+    run: RunSection = field(default_factory=RunSection)
+    stages: dict[str, Any] = field(default_factory=dict)
+
+    def __getitem__(self, stage: str) -> Any:
+        return self.stages[stage]
+
+    def to_dict(self) -> dict:
+        d = {"run": dataclasses.asdict(self.run)}
+        d.update({k: dataclasses.asdict(v) for k, v in self.stages.items()})
+        return d
+
+
+def default_config() -> Config:
+    return Config(RunSection(), {name: cls() for name, cls in stage_configs().items()})
+
+
+def load_config(path: Path | None = None, sets: list[str] | tuple[str, ...] = ()) -> Config:
+    """Defaults, then the YAML file at `path`, then each `stage.key=value` of `sets`."""
+    cfg = default_config()
+    if path is not None:
+        path = Path(path)
+        try:
+            data = yaml.safe_load(path.read_text()) or {}
+        except FileNotFoundError:
+            raise BlunfError(f"{path}: config file not found") from None
+        except yaml.YAMLError as e:
+            raise BlunfError(f"{path}: invalid YAML ({str(e).splitlines()[0]})") from None
+        if not isinstance(data, dict):
+            raise BlunfError(f"{path}: a config must be a mapping of stage names to settings")
+        cfg = apply(cfg, data, str(path))
+    for s in sets:
+        key, sep, raw = s.partition("=")
+        if not sep or not key.strip():
+            raise BlunfError(f"--set {s!r}: expected stage.key=value")
+        try:
+            value = yaml.safe_load(raw)
+        except yaml.YAMLError:
+            value = raw
+        nested: Any = value
+        for part in reversed(key.strip().split(".")):
+            nested = {part: nested}
+        cfg = apply(cfg, nested, f"--set {s}")
+    return cfg
+
+
+def apply(cfg: Config, data: dict, where: str) -> Config:
+    """Override `cfg` with a nested mapping; unknown keys and bad types are errors."""
+    run = cfg.run
+    stages_ = dict(cfg.stages)
+    for name, value in data.items():
+        if name == "run":
+            run = _override(run, value, f"{where}: run", "run")
+        elif name in stages_:
+            stages_[name] = _override(stages_[name], value, where, name)
+        else:
+            known = ", ".join(["run", *stages_])
+            raise BlunfError(f"{where}: unknown section {name!r} (known: {known})")
+    return Config(run, stages_)
+
+
+def _override(obj: Any, value: Any, where: str, prefix: str) -> Any:
+    if not isinstance(value, dict):
+        raise BlunfError(f"{where}: {prefix} must be a mapping, got {value!r}")
+    hints = typing.get_type_hints(type(obj))
+    names = {f.name for f in fields(obj)}
+    changes = {}
+    for k, v in value.items():
+        if k not in names:
+            raise BlunfError(
+                f"{where}: unknown key {prefix}.{k} (known: {', '.join(sorted(names))})"
+            )
+        cur = getattr(obj, k)
+        if is_dataclass(cur):
+            changes[k] = _override(cur, v, where, f"{prefix}.{k}")
+        else:
+            changes[k] = _coerce(v, hints[k], f"{where}: {prefix}.{k}")
+    return replace(obj, **changes)
+
+
+def _coerce(v: Any, tp: Any, where: str) -> Any:
+    """Check/convert a YAML value to a dataclass field type (int, float, str, bool, tuple...)."""
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        args = typing.get_args(tp)
+        if v is None and type(None) in args:
+            return None
+        for a in args:
+            if a is type(None):
+                continue
+            try:
+                return _coerce(v, a, where)
+            except BlunfError:
+                continue
+        raise BlunfError(f"{where}: {v!r} is not a {tp}")
+    if origin is typing.Literal:
+        if v not in typing.get_args(tp):
+            raise BlunfError(f"{where}: {v!r} is not one of {typing.get_args(tp)}")
+        return v
+    if origin in (tuple, list):
+        if isinstance(v, str):
+            v = [x.strip() for x in v.split(",") if x.strip()]
+        if not isinstance(v, list | tuple):
+            raise BlunfError(f"{where}: expected a list, got {v!r}")
+        args = [a for a in typing.get_args(tp) if a is not Ellipsis]
+        item = args[0] if args else Any
+        out = [_coerce(x, item, where) if item is not Any else x for x in v]
+        return tuple(out) if origin is tuple else out
+    if tp is bool:
+        if isinstance(v, bool):
+            return v
+        raise BlunfError(f"{where}: expected true or false, got {v!r}")
+    if tp is int:
+        if isinstance(v, int) and not isinstance(v, bool):
+            return v
+        raise BlunfError(f"{where}: expected an integer, got {v!r}")
+    if tp is float:
+        if isinstance(v, int | float) and not isinstance(v, bool):
+            return float(v)
+        if isinstance(v, str):
+            try:
+                return float(v)
+            except ValueError:
+                pass
+        raise BlunfError(f"{where}: expected a number, got {v!r}")
+    if tp is str:
+        if isinstance(v, str):
+            return v
+        raise BlunfError(f"{where}: expected a string, got {v!r}")
+    return v
+
+
+def stage_view(stage_cfg: Any, impl: str) -> dict:
+    """The part of a stage config that an implementation depends on, for its cache key.
+
+    Nested sections named after other implementations (e.g. `blueprint.mvr` while running
+    `blunf`) are left out, so changing one method's settings does not rerun the others.
+    """
+    d = dataclasses.asdict(stage_cfg)
+    for f in fields(stage_cfg):
+        if (
+            is_dataclass(getattr(stage_cfg, f.name))
+            and f.name != impl
+            and f.name in _impl_names(stage_cfg)
+        ):
+            d.pop(f.name)
+    d["impl"] = impl
+    return d
+
+
+def _impl_names(stage_cfg: Any) -> set[str]:
+    module = type(stage_cfg).__module__.rsplit(".", 1)[0]
+    import importlib
+
+    reg = getattr(importlib.import_module(module), "IMPLS", {})
+    return set(reg)

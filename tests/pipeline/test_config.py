@@ -1,0 +1,97 @@
+"""Typed config: YAML and --set override defaults; unknown keys and bad types are errors;
+every field of every stage config reaches that stage's cache key (STYLE.md 4)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from pipeline.cache import stage_key
+from pipeline.config import default_config, load_config, stage_view
+from stages.common.errors import BlunfError
+
+
+def test_set_overrides_nested_and_coerces():
+    cfg = load_config(None, ["fusion.voxel=0.05", "blueprint.blunf.steps=123", "run.methods=mvr"])
+    assert cfg["fusion"].voxel == 0.05
+    assert cfg["blueprint"].blunf.steps == 123
+    assert cfg.run.methods == ("mvr",)
+
+
+def test_yaml_file_and_unknown_keys(tmp_path):
+    p = tmp_path / "c.yaml"
+    p.write_text("fusion:\n  voxel: 0.03\n")
+    assert load_config(p)["fusion"].voxel == 0.03
+    p.write_text("fusion:\n  voxle: 0.03\n")
+    with pytest.raises(BlunfError, match=r"c.yaml.*fusion.voxle"):
+        load_config(p)
+    p.write_text("fusio:\n  voxel: 0.03\n")
+    with pytest.raises(BlunfError, match="unknown section 'fusio'"):
+        load_config(p)
+    with pytest.raises(BlunfError, match="expected a number"):
+        load_config(None, ["fusion.voxel=abc"])
+    with pytest.raises(BlunfError, match="config file not found"):
+        load_config(tmp_path / "missing.yaml")
+
+
+def _leaves(obj, prefix=""):
+    for f in dataclasses.fields(obj):
+        v = getattr(obj, f.name)
+        if dataclasses.is_dataclass(v):
+            yield from _leaves(v, f"{prefix}{f.name}.")
+        else:
+            yield f"{prefix}{f.name}", v
+
+
+def _changed(v):
+    if isinstance(v, bool):
+        return not v
+    if isinstance(v, int):
+        return v + 1
+    if isinstance(v, float):
+        return v * 1.5 + 0.1
+    if isinstance(v, str):
+        return v + "x"
+    if isinstance(v, tuple):
+        return (*v, v[0]) if v else ("x",)
+    if v is None:
+        return 1.0
+    raise AssertionError(f"no change rule for {v!r}")
+
+
+def _with(obj, dotted, value):
+    head, _, rest = dotted.partition(".")
+    if rest:
+        return dataclasses.replace(obj, **{head: _with(getattr(obj, head), rest, value)})
+    return dataclasses.replace(obj, **{head: value})
+
+
+@pytest.mark.parametrize("stage", list(default_config().stages))
+def test_every_config_field_changes_the_cache_key(stage):
+    cfg = default_config()[stage]
+    impl = cfg.impl
+    base = stage_key(stage, impl, stage_view(cfg, impl), {})
+    for name, value in _leaves(cfg):
+        if name == "impl":
+            continue
+        view = stage_view(_with(cfg, name, _changed(value)), impl)
+        if name.split(".")[0] != impl and name.split(".")[0] in _other_impl_sections(cfg, impl):
+            continue  # another implementation's section: must NOT change this key (below)
+        assert stage_key(stage, impl, view, {}) != base, f"{stage}.{name} does not reach the key"
+
+
+def _other_impl_sections(cfg, impl):
+    import importlib
+
+    reg = importlib.import_module(type(cfg).__module__.rsplit(".", 1)[0]).IMPLS
+    return {n for n in reg if n != impl}
+
+
+def test_other_methods_settings_do_not_change_a_methods_key():
+    cfg = default_config()["blueprint"]
+    mvr_key = stage_key("blueprint", "mvr", stage_view(cfg, "mvr"), {})
+    changed = dataclasses.replace(cfg, blunf=dataclasses.replace(cfg.blunf, steps=cfg.blunf.steps + 1))
+    assert stage_key("blueprint", "mvr", stage_view(changed, "mvr"), {}) == mvr_key
+    assert stage_key("blueprint", "blunf", stage_view(changed, "blunf"), {}) != stage_key(
+        "blueprint", "blunf", stage_view(cfg, "blunf"), {})

@@ -1,0 +1,116 @@
+"""The whole path on a tiny room: outputs, report, cache behaviour, CLI errors."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+
+from pipeline.cli import main
+from stages.common.blueprint import Blueprint
+
+FAST = ["--set", "blueprint.blunf.steps=300", "--set", "fusion.voxel=0.04"]
+
+
+def _run(capture: Path, out: Path, *extra: str) -> dict:
+    assert main(["run", str(capture), "--out", str(out), *FAST, *extra]) == 0
+    return json.loads((out / "report.json").read_text())
+
+
+def _status(report: dict) -> dict[str, str]:
+    return {f"{s['name']}:{s['impl']}": s["status"] for s in report["stages"]}
+
+
+def test_run_outputs_report_and_cache(tiny_room, tmp_path):
+    out = tmp_path / "run"
+    first = _run(tiny_room, out)
+    st = _status(first)
+    # The room gives poses, depth and labels: those stages are skipped, with reasons.
+    assert st["poses:given"] == "skipped" and st["depth:nerf"] == "skipped"
+    assert st["semantics:given"] == "skipped" and st["nerf:grid"] == "skipped"
+    for name in ("ingest:auto", "align:auto", "fusion:tsdf", "project:pinhole", "blueprint:blunf",
+                 "blueprint:mvr", "evaluate:gt", "export:files"):
+        assert st[name] == "ran", name
+    assert all(s["reason"] for s in first["stages"] if s["status"] == "skipped")
+    for f in ("blueprint.png", "blueprint.npz", "mesh.ply", "transforms.json"):
+        assert (out / f).is_file(), f
+    bp = Blueprint.load(out / "blueprint.npz")
+    assert bp.labels.ndim == 2 and bp.grid.cell > 0 and "floor" in bp.classes.values()
+    m = first["metrics"]["blueprint"]
+    assert set(m) == {"blunf", "mvr"}
+    for k in ("pacc", "fwiou", "miou", "completeness"):
+        assert 0 <= m["blunf"][k] <= 100
+    assert m["blunf"]["completeness"] == 100.0
+    assert m["blunf"]["fwiou"] > 60  # a tiny room at 96x72 and 300 steps; the real bar is in bench
+
+    # Nothing changed: everything that ran is now cached, and the outputs are identical.
+    before = (out / "blueprint.npz").read_bytes()
+    second = _run(tiny_room, out)
+    assert {k: v for k, v in _status(second).items() if v != "skipped"} == {
+        k: "cached" for k, v in st.items() if v == "ran"}
+    assert (out / "blueprint.npz").read_bytes() == before
+    assert second["metrics"] == first["metrics"]
+
+    # A blueprint setting reruns the BluNF blueprint (and what follows it), nothing upstream.
+    third = _run(tiny_room, out, "--set", "blueprint.blunf.seed=7")
+    st3 = _status(third)
+    assert st3["blueprint:blunf"] == "ran"
+    for name in ("ingest:auto", "align:auto", "fusion:tsdf", "project:pinhole", "blueprint:mvr"):
+        assert st3[name] == "cached", name
+
+
+def test_capture_is_never_written(tiny_room, tmp_path):
+    before = sorted((p.relative_to(tiny_room), p.stat().st_mtime_ns) for p in tiny_room.rglob("*"))
+    _run(tiny_room, tmp_path / "run")
+    after = sorted((p.relative_to(tiny_room), p.stat().st_mtime_ns) for p in tiny_room.rglob("*"))
+    assert before == after
+
+
+def test_frames_budget_changes_views(tiny_room, tmp_path):
+    r = _run(tiny_room, tmp_path / "run", "--frames", "4")
+    ingest = next(s for s in r["stages"] if s["name"] == "ingest")
+    assert ingest["status"] == "ran"
+    frames = json.loads(next((tmp_path / "run" / "ingest").glob("*/frames.json")).read_text())
+    assert len(frames["frames"]) == 4
+
+
+def test_bad_inputs_one_line_errors(tmp_path, capsys):
+    assert main(["run", str(tmp_path / "nope"), "--out", str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "nope" in err[0]
+    (tmp_path / "empty").mkdir()
+    assert main(["run", str(tmp_path / "empty"), "--out", str(tmp_path / "r2")]) == 2
+    assert "empty" in capsys.readouterr().err
+
+
+def test_unknown_config_key_fails_before_work(tiny_room, tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["run", str(tiny_room), "--out", str(out), "--set", "fusion.voxell=0.1"]) == 2
+    err = capsys.readouterr().err
+    assert "fusion.voxell" in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
+
+
+def test_module_entry_point_matches_console_script(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "pipeline", "run", str(tmp_path / "missing"),
+                        "--out", str(tmp_path / "o")], capture_output=True, text=True)
+    assert r.returncode == 2
+    assert r.stderr.strip().startswith("blunf: error:") and "Traceback" not in r.stderr
+
+
+def test_killed_stage_leaves_no_entry(tiny_room, tmp_path):
+    """A crash inside a stage leaves only a temp folder, swept on the next run."""
+    from pipeline.cache import Cache
+
+    out = tmp_path / "run"
+    _run(tiny_room, out)
+    # Simulate a run killed mid-stage: a temp folder from a dead process.
+    dead = out / "fusion" / ".tmp-deadbeef-999999"
+    dead.mkdir()
+    (dead / "partial.ply").write_text("x")
+    Cache(out).sweep()
+    assert not dead.exists()
+    assert all((p / "meta.json").is_file() for p in (out / "fusion").iterdir()
+               if not p.name.startswith("."))
