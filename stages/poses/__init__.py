@@ -1,0 +1,12 @@
+"""Poses stage: camera-to-world poses for every frame, given by the capture or from SfM.
+
+`IMPLS[cfg.impl]` picks the implementation; with `impl = "sfm"`, `cfg.mapper` picks COLMAP's
+incremental mapper or the global one (GLOMAP), and `cfg.matching` the image pairs.
+"""
+
+from stages.poses import given, sfm
+from stages.poses.config import PosesConfig, PosesInputs, PosesOutputs
+
+IMPLS = {"given": given.run, "sfm": sfm.run}
+
+__all__ = ["IMPLS", "PosesConfig", "PosesInputs", "PosesOutputs"]

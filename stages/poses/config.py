@@ -1,0 +1,76 @@
+"""Configuration, inputs and outputs of the poses stage (camera-to-world poses for every frame)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from stages.common.errors import BlunfError
+
+MAPPERS = ("incremental", "global")
+MATCHINGS = ("auto", "sequential", "exhaustive")
+SCALE_FROM = ("auto", "depth", "distance", "camera_height", "none")
+
+
+@dataclass(frozen=True)
+class PosesConfig:
+    """How poses are obtained. Fields other than `impl` only matter for `impl = "sfm"`."""
+
+    impl: str = "auto"  # "given" (the capture's poses) | "sfm" (pycolmap from the photos) |
+    #                     "auto" = given when the capture has poses, else sfm (the planner picks)
+    mapper: str = "incremental"  # "incremental" (COLMAP) or "global" (GLOMAP in pycolmap)
+    matching: str = "auto"  # "auto" | "sequential" | "exhaustive"; see exhaustive_max_images
+    exhaustive_max_images: int = 40  # matching=auto: exhaustive up to this many images
+    sequential_overlap: int = 10  # sequential: match each image to this many next
+    max_features: int = 8192  # SIFT features kept per image
+    max_image_size: int = 1600  # SIFT runs on images downscaled to this longest side (pixels)
+    self_calibrate: bool = False  # estimate intrinsics (unreliable indoors)
+    threads: int = 0  # CPU threads for extraction, matching and mapping; 0 = every core we may use
+    min_registered_frac: float = 0.5  # fail when fewer than this fraction of the images register
+    seed: int = 0  # random seed of pycolmap's RANSAC and mapper (same inputs -> same poses)
+    scale_from: str = "auto"  # metric scale: "depth" | "distance" | "camera_height" | "none";
+    #                           "auto" = "depth" when every frame has depth, else "none"
+    known_distance: float | None = None  # scale_from="distance": metres between the first and
+    #                                      last frames' camera centres (capture order)
+    camera_height: float | None = None  # scale_from="camera_height": metres from the camera
+    #                                     centres down to the floor (lowest sparse points)
+
+    def __post_init__(self) -> None:
+        if self.mapper not in MAPPERS:
+            raise BlunfError(f"poses.mapper: {self.mapper!r} is not one of {MAPPERS}")
+        if self.matching not in MATCHINGS:
+            raise BlunfError(f"poses.matching: {self.matching!r} is not one of {MATCHINGS}")
+        if self.scale_from not in SCALE_FROM:
+            raise BlunfError(f"poses.scale_from: {self.scale_from!r} is not one of {SCALE_FROM}")
+        if self.scale_from == "distance" and not (self.known_distance or 0) > 0:
+            raise BlunfError("poses.known_distance: must be > 0 metres when scale_from=distance")
+        if self.scale_from == "camera_height" and not (self.camera_height or 0) > 0:
+            raise BlunfError("poses.camera_height: must be > 0 m when scale_from=camera_height")
+        if not 0.0 <= self.min_registered_frac <= 1.0:
+            raise BlunfError(
+                f"poses.min_registered_frac: must be in [0, 1], got {self.min_registered_frac}"
+            )
+        for name in ("exhaustive_max_images", "sequential_overlap", "max_features"):
+            if getattr(self, name) < 1:
+                raise BlunfError(f"poses.{name}: must be >= 1, got {getattr(self, name)}")
+        if self.max_image_size < 64:
+            raise BlunfError(f"poses.max_image_size: must be >= 64 px, got {self.max_image_size}")
+        if self.threads < 0:
+            raise BlunfError(f"poses.threads: must be >= 0, got {self.threads}")
+
+
+@dataclass(frozen=True)
+class PosesInputs:
+    frames: Path  # frames.json of the capture (a `Capture`)
+
+
+@dataclass(frozen=True)
+class PosesOutputs:
+    frames: Path  # frames.json with a camera-to-world pose on every frame kept
+    sfm: Path  # sfm.json: what was registered, how the scale was found, timings
+
+    @classmethod
+    def at(cls, out: Path) -> PosesOutputs:
+        """The outputs inside a finished out folder."""
+        out = Path(out)
+        return cls(frames=out / "frames.json", sfm=out / "sfm.json")

@@ -1,0 +1,341 @@
+"""Poses from photos: pycolmap SIFT + matching + incremental or global mapping, metric scale.
+
+Pixel convention: COLMAP puts the centre of the top-left pixel at (0.5, 0.5), the project at
+(0, 0) (camera.py), so principal points and keypoints are shifted by 0.5 at the boundary.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import shutil
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np  # noqa: I001  (numpy must be loaded before pycolmap, see stages/__init__.py)
+import pycolmap
+
+from stages.common.camera import Intrinsics
+from stages.common.capture import Capture, Frame
+from stages.common.errors import BlunfError
+from stages.common.io import image_size, read_depth, write_json
+from stages.poses import scale as scale_mod
+from stages.poses.config import PosesConfig, PosesInputs, PosesOutputs
+
+log = logging.getLogger(__name__)
+
+MIN_REGISTERED = 3  # fewer registered images than this is always a failure
+SELF_CALIB_WARNING = (
+    "self-calibration is unreliable indoors (short baselines, planar walls): focal length "
+    "and distortion may be wrong, and poses with them"
+)
+
+
+def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
+    """Register the capture's photos, scale the model to metres, write frames.json + sfm.json."""
+    log.info("poses: sfm %s", cfg)
+    cap = Capture.load(inputs.frames)
+    n = len(cap.frames)
+    if n == 0:
+        raise BlunfError(f"{inputs.frames}: the capture has no frames")
+    stems = [f.stem for f in cap.frames]
+    if len(set(stems)) != n:
+        dup = next(s for s in stems if stems.count(s) > 1)
+        raise BlunfError(f"{inputs.frames}: frame stem {dup!r} appears twice")
+    out = Path(out)
+    work = out / "work"
+    img_dir = work / "images"
+    db = work / "database.db"
+    img_dir.mkdir(parents=True)
+    threads = cfg.threads or len(os.sched_getaffinity(0))
+    pycolmap.set_random_seed(cfg.seed)
+    names = _link_images(cap.frames, img_dir)  # COLMAP image name of each frame
+    facts: dict = {"impl": "sfm", "total": n, "threads": threads}
+
+    clock = [(time.perf_counter(), time.process_time())]  # (wall, CPU of all threads)
+    with _colmap_log_level():
+        facts["camera"] = _extract(cfg, cap.frames, names, db, img_dir, threads)
+        clock.append((time.perf_counter(), time.process_time()))
+        facts["matching"], facts["matching_detail"] = _match(cfg, db, n, threads)
+        clock.append((time.perf_counter(), time.process_time()))
+        recs = _map(cfg, db, img_dir, work / "models", threads)
+        clock.append((time.perf_counter(), time.process_time()))
+    spans = list(zip(("extract", "match", "map"), clock[:-1], clock[1:], strict=True))
+    facts["seconds"] = {k: b[0] - a[0] for k, a, b in spans}
+    facts["cpu_seconds"] = {k: b[1] - a[1] for k, a, b in spans}
+    facts["mapper"] = cfg.mapper
+    facts["models"] = len(recs)
+
+    rec = max(recs, key=lambda r: r.num_reg_images()) if recs else None
+    ids = {}  # COLMAP image name -> image id, registered images of the largest model
+    if rec is not None:
+        ids = {im.name: im.image_id for im in rec.images.values() if im.has_pose}
+    kept = [i for i, name in enumerate(names) if name in ids]  # indices of registered frames
+    k = len(kept)
+    need = max(MIN_REGISTERED, int(np.ceil(cfg.min_registered_frac * n)))
+    if k < need:
+        raise BlunfError(
+            f"sfm: only {k} of {n} images registered (need {need}; poses.min_registered_frac="
+            f"{cfg.min_registered_frac}): too little texture or overlap between photos?"
+        )
+    assert rec is not None
+    unregistered = [stems[i] for i in sorted(set(range(n)) - set(kept))]
+    if unregistered:
+        log.warning("sfm: %d of %d images did not register: %s", n - k, n, unregistered)
+    facts.update(registered=k, unregistered=unregistered)
+    if cfg.self_calibrate:
+        cams = sorted({rec.image(ids[names[i]]).camera_id for i in kept})
+        facts["camera"]["estimated"] = [_intrinsics_of(rec.camera(c)).to_json() for c in cams]
+
+    t4 = time.perf_counter()
+    s, facts["scale_from"] = _scale(cfg, cap, rec, [ids[names[i]] for i in kept], kept)
+    rec.transform(pycolmap.Sim3d(s, pycolmap.Rotation3d(), np.zeros(3)))
+    facts["seconds"]["scale"] = time.perf_counter() - t4
+    facts["scale"] = s
+    facts["mean_reproj_error_px"] = float(rec.compute_mean_reprojection_error())
+    facts["points3D"] = int(rec.num_points3D())
+    facts["mean_track_length"] = float(rec.compute_mean_track_length())
+
+    frames = []
+    for i in kept:
+        im = rec.image(ids[names[i]])
+        w2c = np.eye(4)
+        w2c[:3] = im.cam_from_world().matrix()  # [3, 4]
+        intr = (
+            _intrinsics_of(rec.camera(im.camera_id))
+            if cfg.self_calibrate
+            else cap.frames[i].intrinsics
+        )
+        frames.append(replace(cap.frames[i], pose=np.linalg.inv(w2c), intrinsics=intr))
+    outs = PosesOutputs.at(out)
+    cap.with_frames(frames).save(outs.frames)
+    (out / "sparse").mkdir()
+    rec.write(out / "sparse")
+    rec.export_PLY(out / "sparse.ply")
+    # COLMAP binary model, metric; its images are named <capture index:06d>_<stem><ext>
+    facts.update(sparse_ply="sparse.ply", sparse_model="sparse")
+    shutil.rmtree(work)  # database and image links: large, and only needed while mapping
+    write_json(outs.sfm, facts)
+    log.info(
+        "sfm: %d/%d registered, %d points, reproj %.2f px, scale %.4g (%s)",
+        k,
+        n,
+        facts["points3D"],
+        facts["mean_reproj_error_px"],
+        s,
+        facts["scale_from"]["method"],
+    )
+    return outs
+
+
+@contextlib.contextmanager
+def _colmap_log_level():
+    """COLMAP's own (glog) INFO lines only when this module logs at DEBUG; restored after."""
+    old = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = 0 if log.isEnabledFor(logging.DEBUG) else 1
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = old
+
+
+def _link_images(frames: tuple[Frame, ...], img_dir: Path) -> list[str]:
+    """Symlink every frame's image into one folder, named so that sorting keeps capture order."""
+    names = []
+    for i, f in enumerate(frames):
+        src = Path(f.image)
+        if not src.is_file():
+            raise BlunfError(f"{src}: image of frame {f.stem!r} not found")
+        name = f"{i:06d}_{f.stem}{src.suffix.lower()}"
+        os.symlink(src.resolve(), img_dir / name)
+        names.append(name)
+    return names
+
+
+def _colmap_camera(intr: Intrinsics) -> tuple[str, str]:
+    """COLMAP model name and parameter string for fixed intrinsics (principal point + 0.5)."""
+    base = [intr.fx, intr.fy, intr.cx + 0.5, intr.cy + 0.5]
+    dist = list(intr.dist)
+    if not any(dist):
+        model, extra = "PINHOLE", []
+    elif len(dist) <= 4:
+        model, extra = "OPENCV", dist + [0.0] * (4 - len(dist))
+    elif len(dist) in (5, 8):
+        model, extra = "FULL_OPENCV", dist + [0.0] * (8 - len(dist))
+    else:
+        raise BlunfError(f"intrinsics: {len(dist)} distortion coefficients (want 4, 5 or 8)")
+    return model, ",".join(repr(float(v)) for v in base + extra)
+
+
+def _intrinsics_of(cam: pycolmap.Camera) -> Intrinsics:
+    """Project intrinsics of a self-calibrated SIMPLE_RADIAL camera."""
+    f, cx, cy, k = (float(v) for v in cam.params)
+    return Intrinsics(f, f, cx - 0.5, cy - 0.5, int(cam.width), int(cam.height), (k, 0.0, 0.0, 0.0))
+
+
+def _extract(
+    cfg: PosesConfig,
+    frames: tuple[Frame, ...],
+    names: list[str],
+    db: Path,
+    img_dir: Path,
+    threads: int,
+) -> dict:
+    """SIFT features into the database; one fixed camera per distinct intrinsics."""
+    eo = pycolmap.FeatureExtractionOptions()
+    eo.num_threads = threads
+    eo.use_gpu = False
+    eo.max_image_size = cfg.max_image_size
+    eo.sift.max_num_features = cfg.max_features
+    log.info("sfm: SIFT on %d images (%d threads)", len(frames), threads)
+    if cfg.self_calibrate:
+        log.warning("sfm: %s", SELF_CALIB_WARNING)
+        sizes = {image_size(f.image) for f in frames}
+        mode = pycolmap.CameraMode.SINGLE if len(sizes) == 1 else pycolmap.CameraMode.PER_IMAGE
+        ro = pycolmap.ImageReaderOptions()
+        ro.camera_model = "SIMPLE_RADIAL"
+        pycolmap.extract_features(db, img_dir, names, mode, ro, eo, pycolmap.Device.cpu)
+        cams = 1 if len(sizes) == 1 else len(frames)
+        return {
+            "fixed": False,
+            "model": "SIMPLE_RADIAL",
+            "cameras": cams,
+            "warning": SELF_CALIB_WARNING,
+        }
+    groups: dict[Intrinsics, list[str]] = {}
+    for f, name in zip(frames, names, strict=True):
+        w, h = image_size(f.image)
+        intr = f.intrinsics
+        if (intr.width, intr.height) != (w, h):
+            log.warning(
+                "sfm: %s is %dx%d, intrinsics are for %dx%d: rescaling them",
+                f.image,
+                w,
+                h,
+                intr.width,
+                intr.height,
+            )
+            intr = intr.scaled(w, h)
+        groups.setdefault(intr, []).append(name)
+    models = set()
+    for intr, group in groups.items():
+        ro = pycolmap.ImageReaderOptions()
+        ro.camera_model, ro.camera_params = _colmap_camera(intr)
+        models.add(ro.camera_model)
+        pycolmap.extract_features(
+            db, img_dir, group, pycolmap.CameraMode.SINGLE, ro, eo, pycolmap.Device.cpu
+        )
+    return {"fixed": True, "model": "/".join(sorted(models)), "cameras": len(groups)}
+
+
+def _match(cfg: PosesConfig, db: Path, n: int, threads: int) -> tuple[str, str]:
+    """Match SIFT features. Returns (kind used, its settings in words)."""
+    mo = pycolmap.FeatureMatchingOptions()
+    mo.num_threads = threads
+    mo.use_gpu = False
+    kind = cfg.matching
+    if kind == "auto":
+        kind = "exhaustive" if n <= cfg.exhaustive_max_images else "sequential"
+    log.info("sfm: %s matching", kind)
+    if kind == "exhaustive":
+        pycolmap.match_exhaustive(db, matching_options=mo, device=pycolmap.Device.cpu)
+        return kind, f"all {n * (n - 1) // 2} pairs"
+    po = pycolmap.SequentialPairingOptions()
+    po.overlap = cfg.sequential_overlap
+    po.quadratic_overlap = True
+    po.loop_detection = False
+    po.num_threads = threads
+    pycolmap.match_sequential(
+        db, matching_options=mo, pairing_options=po, device=pycolmap.Device.cpu
+    )
+    return kind, f"overlap {cfg.sequential_overlap} (+ quadratic), no loop detection"
+
+
+def _map(
+    cfg: PosesConfig, db: Path, img_dir: Path, models: Path, threads: int
+) -> list[pycolmap.Reconstruction]:
+    """Run the chosen mapper; returns every model it made (possibly none)."""
+    models.mkdir(parents=True)
+    log.info("sfm: %s mapping", cfg.mapper)
+    fixed = not cfg.self_calibrate
+    if cfg.mapper == "incremental":
+        o = pycolmap.IncrementalPipelineOptions()
+        o.num_threads = threads
+        o.random_seed = cfg.seed
+        o.min_model_size = MIN_REGISTERED
+        if fixed:
+            o.ba_refine_focal_length = False
+            o.ba_refine_principal_point = False
+            o.ba_refine_extra_params = False
+            o.mapper.abs_pose_refine_focal_length = False
+            o.mapper.abs_pose_refine_extra_params = False
+        recs = pycolmap.incremental_mapping(db, img_dir, models, o)
+    else:
+        g = pycolmap.GlobalPipelineOptions()
+        g.num_threads = threads
+        g.random_seed = cfg.seed
+        g.min_model_size = MIN_REGISTERED
+        ba = g.mapper.bundle_adjustment
+        ba.ceres.use_gpu = False
+        g.mapper.global_positioning.use_gpu = False
+        if fixed:
+            ba.refine_focal_length = False
+            ba.refine_principal_point = False
+            ba.refine_extra_params = False
+        recs = pycolmap.global_mapping(db, img_dir, models, g)
+    return list(recs.values())
+
+
+def _scale(
+    cfg: PosesConfig, cap: Capture, rec: pycolmap.Reconstruction, ids: list[int], kept: list[int]
+) -> tuple[float, dict]:
+    """Metric scale of the model (see scale.py), chosen by cfg.scale_from.
+
+    `kept` are the registered frames' indices in the capture, `ids` their COLMAP image ids.
+    """
+    how = cfg.scale_from
+    if how == "auto" and not cap.has_depth:
+        log.warning("sfm: no depth in the capture: poses stay in arbitrary SfM units")
+        return 1.0, {
+            "method": "none",
+            "how": "scale_from=auto and some frames have no depth: "
+            "SfM units (arbitrary); set poses.scale_from to distance or camera_height",
+        }
+    ims = [rec.image(i) for i in ids]  # registered images, in capture order
+    if how in ("auto", "depth"):
+        if not cap.has_depth:
+            missing = next(f.stem for f in cap.frames if f.depth is None)
+            raise BlunfError(f"poses.scale_from=depth: frame {missing!r} has no depth map")
+        ratios = []
+        for im, i in zip(ims, kept, strict=True):
+            f = cap.frames[i]
+            obs = im.get_observation_points2D()
+            xy = np.array([p.xy for p in obs], np.float64).reshape(-1, 2)  # [N, 2]
+            xyz = np.array([rec.points3D[p.point3D_id].xyz for p in obs]).reshape(-1, 3)
+            w2c = im.cam_from_world().matrix()  # [3, 4]
+            z = xyz @ w2c[2, :3] + w2c[2, 3]  # [N]
+            depth = read_depth(f.depth, cap.depth_scale, cap.depth_invalid)  # type: ignore[arg-type]
+            cam = rec.camera(im.camera_id)
+            wh = (int(cam.width), int(cam.height))
+            ratios.append(scale_mod.depth_ratios(xy - 0.5, z, depth, wh))
+        return scale_mod.scale_from_depth(ratios)
+    if how == "distance":
+        first, last = cap.frames[0].stem, cap.frames[-1].stem
+        if kept[0] != 0 or kept[-1] != len(cap.frames) - 1:
+            raise BlunfError(
+                f"poses.scale_from=distance: the first ({first!r}) and last ({last!r}) frames "
+                "must both register to use poses.known_distance"
+            )
+        c0, c1 = ims[0].projection_center(), ims[-1].projection_center()
+        return scale_mod.scale_from_distance(c0, c1, float(cfg.known_distance or 0), (first, last))
+    if how == "camera_height":
+        centers = np.array([im.projection_center() for im in ims])  # [C, 3]
+        # row 1 of world-to-camera rotation = the camera's y axis (image down) in the world
+        y_axes = np.array([im.cam_from_world().rotation.matrix()[1] for im in ims])  # [C, 3]
+        points = np.array([p.xyz for p in rec.points3D.values()]).reshape(-1, 3)  # [N, 3]
+        return scale_mod.scale_from_camera_height(
+            centers, y_axes, points, float(cfg.camera_height or 0)
+        )
+    return 1.0, {"method": "none", "how": "no metric scale: SfM units (arbitrary)"}
