@@ -110,7 +110,9 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
         )
         frames.append(replace(cap.frames[i], pose=np.linalg.inv(w2c), intrinsics=intr))
     outs = PosesOutputs.at(out)
-    cap.with_frames(frames).save(outs.frames)
+    # The SfM world is not the capture's: a gravity vector given in the capture's frame means
+    # nothing here, so alignment must find the floor itself.
+    replace(cap, gravity=None).with_frames(frames).save(outs.frames)
     (out / "sparse").mkdir()
     rec.write(out / "sparse")
     rec.export_PLY(out / "sparse.ply")

@@ -1,0 +1,85 @@
+"""Configuration and the input / output contract of the blueprint stage."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+
+@dataclass(frozen=True)
+class BlunfConfig:
+    """The BluNF field B(x, y) -> class logits and how it is trained (defaults: fast on CPU)."""
+
+    encoding: str = "pe"  # "none" | "pe" | "hash" | "siren"
+    n_freqs: int = 0  # pe: octaves of sin / cos (2^0 .. 2^(n-1)) pi; 0 = auto, see blunf.py
+    hash_levels: int = 8  # hash: resolution levels
+    hash_features: int = 2  # hash: features per level
+    hash_log2_size: int = 16  # hash: log2 of the table entries per level
+    hash_base_res: int = 8  # hash: coarsest resolution (cells across the unit square [-1, 1]^2)
+    hash_max_res: int = 0  # hash: finest resolution; 0 = half the plan grid's cells across
+    siren_omega: float = 30.0  # siren: omega_0 of the sine layers (SIREN wants lr ~1e-3)
+    width: int = 64  # hidden units per MLP layer
+    layers: int = 2  # hidden layers (the MLP has layers + 1 linear maps)
+    lr: float = 1e-2  # Adam learning rate, decayed exponentially to lr * lr_final
+    lr_final: float = 0.1  # final learning rate as a fraction of lr (1 = constant)
+    batch: int = 8192  # points per step
+    steps: int = 1000  # optimisation steps
+    balance: str = "none"  # class sampling: "none" (as projected) | "sqrt" (p ∝ sqrt(count))
+    seed: int = 0  # seeds the initialisation and the batch sampling
+    threads: int = 0  # torch threads while training (0 = leave torch's setting)
+    eval_chunk: int = 65536  # cell centres per forward pass when rendering the plan
+
+
+def paper_recipe() -> BlunfConfig:
+    """The paper's recipe: PE with 12 frequencies, one hidden layer of 64 ReLU units (tcnn
+    "n_hidden_layers = num_layers - 1" with num_layers 2), Adam 5e-3, 50k points per step,
+    50k steps, plain (unbalanced) sampling, no learning-rate decay."""
+    return BlunfConfig(
+        encoding="pe",
+        n_freqs=12,
+        width=64,
+        layers=1,
+        lr=5e-3,
+        lr_final=1.0,
+        batch=50_000,
+        steps=50_000,
+        balance="none",
+    )
+
+
+@dataclass(frozen=True)
+class MvrConfig:
+    """Multi-view reconstruction: per-cell majority vote of the projected labels."""
+
+    min_votes: int = 1  # cells with fewer projected points stay unknown (255)
+
+
+@dataclass(frozen=True)
+class BlueprintConfig:
+    """Which plan builder, and the settings of each."""
+
+    impl: str = "blunf"  # registry key in stages.blueprint.IMPLS: "blunf" | "mvr"
+    blunf: BlunfConfig = field(default_factory=BlunfConfig)  # used when impl = "blunf"
+    mvr: MvrConfig = field(default_factory=MvrConfig)  # used when impl = "mvr"
+
+
+STATS_FILES = ("train.json", "mvr.json")  # the stats file each impl writes
+
+
+@dataclass(frozen=True)
+class BlueprintInputs:
+    points: Path  # points.npz of the project stage
+    grid: Path  # grid.json of the project stage
+
+
+@dataclass(frozen=True)
+class BlueprintOutputs:
+    blueprint: Path  # blueprint.npz (Blueprint.save)
+    stats: Path  # train.json (blunf) or mvr.json (mvr): counts and timings
+
+    @classmethod
+    def at(cls, out: Path) -> BlueprintOutputs:
+        """The outputs inside a finished blueprint folder (stats named by the impl that ran)."""
+        out = Path(out)
+        stats = next((out / n for n in STATS_FILES if (out / n).exists()), out / STATS_FILES[0])
+        return cls(blueprint=out / "blueprint.npz", stats=stats)

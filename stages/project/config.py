@@ -1,0 +1,42 @@
+"""Configuration and the input / output contract of the project stage (the paper's Π)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+
+@dataclass(frozen=True)
+class ProjectConfig:
+    """How labelled pixels become plan points."""
+
+    impl: str = "pinhole"  # registry key in stages.project.IMPLS
+    stride: int = 2  # keep every stride-th pixel in u and v (1 = every pixel)
+    cell: float = 0.02  # plan cell size in metres
+    pad: float = 0.1  # metres added around the robust bounds of the points
+    bounds_pct: float = 0.1  # percent of points dropped on each side when bounding the plan
+    labelling: str = "auto"  # "labels" | "height" | "auto" (labels when the capture has them)
+    floor_band: float = 0.05  # height labelling: z below this (metres) is floor
+    ceiling_cut: float = 2.0  # height labelling: z at or above this (metres) is dropped
+    max_cells: int = 25_000_000  # refuse larger plans (a sign of bad poses or units)
+
+
+@dataclass(frozen=True)
+class ProjectInputs:
+    frames: Path  # frames.json of a capture with poses and depth (Capture.save)
+
+
+@dataclass(frozen=True)
+class ProjectOutputs:
+    points: Path  # points.npz: xyz float32 [N, 3], label uint8 [N], view int32 [N], classes
+    grid: Path  # grid.json: the plan Grid covering the points (Grid.to_json)
+
+    @classmethod
+    def at(cls, out: Path) -> ProjectOutputs:
+        """The outputs inside a finished project folder."""
+        return cls(points=Path(out) / "points.npz", grid=Path(out) / "grid.json")
+
+    @property
+    def classes(self) -> Path:
+        """classes.json beside the points: {"classes": {id: name}, "labelling": ...}."""
+        return self.points.parent / "classes.json"

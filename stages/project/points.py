@@ -1,0 +1,234 @@
+"""Π: labelled pixels with depth to world points, and the plan grid that covers them.
+
+Every `stride`-th pixel of every frame with a valid depth reading and a label that is neither
+unknown (255) nor in the capture's ignore list becomes a point (x, y, z, label, view). Without
+labels, points are labelled by height (floor / occupied) so a plan exists before semantics.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from stages.common.blueprint import Grid
+from stages.common.camera import Intrinsics, pixel_grid, unproject
+from stages.common.capture import UNKNOWN, Capture, Frame
+from stages.common.errors import BlunfError
+from stages.common.io import image_size, read_depth, read_json, read_label, write_json
+from stages.project.config import ProjectConfig, ProjectInputs, ProjectOutputs
+
+log = logging.getLogger(__name__)
+
+HEIGHT_CLASSES = {0: "floor", 1: "occupied"}
+LABELLINGS = ("auto", "labels", "height")
+
+
+def run(cfg: ProjectConfig, inputs: ProjectInputs, out: Path) -> ProjectOutputs:
+    """Project every labelled pixel with depth of every frame into the world."""
+    t0 = time.perf_counter()
+    _check(cfg)
+    log.info("project: %s", cfg)
+    cap = Capture.load(inputs.frames)
+    if not cap.frames:
+        raise BlunfError(f"{inputs.frames}: the capture has no frames")
+    labelling = _labelling(cfg, cap)
+    ignore = np.asarray([*cap.ignore, UNKNOWN], np.int64)  # label ids never projected
+    xyz_l, lab_l, view_l = [], [], []
+    counts = {"sampled": 0, "no_depth": 0, "dropped_label": 0, "dropped_height": 0}
+    for i, f in enumerate(cap.frames):
+        xyz, lab = _frame_points(cap, f, cfg, labelling == "labels", ignore, counts)
+        if labelling == "height":
+            xyz, lab = _height_labels(xyz, cfg, counts)
+        xyz_l.append(xyz.astype(np.float32))
+        lab_l.append(lab)
+        view_l.append(np.full(len(lab), i, np.int32))
+    xyz = np.concatenate(xyz_l)  # [N, 3]
+    label = np.concatenate(lab_l).astype(np.uint8)  # [N]
+    view = np.concatenate(view_l)  # [N]
+    if len(label) == 0:
+        raise BlunfError(f"no labelled pixel with depth in {cap.root}")
+    classes = HEIGHT_CLASSES if labelling == "height" else _label_classes(cap, label)
+
+    grid = plan_grid(xyz[:, :2], cfg)
+    if grid.shape[0] * grid.shape[1] > cfg.max_cells:
+        raise BlunfError(
+            f"{inputs.frames}: the plan would be {grid.shape[1]}x{grid.shape[0]} cells of "
+            f"{cfg.cell} m (> project.max_cells = {cfg.max_cells}); check poses and depth units"
+        )
+    outs = ProjectOutputs.at(out)
+    np.savez(outs.points, xyz=xyz, label=label, view=view, classes=_classes_json(classes))
+    write_json(outs.grid, grid.to_json())
+    write_json(outs.classes, {"classes": _str_keys(classes), "labelling": labelling})
+    stats = {
+        "frames": len(cap.frames),
+        "points": int(len(label)),
+        "labelling": labelling,
+        **counts,
+        "grid_shape": list(grid.shape),
+        "cell": grid.cell,
+        "seconds": round(time.perf_counter() - t0, 3),
+    }
+    write_json(Path(out) / "project.json", stats)
+    log.info(
+        "project: %d points from %d frames, plan %dx%d cells",
+        len(label),
+        len(cap.frames),
+        grid.shape[1],
+        grid.shape[0],
+    )
+    return outs
+
+
+def plan_grid(xy: np.ndarray, cfg: ProjectConfig) -> Grid:
+    """The grid covering points xy [N, 2] without the outer `bounds_pct` % on each side."""
+    lo = np.percentile(xy, cfg.bounds_pct, axis=0)  # [2]
+    hi = np.percentile(xy, 100.0 - cfg.bounds_pct, axis=0)  # [2]
+    return Grid.covering(lo, hi, cfg.cell, cfg.pad)
+
+
+def read_points(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[int, str]]:
+    """Read points.npz. Returns (xyz float32 [N, 3], label uint8 [N], view int32 [N], classes)."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            xyz, label, view = z["xyz"], z["label"], z["view"]
+            classes = {int(k): str(v) for k, v in json.loads(str(z["classes"])).items()}
+    except (OSError, KeyError, ValueError) as e:
+        raise BlunfError(f"{path}: not a points .npz ({e})") from None
+    if xyz.ndim != 2 or xyz.shape[1] != 3 or len(label) != len(xyz) or len(view) != len(xyz):
+        raise BlunfError(f"{path}: xyz, label and view disagree in length")
+    return xyz, label, view, classes
+
+
+def read_grid(path: Path) -> Grid:
+    """Read grid.json."""
+    d = read_json(path)
+    try:
+        return Grid.from_json(d)
+    except (KeyError, TypeError, ValueError, IndexError) as e:
+        raise BlunfError(f"{path}: not a plan grid ({e})") from None
+
+
+def _frame_points(
+    cap: Capture, f: Frame, cfg: ProjectConfig, use_labels: bool, ignore: np.ndarray, counts: dict
+) -> tuple[np.ndarray, np.ndarray]:
+    """World points [N, 3] and labels [N] (int64; zeros without labels) of one frame."""
+    if f.pose is None:
+        raise BlunfError(f"{f.image}: frame {f.stem!r} has no pose")
+    if f.depth is None:
+        raise BlunfError(f"{f.image}: frame {f.stem!r} has no depth map")
+    w, h = image_size(f.image)
+    depth = read_depth(f.depth, cap.depth_scale, cap.depth_invalid)  # [H, W] metres
+    if depth.shape != (h, w):
+        raise BlunfError(
+            f"{f.depth}: depth is {depth.shape[1]}x{depth.shape[0]} but the image "
+            f"{f.image.name} is {w}x{h}"
+        )
+    s = cfg.stride
+    uv = pixel_grid(w, h, s).reshape(-1, 2)  # [N, 2]
+    d = depth[s // 2 :: s, s // 2 :: s].reshape(-1)  # [N]
+    keep = d > 0
+    counts["sampled"] += len(d)
+    counts["no_depth"] += int((~keep).sum())
+    if use_labels:
+        assert f.label is not None
+        lab_img = read_label(f.label)
+        if lab_img.shape != (h, w):
+            raise BlunfError(
+                f"{f.label}: label map is {lab_img.shape[1]}x{lab_img.shape[0]} but "
+                f"the image {f.image.name} is {w}x{h}"
+            )
+        lab = lab_img[s // 2 :: s, s // 2 :: s].reshape(-1).astype(np.int64)  # [N]
+        ok = ~np.isin(lab, ignore)
+        counts["dropped_label"] += int((keep & ~ok).sum())
+        keep &= ok
+        if keep.any() and lab[keep].max() > UNKNOWN:
+            raise BlunfError(
+                f"{f.label}: label id {int(lab[keep].max())} does not fit a plan "
+                f"(class ids must be < {UNKNOWN})"
+            )
+        lab = lab[keep]
+    else:
+        lab = np.zeros(int(keep.sum()), np.int64)
+    intr = f.intrinsics
+    if (intr.width, intr.height) != (w, h):
+        intr = intr.scaled(w, h)
+    uvk = _undistort(uv[keep], intr) if any(intr.dist) else uv[keep]
+    return unproject(uvk, d[keep], intr.K, np.asarray(f.pose, np.float64)), lab
+
+
+def _height_labels(
+    xyz: np.ndarray, cfg: ProjectConfig, counts: dict
+) -> tuple[np.ndarray, np.ndarray]:
+    """Floor (0) below floor_band, occupied (1) up to ceiling_cut, higher points dropped."""
+    z = xyz[:, 2]
+    keep = z < cfg.ceiling_cut
+    counts["dropped_height"] += int((~keep).sum())
+    lab = np.where(z[keep] < cfg.floor_band, 0, 1).astype(np.int64)
+    return xyz[keep], lab
+
+
+def _undistort(uv: np.ndarray, intr: Intrinsics, iters: int = 20) -> np.ndarray:
+    """Distorted pixels [N, 2] to ideal pinhole pixels (OpenCV k1, k2, p1, p2[, k3] model)."""
+    k1, k2, p1, p2, k3 = (tuple(intr.dist) + (0.0,) * 5)[:5]
+    xd = (uv[:, 0] - intr.cx) / intr.fx
+    yd = (uv[:, 1] - intr.cy) / intr.fy
+    x, y = xd.copy(), yd.copy()
+    for _ in range(iters):  # fixed point x = (xd - tangential(x)) / radial(x)
+        r2 = x * x + y * y
+        rad = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
+        dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        x, y = (xd - dx) / rad, (yd - dy) / rad
+    return np.stack([x * intr.fx + intr.cx, y * intr.fy + intr.cy], axis=-1)
+
+
+def _labelling(cfg: ProjectConfig, cap: Capture) -> str:
+    if cfg.labelling == "height":
+        return "height"
+    if cap.has_labels:
+        return "labels"
+    if cfg.labelling == "labels":
+        stem = next(f.stem for f in cap.frames if f.label is None)
+        raise BlunfError(
+            f"{cap.root}: project.labelling='labels' but frame {stem!r} has no label map"
+        )
+    log.info("project: the capture has no labels; labelling points by height")
+    return "height"
+
+
+def _label_classes(cap: Capture, label: np.ndarray) -> dict[int, str]:
+    """The capture's class table without ignored ids, plus a name for every unnamed seen id."""
+    classes = {k: v for k, v in cap.classes.items() if k not in cap.ignore and 0 <= k < UNKNOWN}
+    for c in np.unique(label).tolist():
+        classes.setdefault(int(c), f"class {c}")
+    return dict(sorted(classes.items()))
+
+
+def _check(cfg: ProjectConfig) -> None:
+    if cfg.stride < 1:
+        raise BlunfError(f"project.stride must be >= 1, got {cfg.stride}")
+    if not cfg.cell > 0:
+        raise BlunfError(f"project.cell must be > 0 metres, got {cfg.cell}")
+    if not 0 <= cfg.bounds_pct < 50:
+        raise BlunfError(f"project.bounds_pct must be in [0, 50), got {cfg.bounds_pct}")
+    if cfg.pad < 0:
+        raise BlunfError(f"project.pad must be >= 0 metres, got {cfg.pad}")
+    if cfg.labelling not in LABELLINGS:
+        raise BlunfError(f"project.labelling must be one of {LABELLINGS}, got {cfg.labelling!r}")
+    if not cfg.floor_band < cfg.ceiling_cut:
+        raise BlunfError(
+            f"project.floor_band ({cfg.floor_band}) must be below "
+            f"project.ceiling_cut ({cfg.ceiling_cut})"
+        )
+
+
+def _str_keys(classes: dict[int, str]) -> dict[str, str]:
+    return {str(k): v for k, v in sorted(classes.items())}
+
+
+def _classes_json(classes: dict[int, str]) -> str:
+    return json.dumps(_str_keys(classes))
