@@ -1,0 +1,12 @@
+"""Align stage: a rigid transform T making the world z up with the floor at z = 0.
+
+`IMPLS[cfg.impl]` picks the implementation: `gravity` (capture's gravity vector), `floor`
+(floor plane from depth), `auto` (gravity if given, else floor) or `none` (identity).
+"""
+
+from stages.align import auto, floor, gravity, none
+from stages.align.config import AlignConfig, AlignInputs, AlignOutputs
+
+IMPLS = {"auto": auto.run, "gravity": gravity.run, "floor": floor.run, "none": none.run}
+
+__all__ = ["IMPLS", "AlignConfig", "AlignInputs", "AlignOutputs"]

@@ -1,0 +1,61 @@
+"""Configuration, inputs and outputs of the align stage (world z up, floor at z = 0)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from stages.common.errors import BlunfError
+
+
+@dataclass(frozen=True)
+class AlignConfig:
+    """How the world is turned z up and shifted so that the floor is at z = 0."""
+
+    impl: str = "auto"  # "auto" (gravity when the capture has one, else floor) | "gravity"
+    #                     | "floor" | "none" (identity)
+    frames_used: int = 20  # frames (evenly spaced over the capture) whose depth is sampled
+    stride: int = 8  # pixel stride when sampling those depth maps
+    plane_dist: float = 0.02  # metres: floor inlier distance, and bin of the height histogram
+    max_tilt_deg: float = 15.0  # a point is on a horizontal surface when its normal is within
+    #                             this angle of up
+    up_cone_deg: float = 45.0  # floor impl: the floor normal may be this far from the cameras'
+    #                            mean up direction (cameras looking down tilt that mean)
+    min_floor_fraction: float = 0.05  # a height counts as a floor when it holds this fraction
+    #                                   of the horizontal points below the cameras
+    normal_neighbours: int = 16  # nearest neighbours (within one frame) for point normals
+
+    def __post_init__(self) -> None:
+        for name in ("frames_used", "stride"):
+            if getattr(self, name) < 1:
+                raise BlunfError(f"align.{name}: must be >= 1, got {getattr(self, name)}")
+        if self.normal_neighbours < 3:
+            raise BlunfError(f"align.normal_neighbours: must be >= 3, got {self.normal_neighbours}")
+        if not self.plane_dist > 0:
+            raise BlunfError(f"align.plane_dist: must be > 0 metres, got {self.plane_dist}")
+        if not 0 < self.max_tilt_deg <= self.up_cone_deg < 90:
+            raise BlunfError(
+                "align: need 0 < max_tilt_deg <= up_cone_deg < 90, got "
+                f"{self.max_tilt_deg} and {self.up_cone_deg}"
+            )
+        if not 0 < self.min_floor_fraction <= 1:
+            raise BlunfError(
+                f"align.min_floor_fraction: must be in (0, 1], got {self.min_floor_fraction}"
+            )
+
+
+@dataclass(frozen=True)
+class AlignInputs:
+    frames: Path  # frames.json (a `Capture`) with a camera-to-world pose on every frame
+
+
+@dataclass(frozen=True)
+class AlignOutputs:
+    frames: Path  # frames.json with every pose replaced by T @ pose
+    align: Path  # align.json: T, method, floor height before the shift, inliers, notes
+
+    @classmethod
+    def at(cls, out: Path) -> AlignOutputs:
+        """The outputs inside a finished out folder."""
+        out = Path(out)
+        return cls(frames=out / "frames.json", align=out / "align.json")

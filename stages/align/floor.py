@@ -1,0 +1,90 @@
+"""Align without gravity: the floor plane's normal becomes +z and the floor z = 0.
+
+The cameras' mean up axis (-y in OpenCV convention) only guides the search: cameras that
+look down at a counter tilt it by tens of degrees. The up direction is the common normal
+of the horizontal surfaces near it, then refined by fitting a plane to the floor inliers.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from stages.align.config import AlignConfig, AlignInputs, AlignOutputs
+from stages.align.planes import (
+    UP,
+    Floor,
+    angle_deg,
+    cameras_up,
+    dominant_up,
+    find_floor,
+    finish,
+    load,
+    rotation_between,
+    sample,
+)
+from stages.common.capture import Capture
+
+log = logging.getLogger(__name__)
+
+REFINE_STEPS = 5  # floor-plane refits of the rotation (exact data: converges in 2)
+CONVERGED_DEG = 0.01  # stop refitting when the floor normal is this close to +z
+
+
+def solve(cap: Capture, cfg: AlignConfig, where: Path) -> tuple[np.ndarray, float, dict]:
+    """(R [3, 3], floor height after R, facts) from the floor plane found in the depth."""
+    t0 = time.perf_counter()
+    s = sample(cap, cfg, where)
+    poses = cap.poses()  # [C, 4, 4]
+    centres = poses[:, :3, 3]  # [C, 3]
+    up0 = cameras_up(poses)
+    notes = []
+    u = dominant_up(s.normals, up0, cfg)
+    up_from = "normals"  # of the horizontal surfaces
+    if u is None:
+        u, up_from = up0, "cameras"
+        notes.append(f"no horizontal surfaces within {cfg.up_cone_deg} deg of the cameras' up")
+    R = rotation_between(u, UP)
+
+    def floor_at(R: np.ndarray) -> Floor:
+        return find_floor(s.points @ R.T, s.normals @ R.T, (centres @ R.T)[:, 2], cfg)
+
+    for _ in range(REFINE_STEPS):
+        fl = floor_at(R)
+        if fl.normal is None or angle_deg(fl.normal, UP) < CONVERGED_DEG:
+            break
+        R = rotation_between(fl.normal, UP) @ R
+        up_from = "floor"
+    fl = floor_at(R)
+    if fl.normal is not None:
+        up_from = "floor"
+    elif up_from != "floor":
+        notes.append(f"too few floor inliers to fit the floor plane; up from the {up_from}")
+    if fl.note:
+        notes.append(fl.note)
+    cam_dev = angle_deg(R @ up0, UP)
+    if cam_dev > cfg.up_cone_deg:
+        notes.append(f"up is {cam_dev:.0f} deg from the cameras' mean up (> up_cone_deg)")
+    info = {
+        "method": "floor",
+        "inlier_fraction": fl.inlier_fraction,
+        "up_from": up_from,
+        "notes": "; ".join(notes),
+        "frames_used": s.frames,
+        "points": len(s.points),
+        "floor_tilt_deg": None if fl.normal is None else angle_deg(fl.normal, UP),
+        "cameras_up_deg": cam_dev,
+        "seconds": round(time.perf_counter() - t0, 3),
+    }
+    return R, fl.z, info
+
+
+def run(cfg: AlignConfig, inputs: AlignInputs, out: Path) -> AlignOutputs:
+    """Rotate the floor normal onto +z and shift the floor to z = 0 (no gravity needed)."""
+    log.info("align floor: %s", cfg)
+    cap = load(inputs)
+    R, floor_z, info = solve(cap, cfg, inputs.frames)
+    return finish(cap, out, R, floor_z, info)

@@ -1,0 +1,63 @@
+"""Configuration, inputs and outputs of the fusion stage (TSDF of depth -> mesh, clean depth)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from stages.common.errors import BlunfError
+
+
+@dataclass(frozen=True)
+class FusionConfig:
+    """How depth maps are fused into one surface and ray-cast back into every view."""
+
+    impl: str = "tsdf"  # "tsdf": Open3D tensor VoxelBlockGrid (CPU)
+    voxel: float = 0.02  # voxel size, metres
+    trunc_voxels: float = 4.0  # TSDF truncation distance, in voxels
+    depth_min: float = 0.1  # readings nearer than this (metres) are not fused
+    depth_max: float = 5.0  # readings farther than this (metres) are not fused
+    block_resolution: int = 16  # voxels along each side of a hashed voxel block
+    weight_threshold: float = 0.5  # a voxel is surface only when more than this many frames
+    #                                saw it (0.5 = every observed voxel; 1.5 = two frames)
+    raycast: bool = True  # ray-cast the fused mesh into every view as that view's clean depth
+
+    def __post_init__(self) -> None:
+        if not self.voxel > 0:
+            raise BlunfError(f"fusion.voxel: must be > 0 metres, got {self.voxel}")
+        if not self.trunc_voxels >= 1:
+            raise BlunfError(f"fusion.trunc_voxels: must be >= 1, got {self.trunc_voxels}")
+        if not 0 <= self.depth_min < self.depth_max:
+            raise BlunfError(
+                f"fusion: need 0 <= depth_min < depth_max, got {self.depth_min}, {self.depth_max}"
+            )
+        if self.block_resolution < 1:
+            raise BlunfError(f"fusion.block_resolution: must be >= 1, got {self.block_resolution}")
+        if not self.weight_threshold >= 0:
+            raise BlunfError(f"fusion.weight_threshold: must be >= 0, got {self.weight_threshold}")
+
+
+@dataclass(frozen=True)
+class FusionInputs:
+    frames: Path  # frames.json (a `Capture`): every frame with depth and a finite pose
+
+
+@dataclass(frozen=True)
+class FusionOutputs:
+    mesh: Path  # mesh.ply: fused surface with vertex colours
+    cloud: Path  # cloud.ply: points on the fused surface with colours and normals
+    depth: Path  # depth/: <stem>.png per view, ray-cast depth in uint16 millimetres
+    frames: Path  # frames.json: the input capture with depth pointing at depth/<stem>.png
+    stats: Path  # fusion.json: voxel size, blocks, timings, vertex and triangle counts
+
+    @classmethod
+    def at(cls, out: Path) -> FusionOutputs:
+        """The outputs inside a finished out folder."""
+        out = Path(out)
+        return cls(
+            mesh=out / "mesh.ply",
+            cloud=out / "cloud.ply",
+            depth=out / "depth",
+            frames=out / "frames.json",
+            stats=out / "fusion.json",
+        )

@@ -1,0 +1,238 @@
+"""TSDF fusion of every frame's depth and colour with Open3D, then clean depth per view.
+
+Why the tensor `open3d.t.geometry.VoxelBlockGrid`: Open3D 0.20's legacy ScalableTSDFVolume
+returns empty geometry, and the tensor grid stores only the voxel blocks that depth
+touches, in a hash map whose memory is allocated up front (`block_count` blocks of
+block_resolution³ voxels, 80 kB each at 16³ with float tsdf, weight and RGB). We size it
+exactly: a first pass collects the blocks every frame will touch (the same Open3D call the
+integration uses; ~15 ms a 640x480 frame), so a small room does not preallocate gigabytes
+and a large one is never rehashed (the hash map doubles its capacity when it overflows).
+
+Clean depth: every view is ray-cast against the extracted mesh with Open3D's
+RaycastingScene (Embree). Measured on 10 views of 7-Scenes redkitchen (640x480, 2 cm
+voxels, 2 busy cores): 0.12 s a view, against 0.23 s for `VoxelBlockGrid.ray_cast`, whose
+depth also shows block-shaped holes and seams (median error to the sensor 2.0 cm against
+0.6 cm). Pixel centres are at integer (u, v) as in `stages.common.camera`; Open3D's are at
++0.5 (see `_k`); the depth written is z along the optical axis.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+import open3d.core as o3c
+
+from stages.common.camera import Intrinsics, check_pose
+from stages.common.capture import Capture, Frame
+from stages.common.errors import BlunfError
+from stages.common.io import read_depth, read_image, write_depth_png, write_json
+from stages.fusion.config import FusionConfig, FusionInputs, FusionOutputs
+
+log = logging.getLogger(__name__)
+
+CPU = o3c.Device("CPU:0")
+ATTRS = ("tsdf", "weight", "color")
+VOXEL_BYTES = 4 + 4 + 3 * 4  # float32 tsdf, weight and RGB per voxel
+
+
+def run(cfg: FusionConfig, inputs: FusionInputs, out: Path) -> FusionOutputs:
+    """Fuse every frame into a TSDF; write the mesh, the cloud and ray-cast depth per view."""
+    log.info("fusion tsdf: %s", cfg)
+    cap = Capture.load(inputs.frames)
+    _check(cap, inputs.frames)
+    outs = FusionOutputs.at(out)
+    outs.depth.mkdir(parents=True, exist_ok=True)
+    notes = []
+    distorted = sum(any(abs(k) > 0 for k in f.intrinsics.dist) for f in cap.frames)
+    if distorted:
+        notes.append(f"lens distortion of {distorted} frames ignored (pinhole assumed)")
+        log.warning("fusion: %s", notes[-1])
+
+    t0 = time.perf_counter()
+    coords, n_blocks, valid_in = _blocks(cap, cfg)
+    t_blocks = time.perf_counter() - t0
+    if n_blocks == 0:
+        raise BlunfError(_nothing(cap, cfg, inputs.frames))
+    empty = [f.stem for f, bc in zip(cap.frames, coords, strict=True) if bc is None]
+    if empty:
+        notes.append(f"{len(empty)} frames without valid depth skipped (first {empty[0]!r})")
+        log.warning("fusion: %s", notes[-1])
+
+    vbg = _grid(cfg, n_blocks)
+    t0 = time.perf_counter()
+    t_o3d = 0.0
+    for f, bc in zip(cap.frames, coords, strict=True):
+        if bc is None:
+            continue
+        depth, k_depth = _depth(f, cap, cfg)
+        rgb = read_image(f.image)  # [H, W, 3] uint8
+        k_color = _fit(f.intrinsics, rgb.shape[1], rgb.shape[0])
+        color = rgb.astype(np.float32) / np.float32(255.0)  # [H, W, 3]; float depth needs it
+        ta = time.perf_counter()
+        vbg.integrate(
+            bc, _image(depth), _image(color), _k(k_depth), _k(k_color), _w2c(f),
+            1.0, cfg.depth_max, cfg.trunc_voxels,
+        )  # fmt: skip
+        t_o3d += time.perf_counter() - ta
+    t_integrate = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    mesh = vbg.extract_triangle_mesh(cfg.weight_threshold)
+    cloud = vbg.extract_point_cloud(cfg.weight_threshold)
+    n_vert, n_tri = mesh.vertex.positions.shape[0], mesh.triangle.indices.shape[0]
+    if n_tri == 0:
+        raise BlunfError(_nothing(cap, cfg, inputs.frames))
+    mesh.vertex.colors = mesh.vertex.colors.clip(0.0, 1.0)  # trilinear sums overshoot 1 a bit
+    cloud.point.colors = cloud.point.colors.clip(0.0, 1.0)
+    o3d.t.io.write_triangle_mesh(outs.mesh, mesh)
+    o3d.t.io.write_point_cloud(outs.cloud, cloud)
+    t_extract = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    frames = list(cap.frames)
+    valid_out = None
+    if cfg.raycast:
+        frames, valid_out = _raycast(mesh, cap, outs.depth)
+        cap = replace(cap, depth_scale=1000.0, depth_invalid=(65535,))  # write_depth_png's
+    t_raycast = time.perf_counter() - t0
+    cap.with_frames(frames).save(outs.frames)
+
+    n = len(cap.frames) - len(empty)
+    stats = {
+        "voxel": cfg.voxel,
+        "trunc_m": cfg.voxel * cfg.trunc_voxels,
+        "frames": len(cap.frames),
+        "frames_fused": n,
+        "block_count": n_blocks,  # allocated = blocks the frames touch
+        "blocks": int(vbg.hashmap().size()),
+        "voxel_memory_mb": round(n_blocks * cfg.block_resolution**3 * VOXEL_BYTES / 2**20, 1),
+        "blocks_seconds": round(t_blocks, 3),
+        "integrate_seconds": round(t_integrate, 3),  # reading depth and colour + integration
+        "integrate_open3d_seconds": round(t_o3d, 3),
+        "integrate_fps": round(n / max(t_integrate, 1e-9), 2),
+        "extract_seconds": round(t_extract, 3),
+        "raycast": "RaycastingScene on the mesh" if cfg.raycast else "off",
+        "raycast_seconds": round(t_raycast, 3),
+        "vertices": int(n_vert),
+        "triangles": int(n_tri),
+        "cloud_points": int(cloud.point.positions.shape[0]),
+        "depth_valid_in": round(valid_in, 4),  # mean fraction of fused pixels per view
+        "depth_valid_out": None if valid_out is None else round(valid_out, 4),
+        "notes": "; ".join(notes),
+    }
+    write_json(outs.stats, stats)
+    log.info("fusion: %d frames at %.1f frames/s, %d blocks, %d vertices, %d triangles",
+             n, stats["integrate_fps"], stats["blocks"], n_vert, n_tri)  # fmt: skip
+    return outs
+
+
+def _check(cap: Capture, where: Path) -> None:
+    if not cap.frames:
+        raise BlunfError(f"fusion: {where} has no frames")
+    for f in cap.frames:
+        if f.depth is None:
+            raise BlunfError(f"fusion: frame {f.stem!r} of {where} has no depth")
+        if f.pose is None:
+            raise BlunfError(f"fusion: frame {f.stem!r} of {where} has no pose")
+        check_pose(f.pose, f"fusion: frame {f.stem!r} of {where}")
+
+
+def _nothing(cap: Capture, cfg: FusionConfig, where: Path) -> str:
+    return (
+        f"fusion: no surface fused from the {len(cap.frames)} frames of {where} (depth all "
+        f"invalid or outside [{cfg.depth_min}, {cfg.depth_max}] m?)"
+    )
+
+
+def _grid(cfg: FusionConfig, block_count: int) -> o3d.t.geometry.VoxelBlockGrid:
+    f32, sv = o3c.float32, o3c.SizeVector
+    return o3d.t.geometry.VoxelBlockGrid(
+        ATTRS, (f32, f32, f32), (sv([1]), sv([1]), sv([3])), cfg.voxel, cfg.block_resolution,
+        block_count, CPU,
+    )  # fmt: skip
+
+
+def _tensor(a: np.ndarray, dtype: o3c.Dtype) -> o3c.Tensor:
+    return o3c.Tensor(np.ascontiguousarray(a), dtype, CPU)
+
+
+def _image(a: np.ndarray) -> o3d.t.geometry.Image:
+    """Open3D image of float32 [H, W] (as [H, W, 1]) or [H, W, C]."""
+    return o3d.t.geometry.Image(_tensor(a if a.ndim == 3 else a[..., None], o3c.float32))
+
+
+def _w2c(f: Frame) -> o3c.Tensor:
+    """Open3D's extrinsic: world-to-camera [4, 4]."""
+    return _tensor(np.linalg.inv(np.asarray(f.pose, np.float64)), o3c.float64)
+
+
+def _k(intr: Intrinsics) -> o3c.Tensor:
+    """K for Open3D, whose pixel (i, j) spans [i, i + 1) x [j, j + 1) (integration truncates
+    the projection, ray generation adds 0.5): its centres are half a pixel off ours. Without
+    this shift the synthetic test room's depth errors grow from 3 mm to 12 mm."""
+    K = intr.K
+    K[:2, 2] += 0.5
+    return _tensor(K, o3c.float64)
+
+
+def _fit(intr: Intrinsics, width: int, height: int) -> Intrinsics:
+    """The intrinsics of an image of the given size (the capture's are the colour image's)."""
+    return intr if (intr.width, intr.height) == (width, height) else intr.scaled(width, height)
+
+
+def _depth(f: Frame, cap: Capture, cfg: FusionConfig) -> tuple[np.ndarray, Intrinsics]:
+    """Fusable depth [H, W] float32 metres (0 = not fused) and its intrinsics."""
+    if f.depth is None:  # ruled out by _check
+        raise BlunfError(f"fusion: frame {f.stem!r} has no depth")
+    d = read_depth(f.depth, cap.depth_scale, cap.depth_invalid)  # invalid codes, NaN, inf -> 0
+    d[~np.isfinite(d) | (d < cfg.depth_min) | (d > cfg.depth_max)] = 0.0
+    return d.astype(np.float32), _fit(f.intrinsics, d.shape[1], d.shape[0])
+
+
+def _blocks(cap: Capture, cfg: FusionConfig) -> tuple[list[o3c.Tensor | None], int, float]:
+    """Per frame the voxel blocks its depth touches ([M, 3] int32; None without valid depth),
+    the size of their union, and the mean fraction of valid depth pixels."""
+    probe = _grid(cfg, 1)  # only computes block coordinates, stores nothing
+    coords: list[o3c.Tensor | None] = []
+    seen: set[int] = set()
+    valid = []
+    for f in cap.frames:
+        depth, k = _depth(f, cap, cfg)
+        valid.append(float((depth > 0).mean()))
+        if not valid[-1]:  # Open3D aborts on a frame that touches no block
+            coords.append(None)
+            continue
+        bc = probe.compute_unique_block_coordinates(
+            _image(depth), _k(k), _w2c(f), 1.0, cfg.depth_max, cfg.trunc_voxels
+        )
+        coords.append(bc)
+        b = bc.numpy().astype(np.int64) + 2**20  # [M, 3] block coordinates, made >= 0
+        seen.update((b[:, 0] << 42 | b[:, 1] << 21 | b[:, 2]).tolist())
+    return coords, len(seen), float(np.mean(valid))
+
+
+def _raycast(mesh: o3d.t.geometry.TriangleMesh, cap: Capture, folder: Path
+             ) -> tuple[list[Frame], float]:  # fmt: skip
+    """Depth of the fused mesh in every view, written as folder/<stem>.png (uint16 mm).
+
+    Returns the frames pointing at those files and the mean fraction of pixels hit.
+    """
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(mesh)
+    frames, hit = [], []
+    for f in cap.frames:
+        k = f.intrinsics
+        # Open3D's pinhole rays have camera z = 1: the hit distance is the depth
+        rays = scene.create_rays_pinhole(_k(k), _w2c(f), k.width, k.height)
+        t = scene.cast_rays(rays)["t_hit"].numpy()  # [H, W], inf = no hit
+        depth = np.where(np.isfinite(t), t, 0.0)
+        hit.append(float((depth > 0).mean()))
+        path = folder / f"{f.stem}.png"
+        write_depth_png(path, depth)
+        frames.append(replace(f, depth=path))
+    return frames, float(np.mean(hit))

@@ -1,0 +1,154 @@
+"""Align stage: the synthetic room of test_fusion moved by a known rigid motion comes back
+with its floor at z = 0 and up = +z; and the 7-Scenes kitchen, with and without gravity."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from stages.align import IMPLS, AlignConfig, AlignInputs
+from stages.align.config import AlignOutputs
+from stages.align.planes import angle_deg, find_floor, rotation_between
+from stages.common.capture import Capture, Frame
+from stages.common.errors import BlunfError
+from tests.conftest import shared_capture
+from tests.stages.test_fusion import room_capture
+
+CFG = AlignConfig(stride=2)  # 64x48 views: every other pixel, all 8 frames
+UP = np.array([0.0, 0.0, 1.0])
+FLOOR_CORNERS = np.array([[0, 0, 0, 1], [4, 0, 0, 1], [4, 3, 0, 1], [0, 3, 0, 1]], float)
+
+
+def motion() -> np.ndarray:
+    """A known world motion [4, 4]: 25 degrees about (1, 2, 0.5), then 1.2 m up and aside."""
+    axis = np.array([1.0, 2.0, 0.5]) / np.linalg.norm([1.0, 2.0, 0.5])
+    M = np.eye(4)
+    M[:3, :3] = o3d.geometry.get_rotation_matrix_from_axis_angle(axis * np.radians(25.0))
+    M[:3, 3] = (0.3, -0.2, 1.2)
+    return M
+
+
+def moved_room(tmp_path, with_gravity: bool):
+    M = motion()
+    g = tuple(M[:3, :3] @ [0.0, 0.0, -1.0]) if with_gravity else None
+    return room_capture(tmp_path / "cap", ceiling=True, gravity=g, transform=M), M
+
+
+def align(impl: str, frames, out, cfg: AlignConfig = CFG) -> tuple[AlignOutputs, dict]:
+    out.mkdir()
+    outs = IMPLS[impl](cfg, AlignInputs(frames), out)
+    return outs, json.loads(outs.align.read_text())
+
+
+def check_aligned(T: np.ndarray, M: np.ndarray) -> None:
+    """T @ M maps the true world (floor z = 0, z up) to the aligned one: it must keep z."""
+    A = T @ M
+    assert angle_deg(A[:3, :3] @ UP, UP) < 0.5
+    # the floor's corners, 2.5 m apart, land on z = 0 (which also bounds the tilt)
+    np.testing.assert_allclose((FLOOR_CORNERS @ A.T)[:, 2], 0.0, atol=0.01)
+
+
+@pytest.mark.parametrize("impl", ["gravity", "auto"])
+def test_gravity_puts_floor_at_zero(tmp_path, impl):
+    frames, M = moved_room(tmp_path, with_gravity=True)
+    outs, info = align(impl, frames, tmp_path / "out")
+    T = np.array(info["T"])
+    assert info["method"] == "gravity" and info["up_from"] == "gravity"
+    check_aligned(T, M)
+    # T = [R | -floor_z e_z]: the shift is minus the floor height found after the rotation
+    assert T[2, 3] == pytest.approx(-info["floor_z_before"])
+    before, after = Capture.load(frames), Capture.load(outs.frames)
+    for f0, f1 in zip(before.frames, after.frames, strict=True):
+        np.testing.assert_allclose(f1.pose, T @ f0.pose, atol=1e-9)
+    np.testing.assert_allclose(after.gravity, [0.0, 0.0, -1.0], atol=1e-9)
+    if impl == "auto":
+        assert info["notes"].startswith("auto: the capture gives gravity")
+
+
+@pytest.mark.parametrize("impl", ["floor", "auto"])
+def test_floor_plane_without_gravity(tmp_path, impl):
+    frames, M = moved_room(tmp_path, with_gravity=False)
+    outs, info = align(impl, frames, tmp_path / "out")
+    assert info["method"] == "floor" and info["up_from"] == "floor"
+    # the cameras' mean up leans from the true up: the floor impl could not just take it
+    assert info["cameras_up_deg"] > 5.0
+    check_aligned(np.array(info["T"]), M)
+    assert Capture.load(outs.frames).gravity is None
+
+
+def test_none_is_identity(tmp_path):
+    frames, _ = moved_room(tmp_path, with_gravity=True)
+    outs, info = align("none", frames, tmp_path / "out")
+    assert info["method"] == "none"
+    np.testing.assert_array_equal(info["T"], np.eye(4))
+    for f0, f1 in zip(Capture.load(frames).frames, Capture.load(outs.frames).frames, strict=True):
+        np.testing.assert_array_equal(f0.pose, f1.pose)
+
+
+def test_no_depth_and_no_gravity_are_errors(tmp_path):
+    frames, _ = moved_room(tmp_path, with_gravity=False)
+    cap = Capture.load(frames)
+    nodepth = [Frame(f.stem, f.image, f.intrinsics, pose=f.pose) for f in cap.frames]
+    cap.with_frames(nodepth).save(tmp_path / "nodepth.json")
+    with pytest.raises(BlunfError, match="no depth to find the floor.*align.impl=none"):
+        align("floor", tmp_path / "nodepth.json", tmp_path / "o1")
+    with pytest.raises(BlunfError, match="no gravity vector"):
+        align("gravity", frames, tmp_path / "o2")
+
+
+def test_rotation_between_is_minimal():
+    a, b = np.array([0.0, 0.6, -0.8]), np.array([0.0, 0.0, -1.0])
+    R = rotation_between(a, b)
+    np.testing.assert_allclose(R @ a, b, atol=1e-12)
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    # minimal: it turns about a x b = +x only, by the angle between them (acos 0.8),
+    # so the x axis (the "yaw" left free by a and b) is kept
+    np.testing.assert_allclose(R @ [1.0, 0.0, 0.0], [1.0, 0.0, 0.0], atol=1e-12)
+    assert np.degrees(np.arccos((np.trace(R) - 1) / 2)) == pytest.approx(np.degrees(np.arccos(0.8)))
+    # opposite directions: a half turn
+    np.testing.assert_allclose(rotation_between(b, -b) @ b, -b, atol=1e-12)
+
+
+def test_floor_is_the_lowest_large_horizontal_plane():
+    """Horizontal points: floor at z = -0.30 (10 %), a counter top at 0.60 (60 %), a ceiling
+    at 2.2 above the cameras (30 %); plus 200 scattered points below the floor. The floor is
+    the lowest height holding >= 5 % of the horizontal points below the cameras: -0.30."""
+    rng = np.random.default_rng(0)
+
+    def plane(n, z):
+        return np.c_[rng.uniform(0, 3, (n, 2)), np.full(n, z)]
+
+    pts = np.concatenate([plane(1000, -0.3), plane(6000, 0.6), plane(3000, 2.2), plane(200, 0.0)])
+    pts[-200:, 2] = rng.uniform(-2.0, -0.4, 200)  # noise below the floor, spread out
+    normals = np.tile(UP, (len(pts), 1))
+    fl = find_floor(pts, normals, np.array([1.2, 1.3]), AlignConfig())
+    assert fl.z == pytest.approx(-0.3, abs=1e-9)
+    np.testing.assert_allclose(fl.normal, UP, atol=1e-9)
+    assert fl.inlier_fraction == pytest.approx(1000 / 10200, abs=0.005)
+    assert fl.note == ""
+
+
+@pytest.mark.slow
+def test_kitchen_gravity_and_floor_agree(tmp_path):
+    """7-Scenes redkitchen: the floor is a small part of views of counters. Gravity and the
+    floor plane must give the same up (within 3 degrees: the data's floor leans ~2 degrees
+    from its gravity vector) and camera heights of a hand-held Kinect (1-2 m)."""
+    src = shared_capture("7scenes-redkitchen")
+    from stages.ingest import load
+
+    cap = load(src, tmp_path / "work", "7scenes")
+    cap.save(tmp_path / "frames.json")
+    Ts = {}
+    for impl in ("gravity", "floor"):
+        _, info = align(impl, tmp_path / "frames.json", tmp_path / impl, AlignConfig())
+        assert info["method"] == impl and info["notes"] == ""
+        assert info["inlier_fraction"] > 0.01
+        Ts[impl] = np.array(info["T"])
+    assert angle_deg(Ts["gravity"][2, :3], Ts["floor"][2, :3]) < 3.0
+    c = np.c_[cap.poses()[:, :3, 3], np.ones(len(cap.frames))]  # [C, 4]
+    zg, zf = (c @ Ts["gravity"].T)[:, 2], (c @ Ts["floor"].T)[:, 2]
+    assert 1.0 < np.median(zg) < 2.0
+    assert np.abs(zg - zf).max() < 0.10
