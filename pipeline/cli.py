@@ -131,8 +131,10 @@ def _dispatch(args: argparse.Namespace) -> int:
         cfg = load_config(args.config, sets)
         if args.edits is not None and not args.edits.is_file():
             raise BlunfError(f"{args.edits}: edit spec not found")
+        if not args.capture.exists():
+            raise BlunfError(f"{args.capture}: capture folder not found")
         n = setup_runtime(cfg.run.threads)
-        log.info("threads: %d", n)
+        log.debug("threads: %d", n)
         report = run(args.capture, args.out, cfg, args.edits)
         summary = {k: v for k, v in report.metrics.items()}
         print(

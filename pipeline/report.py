@@ -30,6 +30,7 @@ class Report:
     stages: list[StageRecord] = field(default_factory=list)
     metrics: dict[str, Any] = field(default_factory=dict)
     outputs: dict[str, str] = field(default_factory=dict)
+    plan: dict[str, Any] = field(default_factory=dict)  # classes' areas and the components
     started: float = field(default_factory=time.time)
 
     def add(self, rec: StageRecord) -> None:
@@ -43,6 +44,7 @@ class Report:
             "stages": [asdict(s) for s in self.stages],
             "metrics": self.metrics,
             "outputs": self.outputs,
+            "plan": self.plan,
             "config": self.config,
         }
 

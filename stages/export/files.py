@@ -1,0 +1,54 @@
+"""The export stage: the files a user takes away (plan picture, vector plans, mesh, poses)."""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+from stages.common.blueprint import Blueprint
+from stages.common.capture import Capture
+from stages.common.io import write_json
+from stages.export.components import plan_summary
+from stages.export.config import ExportConfig
+from stages.export.render import plan_png
+from stages.export.vector import write_dxf, write_geojson, write_svg
+from stages.ingest.nerfstudio import write_transforms
+
+FILES = ("blueprint.png", "blueprint.npz", "blueprint.svg", "blueprint.geojson", "blueprint.dxf",
+         "mesh.ply", "transforms.json", "components.json")
+
+
+@dataclass(frozen=True)
+class ExportInputs:
+    blueprint: Path  # blueprint.npz of the product's method
+    mesh: Path  # fused mesh.ply
+    frames: Path  # frames.json with the final (aligned) poses
+
+
+@dataclass(frozen=True)
+class ExportOutputs:
+    folder: Path
+    files: tuple[str, ...] = FILES
+
+    @classmethod
+    def at(cls, out: Path) -> ExportOutputs:
+        return cls(Path(out))
+
+
+def run(cfg: ExportConfig, inputs: ExportInputs, out: Path) -> ExportOutputs:
+    bp = Blueprint.load(inputs.blueprint)
+    shutil.copyfile(inputs.blueprint, out / "blueprint.npz")
+    plan_png(bp, out / "blueprint.png", title=cfg.title)
+    write_svg(bp, out / "blueprint.svg", title=cfg.title, tolerance_m=cfg.tolerance)
+    write_geojson(bp, out / "blueprint.geojson", tolerance_m=cfg.tolerance)
+    write_dxf(bp, out / "blueprint.dxf", tolerance_m=cfg.tolerance)
+    summary = plan_summary(bp, min_area_m2=cfg.min_area)
+    write_json(out / "components.json", summary)
+    write_json(out / "export.json", {
+        "components": len(summary["components"]),
+        "classes": {k: v["area_m2"] for k, v in summary["classes"].items()},
+    })
+    shutil.copyfile(inputs.mesh, out / "mesh.ply")
+    write_transforms(Capture.load(inputs.frames), out / "transforms.json")
+    return ExportOutputs.at(out)
