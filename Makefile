@@ -7,7 +7,7 @@ PYTHON  := $(BIN)/python
 export GLIBC_TUNABLES ?= glibc.malloc.mmap_threshold=33554432:glibc.malloc.trim_threshold=4294967296
 DEMO    ?= runs/demo
 
-.PHONY: setup demo test test-slow check lint typecheck bench batch clean
+.PHONY: setup demo test test-slow check lint typecheck bench batch clean FORCE
 
 $(BIN)/.installed: pyproject.toml
 	test -d $(VENV) || $(PY) -m venv $(VENV)
@@ -41,8 +41,29 @@ lint: setup
 typecheck: setup
 	$(BIN)/mypy
 
-bench: setup
+bench: setup  ## run time against error: runs/bench/bench.md and bench.csv
 	$(BIN)/blunf bench --out runs/bench
+
+# make batch CAPTURES="a b c" JOBS=2: one run per capture (1 thread each), per-scene logs,
+# then runs/batch/summary.csv and index.html. A failed capture does not stop the others.
+CAPTURES ?=
+JOBS    ?= 2
+BATCH   ?= runs/batch
+define RUN_ONE
+$(BATCH)/$(notdir $(1))/report.json: FORCE | setup
+	@mkdir -p $(BATCH)
+	@echo "run $(1) -> $(BATCH)/$(notdir $(1)) (log: $(BATCH)/$(notdir $(1)).log)"
+	@BLUNF_THREADS=1 $(BIN)/blunf run $(1) --out $(BATCH)/$(notdir $(1)) $(RUNARGS) \
+	  > $(BATCH)/$(notdir $(1)).log 2>&1 || (tail -n 1 $(BATCH)/$(notdir $(1)).log; exit 1)
+endef
+$(foreach c,$(CAPTURES),$(eval $(call RUN_ONE,$(c))))
+
+batch: setup
+	@test -n "$(CAPTURES)" || (echo 'usage: make batch CAPTURES="capA capB" [JOBS=2]'; exit 2)
+	-$(MAKE) -k -j$(JOBS) $(foreach c,$(CAPTURES),$(BATCH)/$(notdir $(c))/report.json)
+	$(PYTHON) -m pipeline.summary $(BATCH)
+
+FORCE:
 
 clean:
 	rm -rf runs
