@@ -1,0 +1,83 @@
+"""Configuration and the input / output contract of the NeRF stage."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+
+@dataclass(frozen=True)
+class NerfConfig:
+    """The radiance field, its sampler and its training (defaults: a few minutes on a CPU)."""
+
+    impl: str = "grid"  # registry key in stages.nerf.IMPLS: "grid" (occupancy-grid sampler)
+    field: str = "hash"  # "hash" (Instant-NGP grid + small MLP) | "pe" (NeRF PE + MLP)
+    hash_levels: int = 8  # hash: resolution levels
+    hash_features: int = 2  # hash: features per level
+    hash_log2_size: int = 17  # hash: log2 of the table entries per level
+    hash_base_res: int = 16  # hash: coarsest resolution (cells across the scene box)
+    hash_max_res: int = 512  # hash: finest resolution (cells across the scene box)
+    width: int = 64  # hidden units of the density / colour / semantic heads
+    geo_features: int = 15  # features passed from the density MLP to the colour / semantic heads
+    pe_freqs: int = 10  # pe: octaves of the position encoding (NeRF: 10)
+    pe_dir_freqs: int = 4  # pe / view_dependent: octaves of the direction encoding (NeRF: 4)
+    pe_width: int = 128  # pe: hidden units of the trunk MLP
+    pe_layers: int = 4  # pe: hidden layers of the trunk MLP
+    view_dependent: bool = False  # colour also depends on the view direction (PE of dirs)
+    semantics: bool = True  # train a semantic head when every frame has a label map
+    samples_across: int = 256  # ray-marching step = diagonal of the scene box / this
+    near: float = 0.05  # metres: rays start this far from the camera
+    occ_res: int = 128  # occupancy cells along the longest side of the scene box
+    occ_every: int = 16  # steps between occupancy-grid updates
+    occ_decay: float = 0.95  # decay of the cells' density estimate per update
+    occ_alpha: float = 0.01  # a cell is occupied when one step through it is this opaque
+    occ_cells: int = 65536  # cells re-evaluated per update (half random, half occupied)
+    occ_dilate: int = 0  # cells of dilation around depth pixels when seeding the grid
+    trunc_steps: int = 4  # with depth, training rays end this many steps behind it (0 = off)
+    prune_eps: float = 1e-4  # samples after transmittance < this are not evaluated (0 = off)
+    batch_rays: int = 2048  # rays per step
+    lr: float = 1e-2  # Adam learning rate, decayed exponentially to lr * lr_final
+    lr_final: float = 0.1  # final learning rate as a fraction of lr
+    lr_decay_steps: int = 3000  # steps over which lr decays to lr * lr_final (then constant)
+    rgb_loss: str = "mse"  # "mse" | "huber" (delta 0.1)
+    depth_weight: float = 0.1  # weight of the L1 loss on expected depth (metres)
+    surface_weight: float = 0.1  # with depth: weight of (1 - opacity) + weight in front of it
+    semantic_weight: float = 0.04  # weight of the semantic cross-entropy (Semantic-NeRF: 0.04)
+    holdout_every: int = 8  # every k-th view (index % k == k // 2) is held out; 0 = none
+    eval_every: int = 200  # steps between held-out evaluations
+    eval_rays: int = 4096  # held-out pixels scored at each evaluation (fixed random subset)
+    patience: int = 5  # stop after this many evaluations without a gain of min_delta
+    min_delta: float = 0.05  # dB: a smaller held-out PSNR gain does not count as improving
+    time_budget: float = 120.0  # seconds of training (evaluations excluded); 0 = no limit
+    max_steps: int = 0  # stop after this many steps; 0 = no limit (reproducible stop)
+    seed: int = 0  # seeds the initialisation, ray batches and jitter
+    threads: int = 0  # torch threads (0 = leave torch's setting)
+    chunk: int = 16384  # rays per forward pass when rendering full views
+    acc_threshold: float = 0.5  # rendered depth is 0 (missing) where opacity is below this
+    aabb_pad: float = 0.05  # scene box = bounds of cameras and depth points, + this fraction
+    no_depth_margin: float = 3.0  # metres around the cameras when there are no depth points
+    depth_stride: int = 4  # pixel stride of the depth points bounding the scene box
+
+
+@dataclass(frozen=True)
+class NerfInputs:
+    frames: Path  # frames.json (Capture) with poses; depth and labels optional
+
+
+@dataclass(frozen=True)
+class NerfOutputs:
+    model: Path  # model.pt: load with stages.nerf.load_model
+    stats: Path  # nerf.json: steps, seconds, stop_reason, psnr_heldout, depth_absrel, curve
+    frames: Path  # frames.json: the input capture with depth -> the rendered depth maps
+    depth: Path  # depth/<stem>.png: rendered z-depth, uint16 mm, 0 where opacity is low
+
+    @classmethod
+    def at(cls, out: Path) -> NerfOutputs:
+        """The outputs inside a finished nerf folder."""
+        out = Path(out)
+        return cls(
+            model=out / "model.pt",
+            stats=out / "nerf.json",
+            frames=out / "frames.json",
+            depth=out / "depth",
+        )

@@ -1,0 +1,251 @@
+"""The radiance field: world points -> density (1/m), colour and class logits.
+
+World points are mapped into the unit cube by the scene box (per axis) before encoding.
+Two encodings share the heads: Instant-NGP's multi-resolution hash grid (the default: a few
+table look-ups per sample and a 64-wide MLP) and NeRF's positional encoding with a 4 x 128
+MLP (the baseline the bench compares against). Density uses a truncated exponential: exp
+with its argument clamped at 15 in both passes, so it never overflows.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict
+from pathlib import Path
+
+import torch
+from torch import Tensor, nn
+
+from stages.common.errors import BlunfError
+from stages.nerf.config import NerfConfig
+from stages.nerf.occupancy import OccupancyGrid
+
+FIELDS = ("hash", "pe")
+EXP_CLAMP = 15.0  # density = exp(min(raw, 15)) <= 3.3e6 per metre
+# Instant-NGP's hashing primes, as wrapped int32 (int32 products wrap the same way every run).
+_PRIMES = (1, 2654435761 - 2**32, 805459861)
+
+
+class TruncExp(torch.autograd.Function):
+    """exp(x) with x clamped to EXP_CLAMP in the forward and the backward pass."""
+
+    @staticmethod
+    def forward(ctx, x: Tensor) -> Tensor:  # type: ignore[override]
+        y = torch.exp(x.clamp(max=EXP_CLAMP))
+        ctx.save_for_backward(y)
+        return y
+
+    @staticmethod
+    def backward(ctx, g: Tensor) -> Tensor:  # type: ignore[override]
+        (y,) = ctx.saved_tensors
+        return g * y
+
+
+class _Gather(torch.autograd.Function):
+    """rows = table[idx] for a [T, F] float32 table, with faster CPU kernels than index_select
+    on rows: pairs of features are read as one float64 (a 1-D gather) and the backward
+    accumulates one contiguous column at a time (1-D index_add, deterministic on CPU)."""
+
+    @staticmethod
+    def forward(ctx, table: Tensor, idx: Tensor) -> Tensor:  # type: ignore[override]
+        ctx.save_for_backward(idx)
+        ctx.size = table.shape
+        if table.shape[1] == 2 and table.dtype == torch.float32 and table.is_contiguous():
+            pairs = table.view(torch.float64).view(-1).index_select(0, idx)  # [M]
+            return pairs.view(torch.float32).view(-1, 2)
+        return table.index_select(0, idx)
+
+    @staticmethod
+    def backward(ctx, g: Tensor) -> tuple[Tensor, None]:  # type: ignore[override]
+        (idx,) = ctx.saved_tensors
+        t, f = ctx.size
+        grad = torch.zeros(f, t, dtype=g.dtype)
+        for j in range(f):
+            grad[j].index_add_(0, idx, g[:, j].contiguous())
+        return grad.t().contiguous(), None
+
+
+class HashGrid3D(nn.Module):
+    """Multi-resolution hash grid: [N, 3] in [0, 1] -> [N, levels * features], trilinear.
+
+    Level l has resolution floor(base_res * g^l) with g chosen so the last level is max_res.
+    Coarse levels whose vertices fit the table in a (2^k)^3 block are indexed densely
+    (x | y << k | z << 2k), finer ones through Instant-NGP's spatial hash
+    (x * 1) xor (y * 2654435761) xor (z * 805459861) mod table size: both are xor of
+    per-axis terms, so one code path serves every level.
+    """
+
+    def __init__(
+        self, levels: int, features: int, log2_size: int, base_res: int, max_res: int
+    ) -> None:
+        super().__init__()
+        g = math.exp((math.log(max_res) - math.log(base_res)) / (levels - 1)) if levels > 1 else 1
+        res = [max(1, math.floor(base_res * g**lv + 1e-6)) for lv in range(levels)]
+        mult, sizes = [], []
+        for r in res:
+            k = max(1, math.ceil(math.log2(r + 2)))  # bits per axis: corners 0 .. r + 1
+            dense = 3 * k <= log2_size
+            mult.append([1, 2**k, 2 ** (2 * k)] if dense else list(_PRIMES))
+            sizes.append(2 ** (3 * k) if dense else 2**log2_size)
+        self.register_buffer("res", torch.tensor(res, dtype=torch.float32))  # [L]
+        self.register_buffer("mult", torch.tensor(mult, dtype=torch.int32))  # [L, 3]
+        self.register_buffer("mask", torch.tensor([s - 1 for s in sizes], dtype=torch.int32))
+        offsets = [sum(sizes[:i]) for i in range(levels)]
+        self.register_buffer("offset", torch.tensor(offsets, dtype=torch.int64))  # [L]
+        self.levels, self.features = levels, features
+        self.table = nn.Parameter(torch.empty(sum(sizes), features).uniform_(-1e-4, 1e-4))
+        self.out_dim = levels * features
+
+    def forward(self, x: Tensor) -> Tensor:
+        n, lv = x.shape[0], self.levels
+        pos = x.clamp(0.0, 1.0)[:, None, :] * self.res[:, None]  # [N, L, 3]
+        lo = pos.floor()
+        frac = pos - lo  # [N, L, 3]
+        a = lo.to(torch.int32) * self.mult  # [N, L, 3] per-axis hash terms of the low corner
+        t = torch.stack([a, a + self.mult], dim=-1)  # [N, L, 3, 2]
+        xy = t[:, :, 0, None, :] ^ t[:, :, 1, :, None]  # [N, L, 2 (y), 2 (x)]
+        h = (xy[:, :, None] ^ t[:, :, 2, :, None, None]) & self.mask[:, None, None, None]
+        idx = h.view(n, lv, 8).to(torch.int64) + self.offset[:, None]  # [N, L, 8] (z, y, x)
+        w = torch.stack([1.0 - frac, frac], dim=-1)  # [N, L, 3, 2]
+        wxy = w[:, :, 0, None, :] * w[:, :, 1, :, None]  # [N, L, 2, 2]
+        wt = (wxy[:, :, None] * w[:, :, 2, :, None, None]).view(n, lv, 8, 1)
+        feat = _Gather.apply(self.table, idx.view(-1)).view(n, lv, 8, self.features)
+        return (feat * wt).sum(dim=2).view(n, self.out_dim)
+
+
+class PositionalEncoding(nn.Module):
+    """[N, D] -> [N, D (1 + 2 n_freqs)]: the input, then sin and cos of 2^k pi x."""
+
+    def __init__(self, dims: int, n_freqs: int) -> None:
+        super().__init__()
+        self.register_buffer("freqs", math.pi * 2.0 ** torch.arange(n_freqs, dtype=torch.float32))
+        self.out_dim = dims * (1 + 2 * n_freqs)
+
+    def forward(self, x: Tensor) -> Tensor:
+        a = (x[:, :, None] * self.freqs).flatten(1)  # [N, D n]
+        return torch.cat([x, torch.sin(a), torch.cos(a)], dim=-1)
+
+
+def mlp(d_in: int, width: int, layers: int, d_out: int) -> nn.Sequential:
+    """ReLU MLP with `layers` hidden layers of `width` units."""
+    mods: list[nn.Module] = []
+    d = d_in
+    for _ in range(layers):
+        mods += [nn.Linear(d, width), nn.ReLU()]
+        d = width
+    mods.append(nn.Linear(d, d_out))
+    return nn.Sequential(*mods)
+
+
+class NerfModel(nn.Module):
+    """Field + scene box + occupancy grid + class table: what render_view needs.
+
+    density(x) [N, 3] world -> [N] 1/m; color(x, dirs) -> [N, 3] in [0, 1];
+    semantics(x) -> [N, K] logits over `class_ids` (None when trained without labels).
+    `color` / `semantics` called right after `density` on the same tensor reuse its features.
+    """
+
+    def __init__(
+        self,
+        cfg: NerfConfig,
+        lo: Tensor,
+        hi: Tensor,
+        class_ids: list[int],
+        occupancy: OccupancyGrid,
+    ) -> None:
+        super().__init__()
+        if cfg.field not in FIELDS:
+            raise BlunfError(f"nerf.field must be one of {FIELDS}, got {cfg.field!r}")
+        self.cfg = cfg
+        self.register_buffer("lo", lo.float())  # [3] world corner of the scene box
+        self.register_buffer("hi", hi.float())  # [3]
+        self.class_ids = list(class_ids)
+        self.occupancy = occupancy
+        g = cfg.geo_features
+        if cfg.field == "hash":
+            self.encoding: nn.Module = HashGrid3D(
+                cfg.hash_levels,
+                cfg.hash_features,
+                cfg.hash_log2_size,
+                cfg.hash_base_res,
+                max(cfg.hash_max_res, cfg.hash_base_res),
+            )
+            self.trunk = mlp(int(self.encoding.out_dim), cfg.width, 1, 1 + g)
+        else:
+            self.encoding = PositionalEncoding(3, cfg.pe_freqs)
+            self.trunk = mlp(int(self.encoding.out_dim), cfg.pe_width, cfg.pe_layers, 1 + g)
+        # start nearly empty (density ~ 0.05 / m) so the occupancy grid only keeps what is learnt
+        with torch.no_grad():
+            self.trunk[-1].bias[0] = -3.0
+        self.dir_enc = PositionalEncoding(3, cfg.pe_dir_freqs) if cfg.view_dependent else None
+        d_dir = int(self.dir_enc.out_dim) if self.dir_enc is not None else 0
+        self.color_head = mlp(g + d_dir, cfg.width, 1, 3)
+        self.sem_head = mlp(g, cfg.width, 1, len(class_ids)) if class_ids else None
+        self._cache: tuple[Tensor, Tensor] | None = None
+
+    @property
+    def step(self) -> float:
+        """Ray-marching step in metres (scene box diagonal / samples_across)."""
+        return float(torch.linalg.norm(self.hi - self.lo)) / self.cfg.samples_across
+
+    def normalise(self, x: Tensor) -> Tensor:
+        """World [N, 3] -> unit cube [N, 3] (hash) or [-1, 1]^3 (pe)."""
+        u = (x - self.lo) / (self.hi - self.lo)
+        return u if self.cfg.field == "hash" else 2.0 * u - 1.0
+
+    def _features(self, x: Tensor) -> Tensor:
+        if self._cache is not None and self._cache[0] is x:
+            return self._cache[1]
+        h = self.trunk(self.encoding(self.normalise(x)))  # [N, 1 + G]
+        self._cache = (x, h)
+        return h
+
+    def density(self, x: Tensor) -> Tensor:
+        """[N, 3] world points -> [N] density (1/m), finite and >= 0."""
+        self._cache = None
+        return TruncExp.apply(self._features(x)[:, 0])
+
+    def color(self, x: Tensor, dirs: Tensor) -> Tensor:
+        """[N, 3] world points, [N, 3] unit directions -> [N, 3] RGB in [0, 1]."""
+        geo = self._features(x)[:, 1:]
+        if self.dir_enc is not None:
+            geo = torch.cat([geo, self.dir_enc(dirs)], dim=-1)
+        return torch.sigmoid(self.color_head(geo))
+
+    def semantics(self, x: Tensor) -> Tensor:
+        """[N, 3] world points -> [N, K] class logits (raises when trained without labels)."""
+        if self.sem_head is None:
+            raise BlunfError("this NeRF was trained without labels: no semantic head")
+        return self.sem_head(self._features(x)[:, 1:])
+
+    def clear_cache(self) -> None:
+        """Drop the features kept for the last density call (frees its autograd graph)."""
+        self._cache = None
+
+
+def save_model(model: NerfModel, path: Path) -> None:
+    """model.pt: state dict, config, scene box, class table and occupancy grid shape."""
+    torch.save(
+        {
+            "state_dict": model.state_dict(),
+            "config": asdict(model.cfg),
+            "class_ids": model.class_ids,
+            "occ_shape": list(model.occupancy.shape),
+        },
+        path,
+    )
+
+
+def load_model(path: Path) -> NerfModel:
+    """Read model.pt written by the nerf stage; returns the model in eval mode."""
+    try:
+        ck = torch.load(path, map_location="cpu", weights_only=True)
+        cfg = NerfConfig(**ck["config"])
+        sd = ck["state_dict"]
+        occ = OccupancyGrid(sd["occupancy.lo"], sd["occupancy.hi"], tuple(ck["occ_shape"]))
+        model = NerfModel(cfg, sd["lo"], sd["hi"], ck["class_ids"], occ)
+        model.load_state_dict(sd)
+    except (OSError, RuntimeError, KeyError, TypeError) as e:
+        raise BlunfError(f"{path}: not a NeRF model ({e.__class__.__name__}: {e})") from None
+    model.eval()
+    return model

@@ -1,0 +1,144 @@
+"""Occupancy grid for empty-space skipping (Instant-NGP / nerfacc style, in torch).
+
+Each cell of a box-aligned grid keeps a running estimate of the field's density (`ema`); a
+cell is occupied when the estimate exceeds a threshold. Seeding from depth points starts the
+grid tight around the surfaces seen; updates decay every estimate and re-measure the density
+at a jittered point in a random set of cells, so cells the field empties are dropped and
+cells it fills are added.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+UPDATE_CHUNK = 65536  # points per density call during an update
+COARSE = 4  # cells per side of the blocks used to skip long empty stretches
+
+
+class OccupancyGrid(nn.Module):
+    """Boolean occupancy over the box [lo, hi] with `shape` = (X, Y, Z) cells."""
+
+    def __init__(self, lo: Tensor, hi: Tensor, shape: tuple[int, int, int]) -> None:
+        super().__init__()
+        self.register_buffer("lo", torch.as_tensor(lo, dtype=torch.float32).clone())  # [3]
+        self.register_buffer("hi", torch.as_tensor(hi, dtype=torch.float32).clone())  # [3]
+        self.register_buffer("ema", torch.zeros(shape))  # [X, Y, Z] density estimate (1/m)
+        self.register_buffer("binary", torch.zeros(shape, dtype=torch.bool))  # [X, Y, Z]
+        # cells seen full by depth: occupied whatever the updates measure (a thin surface
+        # inside a cell is easily missed by the one jittered point an update looks at)
+        self.register_buffer("keep", torch.zeros(shape, dtype=torch.bool))  # [X, Y, Z]
+
+    @staticmethod
+    def for_box(lo: Tensor, hi: Tensor, res: int) -> OccupancyGrid:
+        """Near-cubic cells, `res` of them along the box's longest side."""
+        ext = (hi - lo).double()
+        shape = tuple(max(1, round(float(e / ext.max() * res))) for e in ext)
+        return OccupancyGrid(lo, hi, shape)  # type: ignore[arg-type]
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return tuple(self.binary.shape)  # type: ignore[return-value]
+
+    def _cell(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """World [N, 3] -> (flat cell index [N], inside the box [N])."""
+        dims = torch.tensor(self.shape, dtype=torch.int64)
+        ijk = ((x - self.lo) / (self.hi - self.lo) * dims).floor()
+        inside = ((ijk >= 0) & (ijk < dims)).all(dim=-1)
+        ijk = ijk.to(torch.int64).clamp(min=torch.zeros_like(dims), max=dims - 1)
+        flat = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
+        return flat, inside
+
+    def cell_size(self) -> float:
+        """Smallest side of a cell (metres)."""
+        return float(((self.hi - self.lo) / torch.tensor(self.shape)).min())
+
+    def coarse(self) -> Tensor:
+        """Blocks of COARSE^3 cells, occupied when any cell of theirs or of a neighbouring
+        block is (bool [X', Y', Z']); cached until `binary` changes. A segment shorter than a
+        block is free when its middle lies in a free coarse block."""
+        key = (self.binary.data_ptr(), self.binary._version)
+        if getattr(self, "_coarse_key", None) != key:
+            b = self.binary.float()[None, None]
+            b = F.max_pool3d(b, COARSE, stride=COARSE, ceil_mode=True)
+            self._coarse = F.max_pool3d(b, 3, stride=1, padding=1)[0, 0] > 0
+            self._coarse_key = key
+        return self._coarse
+
+    def coarse_size(self) -> float:
+        """Smallest side of a coarse block (metres)."""
+        return COARSE * self.cell_size()
+
+    def query_coarse(self, x: Tensor) -> Tensor:
+        """Occupied within one coarse block of x? [N, 3] world points -> bool [N]."""
+        if len(x) == 0:
+            return torch.zeros(0, dtype=torch.bool)
+        c = self.coarse()
+        dims = torch.tensor(self.shape, dtype=torch.int64)
+        cdims = torch.tensor(c.shape, dtype=torch.int64)
+        # clamped, not cut, at the box: a segment whose middle lies just outside the box may
+        # still cross its border blocks (e.g. a floor at the bottom of the box)
+        u = ((x - self.lo) / (self.hi - self.lo)).clamp(0.0, 1.0)
+        ijk = (u * dims).floor().to(torch.int64).minimum(dims - 1) // COARSE
+        flat = (ijk[:, 0] * cdims[1] + ijk[:, 1]) * cdims[2] + ijk[:, 2]
+        return c.view(-1)[flat]
+
+    def query(self, x: Tensor) -> Tensor:
+        """Occupied? [N, 3] world points -> bool [N] (False outside the box)."""
+        flat, inside = self._cell(x)
+        return self.binary.view(-1)[flat] & inside
+
+    def fill(self, value: float) -> None:
+        """Every cell occupied, with density estimate `value`."""
+        self.ema.fill_(value)
+        self.binary.fill_(True)
+
+    def seed(self, points: Tensor, value: float, dilate: int) -> int:
+        """Mark the cells holding `points` [N, 3] (and `dilate` cells around) as occupied for
+        good, with estimate `value`; repeated calls add up. Returns the occupied cells."""
+        flat, inside = self._cell(points)
+        mark = torch.zeros(self.ema.numel())
+        mark[flat[inside]] = 1.0
+        mark = mark.view(1, 1, *self.shape)
+        if dilate > 0:
+            mark = F.max_pool3d(mark, 2 * dilate + 1, stride=1, padding=dilate)
+        occ = mark.view(self.shape) > 0
+        self.ema.copy_(torch.where(occ, torch.maximum(self.ema, torch.tensor(value)), self.ema))
+        self.keep |= occ
+        self.binary |= occ
+        return int(self.binary.sum())
+
+    @torch.no_grad()
+    def update(
+        self,
+        density_fn: Callable[[Tensor], Tensor],
+        threshold: float,
+        decay: float,
+        n_cells: int,
+        gen: torch.Generator,
+    ) -> None:
+        """Decay all estimates, re-measure `n_cells` cells (half uniformly at random, half
+        among the occupied ones) at a jittered point, and re-threshold."""
+        total = self.ema.numel()
+        self.ema.mul_(decay)
+        half = max(1, n_cells // 2)
+        cells = [torch.randint(0, total, (half,), generator=gen)]
+        occ = self.binary.view(-1).nonzero().squeeze(1)
+        if len(occ):
+            cells.append(occ[torch.randint(0, len(occ), (half,), generator=gen)])
+        idx = torch.cat(cells)  # [M]
+        dims = torch.tensor(self.shape)
+        ijk = torch.stack(
+            [idx // (dims[1] * dims[2]), (idx // dims[2]) % dims[1], idx % dims[2]], dim=-1
+        )
+        u = (ijk + torch.rand(len(idx), 3, generator=gen)) / dims  # [M, 3] in the unit cube
+        x = self.lo + u * (self.hi - self.lo)
+        sigma = torch.cat(
+            [density_fn(x[i : i + UPDATE_CHUNK]) for i in range(0, len(x), UPDATE_CHUNK)]
+        )  # [M]
+        flat = self.ema.view(-1)
+        flat.scatter_reduce_(0, idx, torch.nan_to_num(sigma, nan=0.0), reduce="amax")
+        self.binary.copy_((self.ema > threshold) | self.keep)

@@ -1,0 +1,325 @@
+"""Training: views to rays, the scene box, the optimisation loop and held-out scoring."""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from stages.common.camera import depth_to_points
+from stages.common.capture import UNKNOWN, Capture
+from stages.common.errors import BlunfError
+from stages.common.io import read_depth, read_image, read_label
+from stages.nerf.config import NerfConfig
+from stages.nerf.field import NerfModel
+from stages.nerf.occupancy import OccupancyGrid
+from stages.nerf.render import camera_rays, render_model
+
+log = logging.getLogger(__name__)
+
+SEED_FACTOR = 10.0  # seeded cells start at this many times the occupancy threshold
+HUBER_DELTA = 0.1
+RGB_LOSSES = ("mse", "huber")
+
+
+@dataclass
+class Views:
+    """Per-view pixels as flat tensors (row-major, H W of each view)."""
+
+    stems: list[str]
+    rgb: list[Tensor]  # [HW, 3] in [0, 1]
+    depth: list[Tensor | None]  # [HW] z-depth metres, 0 = missing
+    label: list[Tensor | None]  # [HW] class index into class_ids, -1 = ignored
+    class_ids: list[int]
+
+
+def load_views(cap: Capture, use_labels: bool) -> Views:
+    """Read images, depth (capture units -> metres) and labels (ids -> contiguous indices)."""
+    class_ids = sorted(cap.classes) if (use_labels and cap.has_labels and cap.classes) else []
+    lut = np.full(65536, -1, np.int64)
+    for i, c in enumerate(class_ids):
+        if c != UNKNOWN:
+            lut[c] = i
+    v = Views([], [], [], [], class_ids)
+    for f in cap.frames:
+        img = read_image(f.image)
+        if img.shape[:2] != (f.intrinsics.height, f.intrinsics.width):
+            raise BlunfError(
+                f"{f.image}: image is {img.shape[1]}x{img.shape[0]}, intrinsics say "
+                f"{f.intrinsics.width}x{f.intrinsics.height}"
+            )
+        v.stems.append(f.stem)
+        v.rgb.append(torch.from_numpy(img.reshape(-1, 3).astype(np.float32) / 255.0))
+        d = None
+        if f.depth is not None:
+            dm = read_depth(f.depth, cap.depth_scale, cap.depth_invalid)
+            if dm.shape != img.shape[:2]:
+                raise BlunfError(f"{f.depth}: depth size {dm.shape} differs from its image")
+            d = torch.from_numpy(dm.reshape(-1))
+        v.depth.append(d)
+        lab = None
+        if class_ids and f.label is not None:
+            lm = read_label(f.label)
+            if lm.shape != img.shape[:2]:
+                raise BlunfError(f"{f.label}: label size {lm.shape} differs from its image")
+            lab = torch.from_numpy(lut[np.clip(lm, 0, 65535)].reshape(-1))
+        v.label.append(lab)
+    return v
+
+
+def split(n: int, every: int) -> tuple[list[int], list[int]]:
+    """(training, held-out) view indices: index % every == every // 2 is held out."""
+    held = [i for i in range(n) if every > 0 and n > 1 and i % every == every // 2]
+    return [i for i in range(n) if i not in held], held
+
+
+def depth_points(cap: Capture, views: Views, idx: list[int], stride: int) -> np.ndarray:
+    """World points [N, 3] of the depth maps of views `idx` at a pixel stride."""
+    pts = []
+    for i in idx:
+        d = views.depth[i]
+        if d is None:
+            continue
+        f = cap.frames[i]
+        h, w = f.intrinsics.height, f.intrinsics.width
+        p, _ = depth_to_points(d.view(h, w).numpy(), f.intrinsics.K, np.asarray(f.pose), stride)
+        pts.append(p)
+    return np.concatenate(pts) if pts else np.zeros((0, 3))
+
+
+def scene_box(centers: np.ndarray, points: np.ndarray, cfg: NerfConfig) -> tuple[Tensor, Tensor]:
+    """(lo [3], hi [3]): cameras and robust depth-point bounds, padded by aabb_pad."""
+    if len(points):
+        p_lo, p_hi = np.percentile(points, 0.5, axis=0), np.percentile(points, 99.5, axis=0)
+        lo = np.minimum(centers.min(0), p_lo)
+        hi = np.maximum(centers.max(0), p_hi)
+    else:
+        lo = centers.min(0) - cfg.no_depth_margin
+        hi = centers.max(0) + cfg.no_depth_margin
+    ext = np.maximum(hi - lo, 1e-3)
+    lo, hi = lo - cfg.aabb_pad * ext, hi + cfg.aabb_pad * ext
+    return torch.tensor(lo, dtype=torch.float32), torch.tensor(hi, dtype=torch.float32)
+
+
+def occupancy_threshold(cfg: NerfConfig, step: float) -> float:
+    """Density (1/m) at which one marching step has opacity occ_alpha."""
+    return -math.log(1.0 - cfg.occ_alpha) / step
+
+
+def build_model(
+    cfg: NerfConfig, lo: Tensor, hi: Tensor, class_ids: list[int], seeds: Iterable[np.ndarray]
+) -> NerfModel:
+    """A fresh model whose occupancy grid is seeded from the point sets `seeds` ([N, 3]
+    each, e.g. one per depth map); every cell occupied when there are none."""
+    occ = OccupancyGrid.for_box(lo, hi, cfg.occ_res)
+    model = NerfModel(cfg, lo, hi, class_ids, occ)
+    thr = occupancy_threshold(cfg, model.step)
+    n_pts = 0
+    for pts in seeds:
+        occ.seed(torch.from_numpy(pts.astype(np.float32)), SEED_FACTOR * thr, cfg.occ_dilate)
+        n_pts += len(pts)
+    if n_pts:
+        n = int(occ.binary.sum())
+        log.info("nerf: occupancy %s seeded from %d depth points: %d cells", occ.shape, n_pts, n)
+    else:
+        occ.fill(SEED_FACTOR * thr)
+    return model
+
+
+def seed_points(cap: Capture, views: Views, idx: list[int]) -> Iterator[np.ndarray]:
+    """World points [N, 3] of every valid depth pixel, one view of `idx` at a time."""
+    for i in idx:
+        pts = depth_points(cap, views, [i], 1)
+        if len(pts):
+            yield pts
+
+
+@dataclass
+class Rays:
+    """Flat rays of several views, with their targets."""
+
+    origins: Tensor  # [N, 3]
+    dirs: Tensor  # [N, 3] unit
+    rgb: Tensor  # [N, 3]
+    t_depth: Tensor | None  # [N] ray distance of the depth reading, 0 = missing
+    label: Tensor | None  # [N] class index, -1 = ignored
+
+
+def gather_rays(cap: Capture, views: Views, idx: list[int]) -> Rays:
+    """All pixels of views `idx` as rays; depth only when every one of them has depth."""
+    o, d, c, t, lab = [], [], [], [], []
+    with_depth = all(views.depth[i] is not None for i in idx)
+    with_label = all(views.label[i] is not None for i in idx) and bool(views.class_ids)
+    for i in idx:
+        f = cap.frames[i]
+        oi, di, zs = camera_rays(np.asarray(f.pose), f.intrinsics)
+        o.append(oi)
+        d.append(di)
+        c.append(views.rgb[i])
+        if with_depth:
+            t.append(views.depth[i] / zs)  # type: ignore[operator]
+        if with_label:
+            lab.append(views.label[i])
+    return Rays(
+        torch.cat(o),
+        torch.cat(d),
+        torch.cat(c),
+        torch.cat(t) if with_depth else None,
+        torch.cat(lab) if with_label else None,  # type: ignore[arg-type]
+    )
+
+
+def psnr(mse: float) -> float:
+    return 10.0 * math.log10(1.0 / max(mse, 1e-10))
+
+
+@torch.no_grad()
+def score(model: NerfModel, rays: Rays, chunk: int) -> float:
+    """PSNR (dB) of the model on the given rays."""
+    err = 0.0
+    for i in range(0, len(rays.rgb), chunk):
+        out = render_model(
+            model, rays.origins[i : i + chunk], rays.dirs[i : i + chunk], semantics=False
+        )
+        err += float(((out["rgb"] - rays.rgb[i : i + chunk]) ** 2).sum())  # type: ignore[operator]
+    return psnr(err / max(1, rays.rgb.numel()))
+
+
+def train(cfg: NerfConfig, model: NerfModel, rays: Rays, held: Rays | None) -> dict:
+    """Optimise the model on `rays`; stop on a held-out plateau, the time budget or max_steps."""
+    if cfg.rgb_loss not in RGB_LOSSES:
+        raise BlunfError(f"nerf.rgb_loss must be one of {RGB_LOSSES}, got {cfg.rgb_loss!r}")
+    gen = torch.Generator().manual_seed(cfg.seed)
+    table = [p for n, p in model.named_parameters() if n.endswith("table")]
+    rest = [p for n, p in model.named_parameters() if not n.endswith("table")]
+    groups = [{"params": rest, "eps": 1e-8}] + ([{"params": table, "eps": 1e-15}] if table else [])
+    opt = torch.optim.Adam(groups, lr=cfg.lr, betas=(0.9, 0.99))
+    decay = max(1, cfg.lr_decay_steps)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: cfg.lr_final ** min(s / decay, 1.0))
+    thr = occupancy_threshold(cfg, model.step)
+    if held is not None and cfg.eval_rays > 0 and len(held.rgb) > cfg.eval_rays:
+        pick = torch.randperm(len(held.rgb), generator=torch.Generator().manual_seed(cfg.seed))
+        pick = pick[: cfg.eval_rays]
+        held = Rays(held.origins[pick], held.dirs[pick], held.rgb[pick], None, None)
+    n = len(rays.rgb)
+    curve: list[tuple[float, float]] = []  # (training seconds, held-out PSNR)
+    curve_cpu: list[tuple[float, float]] = []  # (training CPU seconds, held-out PSNR)
+    best, stale, step, stop = -math.inf, 0, 0, "steps"
+    train_s = cpu_s = 0.0
+    losses: list[float] = []
+    samples = 0
+    model.train()
+    while True:
+        if cfg.max_steps > 0 and step >= cfg.max_steps:
+            stop = "steps"
+            break
+        if cfg.time_budget > 0 and train_s >= cfg.time_budget:
+            stop = "time"
+            break
+        t0, c0 = time.perf_counter(), time.process_time()
+        idx = torch.randint(0, n, (cfg.batch_rays,), generator=gen)
+        far, prune = None, True
+        if rays.t_depth is not None and cfg.trunc_steps > 0:
+            t_d = rays.t_depth[idx]
+            far = torch.where(t_d > 0, t_d + cfg.trunc_steps * model.step, torch.inf)
+            prune = False
+        out = render_model(
+            model,
+            rays.origins[idx],
+            rays.dirs[idx],
+            perturb=True,
+            gen=gen,
+            semantics=rays.label is not None,
+            return_samples=True,
+            far=far,
+            prune=prune,
+        )
+        loss = _losses(cfg, out, rays, idx, cfg.trunc_steps * model.step)
+        opt.zero_grad(set_to_none=True)
+        if loss.requires_grad:
+            loss.backward()
+            opt.step()
+        sched.step()
+        step += 1
+        samples += len(out["ray"])  # type: ignore[arg-type]
+        losses.append(float(loss.detach()))
+        if step % cfg.occ_every == 0:
+            model.occupancy.update(model.density, thr, cfg.occ_decay, cfg.occ_cells, gen)
+            model.clear_cache()
+        train_s += time.perf_counter() - t0
+        cpu_s += time.process_time() - c0
+        if held is not None and cfg.eval_every > 0 and step % cfg.eval_every == 0:
+            model.eval()
+            p = score(model, held, cfg.chunk)
+            model.train()
+            curve.append((round(train_s, 2), round(p, 3)))
+            curve_cpu.append((round(cpu_s, 2), round(p, 3)))
+            log.info(
+                "nerf: step %d, %.1f s (cpu %.1f s), loss %.4f, held-out PSNR %.2f dB, "
+                "%.1f samples / ray, %d occupied cells",
+                step,
+                train_s,
+                cpu_s,
+                losses[-1],
+                p,
+                samples / max(1, step * cfg.batch_rays),
+                int(model.occupancy.binary.sum()),
+            )
+            if p > best + cfg.min_delta:
+                best, stale = p, 0
+            else:
+                stale += 1
+                if stale >= cfg.patience:
+                    stop = "plateau"
+                    break
+    model.eval()
+    tail = losses[-50:]
+    return {
+        "steps": step,
+        "seconds": round(train_s, 3),
+        "cpu_seconds": round(cpu_s, 3),
+        "stop_reason": stop,
+        "psnr_curve": curve,
+        "psnr_curve_cpu": curve_cpu,
+        "final_loss": float(np.mean(tail)) if tail else math.nan,
+        "samples_per_ray": round(samples / max(1, step * cfg.batch_rays), 2),
+        "occupied_cells": int(model.occupancy.binary.sum()),
+    }
+
+
+def _losses(cfg: NerfConfig, out: dict, rays: Rays, idx: Tensor, margin: float) -> Tensor:
+    """RGB (+ depth L1 where valid, + semantic cross-entropy) loss of one batch."""
+    target = rays.rgb[idx]
+    if cfg.rgb_loss == "mse":
+        loss = F.mse_loss(out["rgb"], target)
+    else:
+        loss = F.huber_loss(out["rgb"], target, delta=HUBER_DELTA)
+    if rays.t_depth is not None and cfg.depth_weight > 0:
+        t = rays.t_depth[idx]
+        ok = t > 0
+        if ok.any():
+            loss = loss + cfg.depth_weight * (out["depth"][ok] - t[ok]).abs().mean()
+    if rays.t_depth is not None and cfg.surface_weight > 0:
+        # a ray with a depth reading is opaque, and empty until trunc_steps before it
+        t = rays.t_depth[idx]
+        ok = t > 0
+        if ok.any():
+            ray, ts, w = out["ray"], out["t"], out["weights"]
+            front = ts < t[ray] - margin
+            w_front = torch.zeros(len(t)).index_add(0, ray[front], w[front])  # [R]
+            term = (1.0 - out["acc"][ok]).mean() + w_front[ok].mean()
+            loss = loss + cfg.surface_weight * term
+    if rays.label is not None and out["semantics"] is not None and cfg.semantic_weight > 0:
+        lab = rays.label[idx]
+        if (lab >= 0).any():
+            loss = loss + cfg.semantic_weight * F.cross_entropy(
+                out["semantics"], lab, ignore_index=-1
+            )
+    return loss
