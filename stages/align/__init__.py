@@ -2,6 +2,7 @@
 
 `IMPLS[cfg.impl]` picks the implementation: `gravity` (capture's gravity vector), `floor`
 (floor plane from depth), `auto` (gravity if given, else floor) or `none` (identity).
+All but `none` then turn the world about z so that the walls lie on x and y (manhattan.py).
 """
 
 from stages.align import auto, floor, gravity, none

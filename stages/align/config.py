@@ -24,6 +24,10 @@ class AlignConfig:
     min_floor_fraction: float = 0.05  # a height counts as a floor when it holds this fraction
     #                                   of the horizontal points below the cameras
     normal_neighbours: int = 16  # nearest neighbours (within one frame) for point normals
+    manhattan: bool = True  # also turn about z so that the main wall directions (azimuths of
+    #                         the near-horizontal normals, modulo 90 deg) lie on x and y
+    manhattan_min_confidence: float = 0.2  # keep the yaw when the resultant length of
+    #                                        exp(4i azimuth) over those normals is below this
 
     def __post_init__(self) -> None:
         for name in ("frames_used", "stride"):
@@ -37,6 +41,11 @@ class AlignConfig:
             raise BlunfError(
                 "align: need 0 < max_tilt_deg <= up_cone_deg < 90, got "
                 f"{self.max_tilt_deg} and {self.up_cone_deg}"
+            )
+        if not 0 <= self.manhattan_min_confidence <= 1:
+            raise BlunfError(
+                "align.manhattan_min_confidence: must be in [0, 1], got "
+                f"{self.manhattan_min_confidence}"
             )
         if not 0 < self.min_floor_fraction <= 1:
             raise BlunfError(
@@ -52,7 +61,8 @@ class AlignInputs:
 @dataclass(frozen=True)
 class AlignOutputs:
     frames: Path  # frames.json with every pose replaced by T @ pose
-    align: Path  # align.json: T, method, floor height before the shift, inliers, notes
+    align: Path  # align.json: T, method, floor height before the shift, inliers, Manhattan
+    #              yaw and its confidence, notes
 
     @classmethod
     def at(cls, out: Path) -> AlignOutputs:

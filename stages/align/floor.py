@@ -1,4 +1,5 @@
-"""Align without gravity: the floor plane's normal becomes +z and the floor z = 0.
+"""Align without gravity: the floor plane's normal becomes +z and the floor z = 0 (then the
+Manhattan yaw, see manhattan.py).
 
 The cameras' mean up axis (-y in OpenCV convention) only guides the search: cameras that
 look down at a counter tilt it by tens of degrees. The up direction is the common normal
@@ -14,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from stages.align.config import AlignConfig, AlignInputs, AlignOutputs
+from stages.align.manhattan import square_up
 from stages.align.planes import (
     UP,
     Floor,
@@ -68,6 +70,8 @@ def solve(cap: Capture, cfg: AlignConfig, where: Path) -> tuple[np.ndarray, floa
     cam_dev = angle_deg(R @ up0, UP)
     if cam_dev > cfg.up_cone_deg:
         notes.append(f"up is {cam_dev:.0f} deg from the cameras' mean up (> up_cone_deg)")
+    R, yaw, note = square_up(R, s.normals, cfg)  # about z: keeps the floor height and tilt
+    notes += [note] if note else []
     info = {
         "method": "floor",
         "inlier_fraction": fl.inlier_fraction,
@@ -77,6 +81,7 @@ def solve(cap: Capture, cfg: AlignConfig, where: Path) -> tuple[np.ndarray, floa
         "points": len(s.points),
         "floor_tilt_deg": None if fl.normal is None else angle_deg(fl.normal, UP),
         "cameras_up_deg": cam_dev,
+        **yaw,
         "seconds": round(time.perf_counter() - t0, 3),
     }
     return R, fl.z, info

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from stages.align.config import AlignConfig, AlignInputs, AlignOutputs
+from stages.align.manhattan import square_up
 from stages.align.planes import (
     UP,
     angle_deg,
@@ -27,7 +28,8 @@ log = logging.getLogger(__name__)
 
 def solve(cap: Capture, cfg: AlignConfig, where: Path) -> tuple[np.ndarray, float, dict]:
     """(R [3, 3], floor height after R, facts). R is the minimal rotation of gravity onto -z,
-    so the yaw of the input world is kept; the floor is searched among the depth points."""
+    then the Manhattan yaw when `cfg.manhattan` (else the input world's yaw is kept); the
+    floor is searched among the depth points."""
     if cap.gravity is None:
         raise BlunfError(f"align: {where} has no gravity vector; set align.impl=floor or auto")
     t0 = time.perf_counter()
@@ -38,6 +40,8 @@ def solve(cap: Capture, cfg: AlignConfig, where: Path) -> tuple[np.ndarray, floa
     fl = find_floor(s.points @ R.T, s.normals @ R.T, cam_z, cfg)
     cam_dev = angle_deg(R @ cameras_up(poses), UP)
     notes = [fl.note] if fl.note else []
+    R, yaw, note = square_up(R, s.normals, cfg)
+    notes += [note] if note else []
     if cam_dev > 90.0:  # hand-held cameras are not upside down on average
         notes.append(f"the cameras' mean up is {cam_dev:.0f} deg from -gravity: check its sign")
         log.warning("align: %s", notes[-1])
@@ -51,6 +55,7 @@ def solve(cap: Capture, cfg: AlignConfig, where: Path) -> tuple[np.ndarray, floa
         # how far the fitted floor plane leans from gravity (a check of both), degrees
         "floor_tilt_deg": None if fl.normal is None else angle_deg(fl.normal, UP),
         "cameras_up_deg": cam_dev,
+        **yaw,
         "seconds": round(time.perf_counter() - t0, 3),
     }
     return R, fl.z, info

@@ -158,7 +158,8 @@ def find_floor(
     floor_z, note = None, ""
     if zh.size >= 3:
         lo, step = float(zh.min()), cfg.plane_dist
-        counts = np.bincount(np.floor((zh - lo) / step).astype(np.int64))  # [B]
+        # [B]; at least 3 bins, else the 'same' convolution below is longer than counts
+        counts = np.bincount(np.floor((zh - lo) / step).astype(np.int64), minlength=3)
         support = np.convolve(counts, np.ones(3, np.int64), mode="same")  # [B]
         cand = np.flatnonzero(support >= cfg.min_floor_fraction * zh.size)
         if cand.size:

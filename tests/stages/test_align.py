@@ -131,6 +131,16 @@ def test_floor_is_the_lowest_large_horizontal_plane():
     assert fl.note == ""
 
 
+def test_floor_alone_thinner_than_a_bin():
+    """Only a floor, flat to 1 mm (all heights in one 2 cm bin): it is the floor. (Fewer than
+    3 bins once made the 3-bin sum longer than the histogram and the floor was lost.)"""
+    rng = np.random.default_rng(1)
+    pts = np.c_[rng.uniform(0, 3, (500, 2)), rng.uniform(0.4, 0.401, 500)]
+    fl = find_floor(pts, np.tile(UP, (500, 1)), np.array([1.5]), AlignConfig())
+    assert fl.z == pytest.approx(0.4005, abs=0.001) and fl.note == ""
+    assert fl.inlier_fraction == 1.0
+
+
 @pytest.mark.slow
 def test_kitchen_gravity_and_floor_agree(tmp_path):
     """7-Scenes redkitchen: the floor is a small part of views of counters. Gravity and the

@@ -1,0 +1,99 @@
+"""Manhattan yaw: turn the up-aligned world about z so the main wall directions lie on x and y.
+
+Walls, cabinet fronts and furniture sides have near-horizontal normals. Their azimuths θ,
+folded modulo 90 degrees (ψ = 4θ on the circle; the sign of a normal drops out too), pile up
+at the room's dominant direction θ0. Turning the world by -θ0 + k 90 degrees puts the walls
+on the axes; of those four turns the smallest is taken, so an already square world is kept.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from stages.align.config import AlignConfig
+
+log = logging.getLogger(__name__)
+
+MIN_NORMALS = 100  # fewer near-horizontal normals than this: no walls seen, yaw kept
+BINS = 360  # histogram of ψ = 4θ: 1 degree bins of ψ (0.25 degree of θ)
+SMOOTH_BINS = 8  # the histogram is summed over ± this many bins (± 2 degrees of θ)
+HALF_WIDTH_DEG = 5.0  # refinement: normals within this azimuth of the mode (fold included)
+REFINE_STEPS = 10  # median-shift steps of the mode (exact data: converges in 1-2)
+
+
+@dataclass(frozen=True)
+class Yaw:
+    """The Manhattan yaw found in a set of normals."""
+
+    yaw_deg: float | None  # turn about +z to apply, degrees in [-45, 45); None = keep the yaw
+    confidence: float  # |mean exp(4iθ)| over the near-horizontal normals (1 = all square)
+    normals: int  # near-horizontal normals used
+    note: str  # why the yaw is kept, else ""
+
+
+def find_yaw(normals: np.ndarray, cfg: AlignConfig) -> Yaw:
+    """The smallest turn about +z that puts the dominant wall direction on the axes.
+
+    Args:
+        normals: [N, 3] unit normals (sign arbitrary) in a frame whose z is up.
+    The mode of ψ = 4θ is found on a smoothed histogram (robust to furniture at other
+    angles), then refined by the median of the normals within `HALF_WIDTH_DEG` of it (a mean
+    there is pulled by furniture turned a few degrees to one side).
+    """
+    horiz = np.abs(normals[:, 2]) <= np.sin(np.radians(cfg.max_tilt_deg))
+    n = normals[horiz]  # [M, 3]
+    if len(n) < MIN_NORMALS:
+        return Yaw(
+            None,
+            0.0,
+            len(n),
+            f"manhattan: {len(n)} near-vertical surface points (< {MIN_NORMALS}), no walls "
+            "seen; yaw kept",
+        )
+    psi = np.mod(4.0 * np.arctan2(n[:, 1], n[:, 0]), 2.0 * np.pi)  # [M]
+    conf = float(np.abs(np.exp(1j * psi).mean()))
+    if conf < cfg.manhattan_min_confidence:
+        return Yaw(
+            None,
+            conf,
+            len(n),
+            f"manhattan: wall normals show no dominant direction (resultant {conf:.2f} < "
+            f"manhattan_min_confidence {cfg.manhattan_min_confidence}); yaw kept",
+        )
+    hist = np.bincount((psi * (BINS / (2.0 * np.pi))).astype(np.int64) % BINS, minlength=BINS)
+    smooth = sum(np.roll(hist, s) for s in range(-SMOOTH_BINS, SMOOTH_BINS + 1))  # [BINS]
+    psi0 = (int(np.argmax(smooth)) + 0.5) * (2.0 * np.pi / BINS)
+    for _ in range(REFINE_STEPS):
+        d = np.angle(np.exp(1j * (psi - psi0)))  # [M] in (-pi, pi]
+        step = float(np.median(d[np.abs(d) <= 4.0 * np.radians(HALF_WIDTH_DEG)]))
+        psi0 += step
+        if abs(step) < 1e-12:
+            break
+    theta0 = float(np.angle(np.exp(1j * psi0))) / 4.0  # (-45, 45] degrees, in radians
+    return Yaw(-float(np.degrees(theta0)), conf, len(n), "")
+
+
+def rot_z(deg: float) -> np.ndarray:
+    """Rotation by `deg` degrees about +z. Returns [3, 3]."""
+    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def square_up(R: np.ndarray, normals: np.ndarray, cfg: AlignConfig) -> tuple[np.ndarray, dict, str]:
+    """(Rz @ R, facts for align.json, note) with Rz the Manhattan yaw of the normals [N, 3]
+    seen through R (input world -> z up). Rz = I when `cfg.manhattan` is off or no walls."""
+    if not cfg.manhattan:
+        return R, {"yaw_deg": 0.0, "manhattan_confidence": None, "wall_normals": None}, ""
+    y = find_yaw(normals @ R.T, cfg)
+    facts = {
+        "yaw_deg": 0.0 if y.yaw_deg is None else y.yaw_deg,
+        "manhattan_confidence": y.confidence,
+        "wall_normals": y.normals,
+    }
+    if y.yaw_deg is None:
+        log.info("align: %s", y.note)
+        return R, facts, y.note
+    return rot_z(y.yaw_deg) @ R, facts, ""
