@@ -136,7 +136,9 @@ class Cache:
         with open(tmp / "meta.json", "w") as f:
             json.dump(meta, f, indent=1, default=str)
         final = self.folder(stage, key)
-        os.rename(tmp, final)  # under the entry's lock, and only done entries have `final`
+        if final.exists():  # under the entry's lock and not done: an entry without meta.json
+            shutil.rmtree(final)  # (deleted by hand, or a half-copied run folder); replace it
+        os.rename(tmp, final)
         return final
 
     def sweep(self) -> None:

@@ -73,19 +73,27 @@ def default_config() -> Config:
 
 
 def load_config(path: Path | None = None, sets: list[str] | tuple[str, ...] = ()) -> Config:
-    """Defaults, then the YAML file at `path`, then each `stage.key=value` of `sets`."""
+    """Defaults, then the YAML file at `path`, then each `stage.key=value` of `sets`.
+
+    Each source's keys and types are checked on their own (errors name the source); the
+    merged overrides are applied at once, so cross-field checks of a stage config (e.g.
+    depth_min < depth_max) see the final values whatever the order of the --set options.
+    """
     cfg = default_config()
+    layers = []
     if path is not None:
         path = Path(path)
         try:
             data = yaml.safe_load(path.read_text()) or {}
         except FileNotFoundError:
             raise BlunfError(f"{path}: config file not found") from None
+        except (OSError, UnicodeDecodeError) as e:
+            raise BlunfError(f"{path}: cannot read the config file ({e})") from None
         except yaml.YAMLError as e:
             raise BlunfError(f"{path}: invalid YAML ({str(e).splitlines()[0]})") from None
         if not isinstance(data, dict):
             raise BlunfError(f"{path}: a config must be a mapping of stage names to settings")
-        cfg = apply(cfg, data, str(path))
+        layers.append(_checked(cfg, data, str(path)))
     for s in sets:
         key, sep, raw = s.partition("=")
         if not sep or not key.strip():
@@ -97,31 +105,38 @@ def load_config(path: Path | None = None, sets: list[str] | tuple[str, ...] = ()
         nested: Any = value
         for part in reversed(key.strip().split(".")):
             nested = {part: nested}
-        cfg = apply(cfg, nested, f"--set {s}")
-    return cfg
+        layers.append(_checked(cfg, nested, f"--set {s}"))
+    merged: dict = {}
+    for layer in layers:
+        _merge(merged, layer)
+    return _build(cfg, merged)
 
 
 def apply(cfg: Config, data: dict, where: str) -> Config:
     """Override `cfg` with a nested mapping; unknown keys and bad types are errors."""
-    run = cfg.run
-    stages_ = dict(cfg.stages)
+    return _build(cfg, _checked(cfg, data, where))
+
+
+def _checked(cfg: Config, data: dict, where: str) -> dict:
+    """`data` with every key known and every value coerced to its field's type."""
+    out: dict = {}
     for name, value in data.items():
         if name == "run":
-            run = _override(run, value, f"{where}: run", "run")
-        elif name in stages_:
-            stages_[name] = _override(stages_[name], value, where, name)
+            out[name] = _check_section(cfg.run, value, f"{where}: run", "run")
+        elif name in cfg.stages:
+            out[name] = _check_section(cfg.stages[name], value, where, name)
         else:
-            known = ", ".join(["run", *stages_])
+            known = ", ".join(["run", *cfg.stages])
             raise BlunfError(f"{where}: unknown section {name!r} (known: {known})")
-    return Config(run, stages_)
+    return out
 
 
-def _override(obj: Any, value: Any, where: str, prefix: str) -> Any:
+def _check_section(obj: Any, value: Any, where: str, prefix: str) -> dict:
     if not isinstance(value, dict):
         raise BlunfError(f"{where}: {prefix} must be a mapping, got {value!r}")
     hints = typing.get_type_hints(type(obj))
     names = {f.name for f in fields(obj)}
-    changes = {}
+    out = {}
     for k, v in value.items():
         if k not in names:
             raise BlunfError(
@@ -129,10 +144,39 @@ def _override(obj: Any, value: Any, where: str, prefix: str) -> Any:
             )
         cur = getattr(obj, k)
         if is_dataclass(cur):
-            changes[k] = _override(cur, v, where, f"{prefix}.{k}")
+            out[k] = _check_section(cur, v, where, f"{prefix}.{k}")
         else:
-            changes[k] = _coerce(v, hints[k], f"{where}: {prefix}.{k}")
-    return replace(obj, **changes)
+            out[k] = _coerce(v, hints[k], f"{where}: {prefix}.{k}")
+    return out
+
+
+def _merge(into: dict, layer: dict) -> None:
+    """Deep-merge checked overrides; a later layer wins (sections are dicts, values are not)."""
+    for k, v in layer.items():
+        if isinstance(v, dict) and isinstance(into.get(k), dict):
+            _merge(into[k], v)
+        else:
+            into[k] = v
+
+
+def _build(cfg: Config, changes: dict) -> Config:
+    stages_ = dict(cfg.stages)
+    run = _replace(cfg.run, changes.get("run", {}))
+    for name, ch in changes.items():
+        if name != "run":
+            stages_[name] = _replace(stages_[name], ch)
+    return Config(run, stages_)
+
+
+def _replace(obj: Any, changes: dict) -> Any:
+    """A copy of a (nested) config dataclass with checked changes; its __post_init__ runs once."""
+    if not changes:
+        return obj
+    kw = {
+        k: _replace(getattr(obj, k), v) if is_dataclass(getattr(obj, k)) else v
+        for k, v in changes.items()
+    }
+    return replace(obj, **kw)
 
 
 def _coerce(v: Any, tp: Any, where: str) -> Any:

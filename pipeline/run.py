@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 import shutil
 from pathlib import Path
 
@@ -32,9 +33,18 @@ def run(capture: Path, out: Path, cfg: Config, edits: Path | None = None) -> Rep
         raise BlunfError(f"{capture}: capture folder not found")
     if out.resolve().is_relative_to(capture.resolve()):
         raise BlunfError(f"{out}: the run folder must not be inside the capture {capture}")
+    for stage in ("ingest", "align", "fusion", "project"):  # fail before any work
+        check_impl(stage, cfg[stage].impl)
+    if cfg["poses"].impl != "auto":
+        check_impl("poses", cfg["poses"].impl)
     for m in cfg.run.methods:
         check_impl("blueprint", m)
-    out.mkdir(parents=True, exist_ok=True)
+    if out.exists() and not out.is_dir():
+        raise BlunfError(f"{out}: the run folder exists and is not a folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise BlunfError(f"{out}: cannot create the run folder ({e.strerror})") from None
     report = Report(scene=out.name, capture=str(capture.resolve()), config=cfg.to_dict())
     r = Runner(out, cfg, report)
     try:
@@ -93,7 +103,21 @@ def _recipe(r: Runner, capture: Path, cfg: Config, edits: Path | None) -> None:
         ExportInputs(blueprint=plans[cfg.run.methods[0]], mesh=fused.mesh, frames=fused.frames),
     )
     for name in ex.files:
-        shutil.copyfile(ex.folder / name, r.out / name)
-        report.outputs[name.split(".")[0] if name != "blueprint.npz" else "blueprint_npz"] = str(
-            r.out / name
-        )
+        _publish(ex.folder / name, r.out / name)
+        report.outputs[name] = str(r.out / name)
+    summary = read_json(ex.folder / "components.json")
+    report.plan = {
+        k: summary[k]
+        for k in ("known_area_m2", "unknown_area_m2", "classes", "min_area_m2", "components")
+    }
+
+
+def _publish(src: Path, dst: Path) -> None:
+    """Copy src to dst atomically (temp file beside dst, then rename): a run sharing the
+    folder, or a reader, never sees a half-copied output."""
+    tmp = dst.with_name(f".{dst.name}.tmp-{os.getpid()}")
+    try:
+        shutil.copyfile(src, tmp)
+        os.replace(tmp, dst)
+    finally:
+        tmp.unlink(missing_ok=True)

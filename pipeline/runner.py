@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib
 import logging
+import shutil
 import time
 import typing
 from pathlib import Path
@@ -62,23 +63,27 @@ class Runner:
                 return outputs_cls.at(folder)
             log.info("%-10s %s: running (%s) %s", stage, impl, key, stage_view(scfg, impl))
             tmp = self.cache.temp(stage, key)
-            peak_rss_reset()
-            t0, c0 = time.perf_counter(), time.process_time()
-            fn(scfg, inputs, tmp)
-            secs, cpu = time.perf_counter() - t0, time.process_time() - c0
-            facts = _facts(tmp, stage, impl)
-            meta = {
-                "stage": stage,
-                "impl": impl,
-                "key": key,
-                "config": stage_view(scfg, impl),
-                "inputs": self.cache.input_keys(inputs),
-                "seconds": round(secs, 3),
-                "cpu_seconds": round(cpu, 3),
-                "peak_rss_mb": peak_rss_mb(),
-                "facts": facts,
-            }
-            folder = self.cache.commit(tmp, stage, key, meta)
+            try:  # a failing stage leaves nothing behind (a killed one is swept by the next run)
+                peak_rss_reset()
+                t0, c0 = time.perf_counter(), time.process_time()
+                fn(scfg, inputs, tmp)
+                secs, cpu = time.perf_counter() - t0, time.process_time() - c0
+                facts = _facts(tmp, stage, impl)
+                meta = {
+                    "stage": stage,
+                    "impl": impl,
+                    "key": key,
+                    "config": stage_view(scfg, impl),
+                    "inputs": self.cache.input_keys(inputs),
+                    "seconds": round(secs, 3),
+                    "cpu_seconds": round(cpu, 3),
+                    "peak_rss_mb": peak_rss_mb(),
+                    "facts": facts,
+                }
+                folder = self.cache.commit(tmp, stage, key, meta)
+            except BaseException:
+                shutil.rmtree(tmp, ignore_errors=True)
+                raise
         log.info("%-10s ran in %.1fs", stage, secs)
         self.report.add(
             StageRecord(stage, impl, "ran", reason, round(secs, 3), meta["peak_rss_mb"], key, facts)

@@ -67,6 +67,8 @@ class Intrinsics:
             raise BlunfError(f"{where}: missing field {e.args[0]!r}") from None
         except (TypeError, ValueError) as e:
             raise BlunfError(f"{where}: bad value ({e})") from None
+        except BlunfError as e:
+            raise BlunfError(f"{where}: {e}") from None
 
 
 def check_pose(pose: np.ndarray, where: str) -> np.ndarray:

@@ -181,6 +181,8 @@ def read_layout(root: Path) -> Capture:
         raise BlunfError(f"{img_dir}: no .jpg or .png images")
     cams = read_json(root / "cameras.json") if (root / "cameras.json").exists() else {}
     where = str(root / "cameras.json")
+    if not isinstance(cams, dict):
+        raise BlunfError(f"{where}: must be a JSON object (intrinsics, frames, ...)")
     shared = cams.get("intrinsics")
     per_frame = cams.get("frames", {})
     if not isinstance(per_frame, dict):
@@ -190,6 +192,8 @@ def read_layout(root: Path) -> Capture:
         _inside(root, img)
         stem = img.stem
         entry = per_frame.get(stem, {})
+        if not isinstance(entry, dict):
+            raise BlunfError(f"{where}: the entry of frame {stem!r} must be an object")
         intr_d = entry.get("intrinsics", shared)
         if intr_d is None:
             raise BlunfError(
@@ -197,9 +201,7 @@ def read_layout(root: Path) -> Capture:
             )
         intr = Intrinsics.from_json(intr_d, f"{where} intrinsics of {stem}")
         pose = entry.get("pose")
-        pose_a = (
-            check_pose(np.asarray(pose, np.float64), f"{where} pose of {stem}") if pose else None
-        )
+        pose_a = _pose(pose, f"{where} pose of {stem}") if pose is not None else None
         depth = _find(root / "depth", stem, DEPTH_EXTS)
         label = _find(root / "labels", stem, (".png",))
         frames.append(
@@ -233,15 +235,38 @@ def read_layout(root: Path) -> Capture:
         classes=classes,
         ignore=ignore,
         gravity=gravity,
-        depth_scale=float(cams.get("depth_scale", 1000.0)),
-        depth_invalid=tuple(int(x) for x in cams.get("depth_invalid", [65535])),
+        depth_scale=_depth_scale(cams.get("depth_scale", 1000.0), f"{where} depth_scale"),
+        depth_invalid=_codes(cams.get("depth_invalid", [65535]), f"{where} depth_invalid"),
         gt=root / "gt" if (root / "gt").is_dir() else None,
         kind="blunf",
     )
 
 
+def _pose(v: object, where: str) -> np.ndarray:
+    try:
+        a = np.asarray(v, np.float64)
+    except (TypeError, ValueError):
+        raise BlunfError(f"{where}: pose must be a finite 4x4 matrix of numbers") from None
+    return check_pose(a, where)
+
+
+def _depth_scale(v: object, where: str) -> float:
+    if isinstance(v, bool) or not isinstance(v, int | float) or not 0 < v < float("inf"):
+        raise BlunfError(f"{where}: must be a positive number (depth units per metre), got {v!r}")
+    return float(v)
+
+
+def _codes(v: object, where: str) -> tuple[int, ...]:
+    if not isinstance(v, list) or not all(isinstance(x, int) and 0 <= x <= 65535 for x in v):
+        raise BlunfError(f"{where}: must be a list of integer depth codes, got {v!r}")
+    return tuple(v)
+
+
 def _unit(v: object, where: str) -> tuple[float, float, float]:
-    a = np.asarray(v, np.float64)
+    try:
+        a = np.asarray(v, np.float64)
+    except (TypeError, ValueError):
+        raise BlunfError(f"{where}: must be a finite non-zero 3-vector, got {v!r}") from None
     if a.shape != (3,) or not np.all(np.isfinite(a)) or np.linalg.norm(a) < 1e-9:
         raise BlunfError(f"{where}: must be a finite non-zero 3-vector, got {v}")
     a = a / np.linalg.norm(a)

@@ -1,0 +1,429 @@
+"""The bad-input table: every broken capture, argument or config ends in one line.
+
+Each case breaks a private copy of the tiny room (or an argument), runs `blunf run` through
+`pipeline.cli.main` (a few also through `python -m pipeline`), and checks the contract of
+DESIGN.md: exit status 2, exactly one stderr line `blunf: error: ...` naming the file or value
+at fault, no traceback, the capture unchanged byte for byte, and nothing half-written in the
+run folder (no `.tmp-*` folder, no stage entry without meta.json).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import subprocess
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from pipeline.cli import main
+from stages.common.io import write_depth_png
+
+ROOT = Path(__file__).resolve().parents[1]
+FAST = ["--set", "blueprint.blunf.steps=20", "--set", "fusion.voxel=0.05"]
+STEM = "0003"  # the frame each case breaks
+
+
+# ---- what a case does to the capture ------------------------------------------------------
+def _cams(cap: Path) -> dict:
+    return json.loads((cap / "cameras.json").read_text())
+
+
+def _set_cams(cap: Path, d: dict) -> None:
+    (cap / "cameras.json").write_text(json.dumps(d))  # NaN is written as the JSON token NaN
+
+
+def _edit_cams(fn: Callable[[dict], None]) -> Callable[[Path, Path], None]:
+    def edit(cap: Path, tmp: Path) -> None:
+        d = _cams(cap)
+        fn(d)
+        _set_cams(cap, d)
+
+    return edit
+
+
+def _img(cap: Path) -> Path:
+    return cap / "images" / f"{STEM}.png"
+
+
+def _truncate(cap: Path, tmp: Path) -> None:
+    p = _img(cap)
+    p.write_bytes(p.read_bytes()[:100])  # a valid PNG header, then nothing
+
+
+def _garbage(cap: Path, tmp: Path) -> None:
+    _img(cap).write_bytes(np.random.default_rng(0).bytes(777))
+
+
+def _empty_file(cap: Path, tmp: Path) -> None:
+    _img(cap).write_bytes(b"")
+
+
+def _mixed_sizes(cap: Path, tmp: Path) -> None:
+    p = _img(cap)
+    Image.open(p).resize((48, 36)).save(p)
+
+
+def _depth_missing(cap: Path, tmp: Path) -> None:
+    (cap / "depth" / f"{STEM}.png").unlink()
+
+
+def _depth_size(cap: Path, tmp: Path) -> None:
+    write_depth_png(cap / "depth" / f"{STEM}.png", np.full((36, 48), 2.0))
+
+
+def _depth_rgb(cap: Path, tmp: Path) -> None:
+    Image.new("RGB", (96, 72), (1, 2, 3)).save(cap / "depth" / f"{STEM}.png")
+
+
+def _depth_npy_3d(cap: Path, tmp: Path) -> None:
+    (cap / "depth" / f"{STEM}.png").unlink()
+    np.save(cap / "depth" / f"{STEM}.npy", np.ones((72, 96, 3), np.float32))
+
+
+def _depth_npy_garbage(cap: Path, tmp: Path) -> None:
+    (cap / "depth" / f"{STEM}.png").unlink()
+    (cap / "depth" / f"{STEM}.npy").write_bytes(b"\x93NUMPY garbage")
+
+
+def _label_size(cap: Path, tmp: Path) -> None:
+    Image.fromarray(np.zeros((36, 48), np.uint8)).save(cap / "labels" / f"{STEM}.png")
+
+
+def _label_colour(cap: Path, tmp: Path) -> None:
+    Image.new("RGB", (96, 72), (1, 2, 3)).save(cap / "labels" / f"{STEM}.png")
+
+
+def _label_id_300(cap: Path, tmp: Path) -> None:
+    a = np.asarray(Image.open(cap / "labels" / f"{STEM}.png")).astype(np.uint16)
+    a[10:20, 10:20] = 300  # a class id beyond uint8 (caught by the project stage)
+    Image.fromarray(a).save(cap / "labels" / f"{STEM}.png")
+
+
+def _outside_file(cap: Path, tmp: Path, rel: str) -> None:
+    outside = tmp / "outside" / Path(rel).name
+    outside.parent.mkdir(exist_ok=True)
+    shutil.copyfile(cap / rel, outside)
+    (cap / rel).unlink()
+    (cap / rel).symlink_to(outside)
+
+
+def _symlink_image(cap: Path, tmp: Path) -> None:
+    _outside_file(cap, tmp, f"images/{STEM}.png")
+
+
+def _symlink_depth(cap: Path, tmp: Path) -> None:
+    _outside_file(cap, tmp, f"depth/{STEM}.png")
+
+
+def _symlink_images_dir(cap: Path, tmp: Path) -> None:
+    shutil.move(cap / "images", tmp / "outside_images")
+    (cap / "images").symlink_to(tmp / "outside_images")
+
+
+def _no_images(cap: Path, tmp: Path) -> None:
+    for p in (cap / "images").iterdir():
+        p.unlink()
+
+
+def _only_cameras(cap: Path, tmp: Path) -> None:
+    shutil.rmtree(cap / "images")
+
+
+def _text(name: str, text: str) -> Callable[[Path, Path], None]:
+    def write(cap: Path, tmp: Path) -> None:
+        (cap / name).write_text(text)
+
+    return write
+
+
+def _pose(value: object) -> Callable[[Path, Path], None]:
+    def f(d: dict) -> None:
+        d["frames"][STEM]["pose"] = value
+
+    return _edit_cams(f)
+
+
+def _nan_pose(d: dict) -> None:
+    d["frames"][STEM]["pose"][0][3] = float("nan")
+
+
+def _sheared_pose(d: dict) -> None:
+    d["frames"][STEM]["pose"][0][1] += 0.5
+
+
+def _no_intrinsics(d: dict) -> None:
+    del d["intrinsics"]
+
+
+def _no_fx(d: dict) -> None:
+    del d["intrinsics"]["fx"]
+
+
+def _negative_fx(d: dict) -> None:
+    d["intrinsics"]["fx"] = -75.0
+
+
+def _frame_entry(d: dict) -> None:
+    d["frames"][STEM] = 5
+
+
+def _depth_scale(value: object) -> Callable[[Path, Path], None]:
+    def f(d: dict) -> None:
+        d["depth_scale"] = value
+
+    return _edit_cams(f)
+
+
+def _gravity_zero(d: dict) -> None:
+    d["gravity"] = [0, 0, 0]
+
+
+def _blank_images(cap: Path, tmp: Path) -> None:
+    for p in (cap / "images").iterdir():
+        Image.new("RGB", (96, 72), (128, 128, 128)).save(p)
+
+
+# ---- the table ----------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Case:
+    name: str
+    edit: Callable[[Path, Path], None] | None = None  # breaks the capture copy
+    args: tuple[str, ...] = ()  # extra arguments; "{cap}" and "{tmp}" are substituted
+    names: str = ""  # the error line must contain this ("{cap}"/"{tmp}" substituted)
+    capture: str = "{cap}"  # the CAPTURE argument
+    out: str = "{tmp}/run"  # the --out argument
+
+
+CASES = [
+    Case("image_truncated", _truncate, names=f"images/{STEM}.png"),
+    Case("image_garbage", _garbage, names=f"images/{STEM}.png"),
+    Case("image_empty_file", _empty_file, names=f"images/{STEM}.png"),
+    Case("image_sizes_mixed", _mixed_sizes, names=f"images/{STEM}.png"),
+    Case("depth_missing_for_one", _depth_missing, names=f"{STEM}.png"),
+    Case("depth_wrong_size", _depth_size, names=f"depth/{STEM}.png"),
+    Case("depth_png_rgb", _depth_rgb, names=f"depth/{STEM}.png"),
+    Case("depth_npy_3d", _depth_npy_3d, names=f"depth/{STEM}.npy"),
+    Case("depth_npy_garbage", _depth_npy_garbage, names=f"depth/{STEM}.npy"),
+    Case("label_wrong_size", _label_size, names=f"labels/{STEM}.png"),
+    Case("label_colour", _label_colour, names=f"labels/{STEM}.png"),
+    Case("label_id_300", _label_id_300, names=f"labels/{STEM}.png"),
+    Case("symlink_image_outside", _symlink_image, names=f"images/{STEM}.png"),
+    Case("symlink_depth_outside", _symlink_depth, names=f"depth/{STEM}.png"),
+    Case("symlink_images_dir_outside", _symlink_images_dir, names="images"),
+    Case("capture_empty", names="{tmp}/empty", capture="{tmp}/empty"),
+    Case("capture_missing", names="{tmp}/missing", capture="{tmp}/missing"),
+    Case("capture_is_a_file", names="{tmp}/file.txt", capture="{tmp}/file.txt"),
+    Case("capture_no_images", _no_images, names="images"),
+    Case("capture_only_cameras_json", _only_cameras, names="{cap}"),
+    Case("cameras_invalid_json", _text("cameras.json", '{"intrinsics": '), names="cameras.json"),
+    Case("cameras_not_object", _text("cameras.json", "[1, 2]"), names="cameras.json"),
+    Case("pose_3x4", _pose([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]]), names=STEM),
+    Case("pose_string", _pose("identity"), names=STEM),
+    Case("pose_nan", _edit_cams(_nan_pose), names=STEM),
+    Case("pose_sheared", _edit_cams(_sheared_pose), names=STEM),
+    Case("intrinsics_missing", _edit_cams(_no_intrinsics), names="cameras.json"),
+    Case("intrinsics_no_fx", _edit_cams(_no_fx), names="fx"),
+    Case("intrinsics_negative_fx", _edit_cams(_negative_fx), names="cameras.json"),
+    Case("cameras_frame_entry_not_object", _edit_cams(_frame_entry), names=STEM),
+    Case("depth_scale_string", _depth_scale("mm"), names="depth_scale"),
+    Case("depth_scale_zero", _depth_scale(0), names="depth_scale"),
+    Case("gravity_zero", _edit_cams(_gravity_zero), names="gravity"),
+    Case("gravity_string", _edit_cams(lambda d: d.update(gravity="down")), names="gravity"),
+    Case(
+        "depth_invalid_codes",
+        _edit_cams(lambda d: d.update(depth_invalid="x")),
+        names="depth_invalid",
+    ),
+    Case("labels_json_invalid", _text("labels.json", "{classes"), names="labels.json"),
+    Case("labels_json_list", _text("labels.json", '{"classes": ["floor"]}'), names="labels.json"),
+    Case(
+        "labels_json_bad_id", _text("labels.json", '{"classes": {"x": "a"}}'), names="labels.json"
+    ),
+    Case("set_unknown_key", args=("--set", "fusion.voxell=0.1"), names="fusion.voxell"),
+    Case("set_unknown_section", args=("--set", "fuson.voxel=0.1"), names="fuson"),
+    Case("set_wrong_type_float", args=("--set", "fusion.voxel=abc"), names="fusion.voxel"),
+    Case("set_wrong_type_int", args=("--set", "blueprint.blunf.steps=1.5"), names="steps"),
+    Case("set_no_equals", args=("--set", "fusion.voxel"), names="fusion.voxel"),
+    Case("set_out_of_range", args=("--set", "fusion.voxel=-1"), names="fusion.voxel"),
+    Case("set_unknown_impl", args=("--set", "fusion.impl=nope"), names="nope"),
+    Case("set_unknown_method", args=("--set", "run.methods=blunf,nope"), names="nope"),
+    Case("config_missing", args=("--config", "{tmp}/nope.yaml"), names="{tmp}/nope.yaml"),
+    Case("config_is_a_folder", args=("--config", "{tmp}/empty"), names="{tmp}/empty"),
+    Case(
+        "config_invalid_yaml",
+        _text("../bad.yaml", "fusion: [\n"),
+        ("--config", "{tmp}/bad.yaml"),
+        names="{tmp}/bad.yaml",
+    ),
+    Case(
+        "config_not_mapping",
+        _text("../bad.yaml", "- 1\n"),
+        ("--config", "{tmp}/bad.yaml"),
+        names="{tmp}/bad.yaml",
+    ),
+    Case(
+        "config_unknown_key",
+        _text("../bad.yaml", "fusion: {voxell: 1}\n"),
+        ("--config", "{tmp}/bad.yaml"),
+        names="fusion.voxell",
+    ),
+    Case(
+        "config_section_scalar",
+        _text("../bad.yaml", "fusion: 3\n"),
+        ("--config", "{tmp}/bad.yaml"),
+        names="fusion",
+    ),
+    Case("frames_0", args=("--frames", "0"), names="'0'"),
+    Case("frames_negative", args=("--frames", "-1"), names="'-1'"),
+    Case("frames_abc", args=("--frames", "abc"), names="'abc'"),
+    Case("edits_missing", args=("--edits", "{tmp}/nope.yaml"), names="{tmp}/nope.yaml"),
+    Case("out_inside_capture", out="{cap}/run", names="{cap}/run"),
+    Case("out_is_capture", out="{cap}", names="{cap}"),
+    Case("out_is_a_file", out="{tmp}/file.txt", names="{tmp}/file.txt"),
+    Case("sfm_blank_images", _blank_images, ("--set", "poses.impl=sfm"), names="registered"),
+]
+
+# Run again through `python -m pipeline` (fresh interpreter, real argv, real stderr).
+SUBPROCESS = ("image_truncated", "frames_abc", "config_invalid_yaml")
+
+
+# ---- the checks ---------------------------------------------------------------------------
+def snapshot(folder: Path, exclude: Path | None = None) -> dict[str, str]:
+    """Relative path -> sha1 of the bytes (or "-> target" of a symlink) of a whole tree,
+    leaving out what lies under `exclude`."""
+    out = {}
+    if not folder.exists():
+        return out
+    for p in sorted(folder.rglob("*")):
+        if exclude is not None and p.is_relative_to(exclude):
+            continue
+        rel = str(p.relative_to(folder))
+        if p.is_symlink():
+            out[rel] = f"-> {os.readlink(p)}"
+        elif p.is_file():
+            out[rel] = hashlib.sha1(p.read_bytes()).hexdigest()
+        else:
+            out[rel] = "dir"
+    return out
+
+
+def assert_cache_clean(run: Path) -> None:
+    """No temp folder anywhere; every stage entry (run/<stage>/<key>/) is finished."""
+    if not run.is_dir():
+        return
+    tmp = [str(p) for p in run.rglob(".tmp-*")]
+    assert not tmp, f"temp folders left behind: {tmp}"
+    for stage in (p for p in run.iterdir() if p.is_dir()):
+        for entry in stage.iterdir():
+            if entry.name.startswith("."):
+                assert entry.suffix == ".lock" and entry.is_file(), entry
+                continue
+            assert (entry / "meta.json").is_file(), f"{entry}: entry without meta.json"
+
+
+def check_error(rc: int, err: str, names: str, subprocess_run: bool) -> None:
+    """Exit 2 and one `blunf: error:` line naming the fault; nothing else from blunf."""
+    assert rc == 2, f"exit status {rc}, stderr:\n{err}"
+    assert "Traceback" not in err, err
+    lines = err.strip().splitlines()
+    errors = [ln for ln in lines if ln.startswith("blunf: error:")]
+    assert len(errors) == 1, f"expected one error line, got:\n{err}"
+    # In-process, pytest captures the log records, so stderr holds the error line only; a
+    # subprocess also prints its INFO log (and pycolmap's glog) above it: the error comes last.
+    assert lines[-1] == errors[0] if subprocess_run else lines == errors, err
+    assert names in errors[0], f"{names!r} not named in: {errors[0]}"
+
+
+@pytest.fixture
+def broken(tiny_room, tmp_path, request):
+    """(case, capture copy, tmp) with the case's edit applied to the copy."""
+    case: Case = request.param
+    cap = tmp_path / "cap"
+    shutil.copytree(tiny_room, cap, symlinks=True)
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "file.txt").write_text("not a capture\n")
+    if case.edit is not None:
+        case.edit(cap, tmp_path)
+    return case, cap, tmp_path
+
+
+def _argv(case: Case, cap: Path, tmp: Path) -> tuple[list[str], str, Path]:
+    def sub(s: str) -> str:
+        return s.replace("{cap}", str(cap)).replace("{tmp}", str(tmp))
+
+    out = Path(sub(case.out))
+    argv = ["run", sub(case.capture), "--out", str(out), *FAST, *(sub(a) for a in case.args)]
+    return argv, sub(case.names), out
+
+
+@pytest.mark.parametrize("broken", CASES, ids=[c.name for c in CASES], indirect=True)
+def test_bad_input(broken, capsys):
+    case, cap, tmp = broken
+    argv, names, out = _argv(case, cap, tmp)
+    # The capture, the files its symlinks point to and the config files: all but the run.
+    before = snapshot(tmp, exclude=tmp / "run")
+    rc = main(argv)  # argparse's own exit included: main() returns a status, never raises
+    err = capsys.readouterr().err
+    check_error(rc, err, names, subprocess_run=False)
+    assert snapshot(tmp, exclude=tmp / "run") == before, "the capture (or a file it links) changed"
+    if out != cap:  # (out_is_capture: refused before anything is written)
+        assert_cache_clean(out)
+
+
+@pytest.mark.parametrize(
+    "broken",
+    [c for c in CASES if c.name in SUBPROCESS],
+    ids=[c.name for c in CASES if c.name in SUBPROCESS],
+    indirect=True,
+)
+def test_bad_input_subprocess(broken):
+    case, cap, tmp = broken
+    argv, names, out = _argv(case, cap, tmp)
+    before = snapshot(tmp, exclude=tmp / "run")
+    r = subprocess.run(
+        [sys.executable, "-m", "pipeline", *argv],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        env={**os.environ, "BLUNF_THREADS": "1"},
+        timeout=120,
+    )
+    check_error(r.returncode, r.stderr, names, subprocess_run=True)
+    assert "blunf: error" not in r.stdout
+    assert snapshot(tmp, exclude=tmp / "run") == before
+    assert_cache_clean(out)
+
+
+def test_failed_stage_then_good_config_reuses_finished_stages(tiny_room, tmp_path, capsys):
+    """A failure inside a stage keeps what finished before it; the fixed rerun reuses that."""
+    out = tmp_path / "run"
+    bad = ["--set", "project.stride=0"]  # refused by the project stage, after fusion
+    assert main(["run", str(tiny_room), "--out", str(out), *FAST, *bad]) == 2
+    check_error(2, capsys.readouterr().err, "project.stride", subprocess_run=False)
+    assert_cache_clean(out)
+    assert main(["run", str(tiny_room), "--out", str(out), *FAST]) == 0
+    assert_cache_clean(out)
+    st = {s["name"]: s["status"] for s in json.loads((out / "report.json").read_text())["stages"]}
+    assert st["ingest"] == st["align"] == st["fusion"] == "cached"
+    assert st["project"] == "ran"
+
+
+def test_set_order_does_not_matter():
+    """Cross-field checks see the final values: raising depth_min above the default
+    depth_max (5 m) is fine when depth_max is raised too, in either order."""
+    from pipeline.config import load_config
+    from stages.common.errors import BlunfError
+
+    sets = ["fusion.depth_min=6", "fusion.depth_max=10"]
+    a, b = load_config(None, sets), load_config(None, sets[::-1])
+    assert a["fusion"] == b["fusion"] and (a["fusion"].depth_min, a["fusion"].depth_max) == (6, 10)
+    with pytest.raises(BlunfError, match="depth_min < depth_max"):
+        load_config(None, ["fusion.depth_min=6"])
