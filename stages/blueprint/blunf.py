@@ -30,11 +30,12 @@ from stages.blueprint.encoding import (
 from stages.common.blueprint import Blueprint, Grid
 from stages.common.errors import BlunfError
 from stages.common.io import write_json
-from stages.project.points import read_grid, read_points
+from stages.project.points import read_bounds, read_grid, read_points
 
 log = logging.getLogger(__name__)
 
-BALANCES = ("none", "sqrt")
+BALANCES = ("none", "sqrt", "cell")
+OUTSIDES = ("clamp", "field")
 TRAIN_ACC_POINTS = 262_144  # points scored for the reported train accuracy
 
 
@@ -46,7 +47,8 @@ def run(cfg: BlueprintConfig, inputs: BlueprintInputs, out: Path) -> BlueprintOu
     t0 = time.perf_counter()
     xyz, label, _, classes = read_points(inputs.points)
     grid = read_grid(inputs.grid)
-    _, _, inside = grid.cell_of(xyz[:, :2])
+    bounds = read_bounds(inputs.grid) if c.outside == "clamp" else None
+    row, col, inside = grid.cell_of(xyz[:, :2])
     if not inside.any():
         raise BlunfError(f"{inputs.points}: no point falls inside the plan grid {inputs.grid}")
     class_ids, y = np.unique(label[inside], return_inverse=True)  # contiguous logits
@@ -56,11 +58,13 @@ def run(cfg: BlueprintConfig, inputs: BlueprintInputs, out: Path) -> BlueprintOu
     if c.threads > 0:
         torch.set_num_threads(c.threads)
     try:
+        cell = torch.from_numpy((row * grid.shape[1] + col)[inside])  # [N] plan cell of each
         model, stats = train(
-            c, uv, torch.from_numpy(y.astype(np.int64)), len(class_ids), max(grid.shape)
+            c, uv, torch.from_numpy(y.astype(np.int64)), len(class_ids), max(grid.shape), cell
         )
         t1 = time.perf_counter()
-        centers = normalise(grid.centers().reshape(-1, 2), center, half)  # [H W, 2]
+        xy = clamp(grid.centers().reshape(-1, 2), bounds)  # [H W, 2]
+        centers = normalise(xy, center, half)  # [H W, 2]
         labels = class_ids[predict(model, centers, c.eval_chunk)].reshape(grid.shape)
     finally:
         torch.set_num_threads(old_threads)
@@ -74,6 +78,7 @@ def run(cfg: BlueprintConfig, inputs: BlueprintInputs, out: Path) -> BlueprintOu
             "center": list(center),
             "half": half,
             "cells_across": max(grid.shape),
+            "bounds": None if bounds is None else [*bounds[0].tolist(), *bounds[1].tolist()],
         },
         Path(out) / "model.pt",
     )
@@ -103,6 +108,16 @@ def plan_frame(grid: Grid) -> tuple[tuple[float, float], float]:
     h, w = grid.shape
     center = (grid.origin[0] + 0.5 * w * grid.cell, grid.origin[1] + 0.5 * h * grid.cell)
     return center, 0.5 * max(h, w) * grid.cell
+
+
+def clamp(xy: np.ndarray, bounds: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+    """World points xy [N, 2] moved to the nearest point of the box bounds = (lo, hi), if any.
+
+    Beyond the points the field has nothing to fit and wanders; read at the nearest point of
+    the points' box instead, the plan extends what is at its edge (e.g. a wall's inner face
+    across the wall's thickness).
+    """
+    return xy if bounds is None else np.clip(xy, bounds[0], bounds[1])
 
 
 def normalise(xy: np.ndarray, center: tuple[float, float], half: float) -> np.ndarray:
@@ -142,9 +157,17 @@ def auto_freqs(cells_across: int) -> int:
 
 
 def train(
-    c: BlunfConfig, uv: Tensor, y: Tensor, n_classes: int, cells_across: int
+    c: BlunfConfig,
+    uv: Tensor,
+    y: Tensor,
+    n_classes: int,
+    cells_across: int,
+    cell: Tensor | None = None,
 ) -> tuple[nn.Module, dict]:
-    """Fit the field with cross-entropy on points uv [N, 2] in [-1, 1] with classes y [N]."""
+    """Fit the field with cross-entropy on points uv [N, 2] in [-1, 1] with classes y [N].
+
+    `cell` [N] (int64, any ids) names the plan cell of each point; balance "cell" needs it.
+    """
     torch.manual_seed(c.seed)
     gen = torch.Generator().manual_seed(c.seed)
     model = build_field(c, n_classes, cells_across)
@@ -153,7 +176,7 @@ def train(
     groups = [{"params": rest, "eps": 1e-8}] + ([{"params": table, "eps": 1e-15}] if table else [])
     opt = torch.optim.Adam(groups, lr=c.lr, betas=(0.9, 0.99))
     sched = torch.optim.lr_scheduler.ExponentialLR(opt, c.lr_final ** (1.0 / max(c.steps, 1)))
-    sample = _sampler(c, y, n_classes, gen)
+    sample = _sampler(c, y, n_classes, gen, cell)
     t0 = time.perf_counter()
     tail = max(1, min(50, c.steps // 10))
     losses: list[float] = []
@@ -200,22 +223,45 @@ def field_labels(model_pt: Path, xy: np.ndarray) -> np.ndarray:
     model.load_state_dict(ck["state_dict"])
     model.eval()
     ids = np.asarray(ck["class_ids"], np.uint8)
+    b = ck.get("bounds")  # [xmin, ymin, xmax, ymax] or None
+    bounds = None if b is None else (np.array(b[:2]), np.array(b[2:]))
+    xy = clamp(np.asarray(xy, np.float64), bounds)
     return ids[predict(model, normalise(xy, tuple(ck["center"]), ck["half"]), c.eval_chunk)]
 
 
-def _sampler(c: BlunfConfig, y: Tensor, n_classes: int, gen: torch.Generator):
-    """A function drawing c.batch point indices (with replacement) per call."""
+def _sampler(c: BlunfConfig, y: Tensor, n_classes: int, gen: torch.Generator, cell: Tensor | None):
+    """A function drawing c.batch point indices (with replacement) per call.
+
+    "none": points uniformly. "sqrt": a class with p ∝ sqrt(its count), then one of its
+    points. "cell": an occupied plan cell uniformly, then one of its points, so that every cell
+    weighs the same whatever the number of points seen in it (a wall face seen in every view
+    holds hundreds of points per cell, the floor in front of it a few).
+    """
     n = len(y)
     if c.balance == "none":
         return lambda: torch.randint(n, (c.batch,), generator=gen)
-    counts = torch.bincount(y, minlength=n_classes)  # [K]
-    order = torch.argsort(y, stable=True)  # point indices grouped by class
-    start = torch.cumsum(counts, 0) - counts  # [K]
-    p = counts.double().sqrt()  # p(class) ∝ sqrt(count)
-    p = p / p.sum()
+    if c.balance == "cell":
+        if cell is None:
+            raise BlunfError("blueprint.blunf.balance='cell' needs the plan cell of each point")
+        _, group = torch.unique(cell, return_inverse=True)  # [N] occupied cell index 0..C-1
+        counts = torch.bincount(group)  # [C]
+
+        def pick() -> Tensor:
+            return torch.randint(len(counts), (c.batch,), generator=gen)  # [B] cells alike
+    else:
+        group = y
+        counts = torch.bincount(y, minlength=n_classes)  # [K]
+        p = counts.double().sqrt()  # p(class) ∝ sqrt(count)
+        p = p / p.sum()
+
+        def pick() -> Tensor:
+            return torch.multinomial(p, c.batch, replacement=True, generator=gen)  # [B]
+
+    order = torch.argsort(group, stable=True)  # point indices grouped by cell / class
+    start = torch.cumsum(counts, 0) - counts  # [G] first position of each group in order
 
     def sample() -> Tensor:
-        k = torch.multinomial(p, c.batch, replacement=True, generator=gen)  # [B]
+        k = pick()  # [B] groups
         r = (torch.rand(c.batch, generator=gen, dtype=torch.float64) * counts[k]).long()
         return order[start[k] + r]
 
@@ -225,6 +271,8 @@ def _sampler(c: BlunfConfig, y: Tensor, n_classes: int, gen: torch.Generator):
 def _check(c: BlunfConfig) -> None:
     if c.encoding not in ENCODINGS:
         raise BlunfError(f"blueprint.blunf.encoding must be one of {ENCODINGS}, got {c.encoding!r}")
+    if c.outside not in OUTSIDES:
+        raise BlunfError(f"blueprint.blunf.outside must be one of {OUTSIDES}, got {c.outside!r}")
     if c.balance not in BALANCES:
         raise BlunfError(f"blueprint.blunf.balance must be one of {BALANCES}, got {c.balance!r}")
     if c.n_freqs < 0:

@@ -24,7 +24,12 @@ class BlunfConfig:
     lr_final: float = 0.1  # final learning rate as a fraction of lr (1 = constant)
     batch: int = 8192  # points per step
     steps: int = 1000  # optimisation steps
-    balance: str = "none"  # class sampling: "none" (as projected) | "sqrt" (p ∝ sqrt(count))
+    # point sampling: "none" (as projected) | "sqrt" (class p ∝ sqrt(count)) | "cell" (every
+    # occupied plan cell equally likely, then one of its points)
+    balance: str = "cell"
+    # plan cells beyond the points' bounds (grid.json): "clamp" = the field at the nearest point
+    # of the bounds | "field" = the field's own extrapolation
+    outside: str = "clamp"
     seed: int = 0  # seeds the initialisation and the batch sampling
     threads: int = 0  # torch threads while training (0 = leave torch's setting)
     eval_chunk: int = 65536  # cell centres per forward pass when rendering the plan
@@ -33,7 +38,8 @@ class BlunfConfig:
 def paper_recipe() -> BlunfConfig:
     """The paper's recipe: PE with 12 frequencies, one hidden layer of 64 ReLU units (tcnn
     "n_hidden_layers = num_layers - 1" with num_layers 2), Adam 5e-3, 50k points per step,
-    50k steps, plain (unbalanced) sampling, no learning-rate decay."""
+    50k steps, plain (unbalanced) sampling, no learning-rate decay, the field read as it is
+    beyond the points."""
     return BlunfConfig(
         encoding="pe",
         n_freqs=12,
@@ -44,6 +50,7 @@ def paper_recipe() -> BlunfConfig:
         batch=50_000,
         steps=50_000,
         balance="none",
+        outside="field",
     )
 
 

@@ -8,14 +8,18 @@ from pathlib import Path
 
 import numpy as np
 
-from stages.common.blueprint import Blueprint
+from stages.common.blueprint import Blueprint, Grid
 from stages.common.capture import Capture
 from stages.common.io import read_json, write_json
 from stages.evaluate.config import EvaluateConfig
-from stages.evaluate.plan import evaluate_plan
-from stages.evaluate.poses import pose_metrics
+from stages.evaluate.plan import evaluate_plan, to_frame
+from stages.evaluate.poses import pose_metrics, similarity
 
 log = logging.getLogger(__name__)
+
+FRAME_GT = "gt"  # the plan was built in the ground truth's frame (given poses, not moved)
+FRAME_ALIGNED = "aligned to gt poses"  # read through the camera-centre similarity
+FRAME_UNALIGNED = "estimated, not aligned"  # estimated poses that could not be aligned
 
 
 @dataclass(frozen=True)
@@ -37,19 +41,69 @@ class EvaluateOutputs:
 
 
 def run(cfg: EvaluateConfig, inputs: EvaluateInputs, out: Path) -> EvaluateOutputs:
+    """Score each blueprint against gt/blueprint.npz and estimated poses against gt/poses.json.
+
+    Plans built from estimated poses live in the reconstruction's frame: they are read at
+    the GT cell centres mapped through the similarity from the frames' camera centres to the
+    GT ones. Given poses are used so too when the align stage moved them (e.g. a Manhattan
+    yaw) by more than a tenth of a GT cell. Each plan's metrics record the frame under "frame".
+    """
     metrics: dict = {}
+    gt_poses = inputs.gt / "poses.json"
+    est: dict[str, np.ndarray] = {}
+    gtp: dict[str, np.ndarray] = {}
+    if gt_poses.is_file() and (inputs.poses_estimated or cfg.plan):
+        cap = Capture.load(inputs.frames)
+        est = {f.stem: np.asarray(f.pose, np.float64) for f in cap.frames if f.pose is not None}
+        gtp = {k: np.asarray(v, np.float64) for k, v in read_json(gt_poses).items()}
     gt_plan = inputs.gt / "blueprint.npz"
     if gt_plan.is_file() and cfg.plan:
         gt = Blueprint.load(gt_plan)
+        pred_to_gt, frame = plan_frame(inputs.poses_estimated, est, gtp, gt.grid)
         metrics["blueprint"] = {
-            m: evaluate_plan(Blueprint.load(p), gt)
+            m: {**evaluate_plan(Blueprint.load(p), gt, pred_to_gt), "frame": frame}
             for m, p in zip(inputs.methods, inputs.blueprints, strict=True)
         }
-    gt_poses = inputs.gt / "poses.json"
-    if gt_poses.is_file() and inputs.poses_estimated and cfg.poses:
-        cap = Capture.load(inputs.frames)
-        est = {f.stem: np.asarray(f.pose) for f in cap.frames if f.pose is not None}
-        gtp = {k: np.asarray(v, np.float64) for k, v in read_json(gt_poses).items()}
+    if gtp and inputs.poses_estimated and cfg.poses:
         metrics["poses"] = pose_metrics(est, gtp)
     write_json(out / "metrics.json", metrics)
     return EvaluateOutputs.at(out)
+
+
+def plan_frame(
+    estimated: bool, est: dict[str, np.ndarray], gt: dict[str, np.ndarray], grid: Grid
+) -> tuple[np.ndarray | None, str]:
+    """(prediction-to-GT similarity or None, the frame's name) for the plan metrics.
+
+    Args:
+        estimated: whether a stage estimated the poses the plans were built from.
+        est: stem -> [4, 4] camera-to-world pose the plans were built from.
+        gt: stem -> [4, 4] ground-truth camera-to-world pose (empty when there is none).
+        grid: the GT plan's grid; given poses that the alignment moves by less than a tenth
+            of its cell anywhere on it count as the GT frame itself.
+    """
+    common = [s for s in gt if s in est]
+    m = None
+    if common:
+        ce = np.stack([est[s][:3, 3] for s in common])  # [C, 3] camera centres of the plans
+        cg = np.stack([gt[s][:3, 3] for s in common])  # [C, 3] ground-truth camera centres
+        m = similarity(ce, cg)
+    if m is None:
+        if not estimated:
+            return None, FRAME_GT
+        log.warning(
+            "evaluate: poses were estimated but cannot be aligned to ground-truth poses "
+            "(%d shared frames); plans are compared cell by cell as they are",
+            len(common),
+        )
+        return None, FRAME_UNALIGNED
+    if not estimated and _moves(m, grid) < 0.1 * grid.cell:
+        return None, FRAME_GT
+    return m, FRAME_ALIGNED
+
+
+def _moves(pred_to_gt: np.ndarray, grid: Grid) -> float:
+    """How far (metres) the GT grid's corners land from where they are, read through it."""
+    h, w = grid.shape
+    corners = np.asarray(grid.origin) + np.array([[0, 0], [w, 0], [0, h], [w, h]]) * grid.cell
+    return float(np.linalg.norm(to_frame(corners, pred_to_gt) - corners, axis=1).max())

@@ -14,15 +14,38 @@ from stages.evaluate.metrics import plan_metrics
 log = logging.getLogger(__name__)
 
 
-def evaluate_plan(pred: Blueprint, gt: Blueprint) -> dict:
+def evaluate_plan(pred: Blueprint, gt: Blueprint, pred_to_gt: np.ndarray | None = None) -> dict:
     """Metrics of `pred` read at the cell centres of `gt`'s grid (see metrics.plan_metrics).
 
     Class ids are matched by class NAME when the two tables differ; a class the prediction
     uses whose name the GT table lacks is an error.
+
+    Args:
+        pred: the predicted plan, in its own world frame.
+        gt: the ground-truth plan.
+        pred_to_gt: 4x4 similarity from the prediction's world to the GT's (e.g. estimated
+            from camera centres when the poses were reconstructed); None = the same frame.
+            The GT cell centres (x, y, 0) are mapped by its inverse and the prediction is
+            read there (nearest cell).
     """
-    labels = pred.resample(gt.grid)  # [H, W] on the GT grid
+    if pred_to_gt is None:
+        labels = pred.resample(gt.grid)  # [H, W] on the GT grid
+    else:
+        labels = pred.sample(to_frame(gt.grid.centers().reshape(-1, 2), pred_to_gt))
+        labels = labels.reshape(gt.grid.shape)  # [H, W]
     lut = class_map(pred, gt)
     return plan_metrics(lut[labels], gt.labels, gt.classes)
+
+
+def to_frame(xy: np.ndarray, pred_to_gt: np.ndarray) -> np.ndarray:
+    """GT floor points (x, y, 0) [N, 2] in the prediction's frame: inverse similarity. [N, 2]"""
+    m = np.asarray(pred_to_gt, np.float64)
+    if m.shape != (4, 4) or not np.isfinite(m).all() or abs(np.linalg.det(m[:3, :3])) < 1e-12:
+        raise BlunfError(
+            f"plan evaluation: pred_to_gt must be an invertible 4x4 similarity, got shape {m.shape}"
+        )
+    p = np.concatenate([np.asarray(xy, np.float64), np.zeros((len(xy), 1))], axis=1)  # [N, 3]
+    return np.linalg.solve(m[:3, :3], (p - m[:3, 3]).T).T[:, :2]
 
 
 def class_map(pred: Blueprint, gt: Blueprint) -> np.ndarray:

@@ -28,6 +28,21 @@ def _angle_deg(r: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
 
 
+def similarity(src: np.ndarray, dst: np.ndarray) -> np.ndarray | None:
+    """The similarity (Umeyama, with scale) best mapping points src [N, 3] onto dst [N, 3].
+
+    Returns the 4x4 matrix, or None when fewer than 3 points are given, either set is
+    degenerate (all points equal) or the estimate fails.
+    """
+    src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
+    if len(src) < MIN_ALIGN or len(src) != len(dst):
+        return None
+    if np.ptp(src, axis=0).max() < 1e-12 or np.ptp(dst, axis=0).max() < 1e-12:
+        return None
+    tf = SimilarityTransform.from_estimate(src, dst)
+    return np.asarray(tf.params, np.float64) if tf else None
+
+
 def pose_metrics(est: dict[str, np.ndarray], gt: dict[str, np.ndarray]) -> dict:
     """Registration and accuracy of estimated poses after a similarity alignment to ground truth.
 
@@ -54,14 +69,12 @@ def pose_metrics(est: dict[str, np.ndarray], gt: dict[str, np.ndarray]) -> dict:
     pe = np.stack([np.asarray(est[s], np.float64) for s in common])  # [C, 4, 4]
     pg = np.stack([np.asarray(gt[s], np.float64) for s in common])  # [C, 4, 4]
     ce, cg = pe[:, :3, 3], pg[:, :3, 3]  # [C, 3] camera centres
-    if np.ptp(ce, axis=0).max() < 1e-12 or np.ptp(cg, axis=0).max() < 1e-12:
+    m = similarity(ce, cg)
+    if m is None:
         return out
-    tf = SimilarityTransform.from_estimate(ce, cg)
-    if not tf:
-        return out
-    scale = float(np.cbrt(np.linalg.det(tf.params[:3, :3])))
-    r_align = tf.params[:3, :3] / scale  # [3, 3]
-    center_err = np.linalg.norm(tf(ce) - cg, axis=1)  # [C]
+    scale = float(np.cbrt(np.linalg.det(m[:3, :3])))
+    r_align = m[:3, :3] / scale  # [3, 3]
+    center_err = np.linalg.norm(ce @ m[:3, :3].T + m[:3, 3] - cg, axis=1)  # [C]
     r_est = np.stack([r_align @ _rotation(p) for p in pe])  # [C, 3, 3] aligned world
     r_gt = np.stack([_rotation(p) for p in pg])  # [C, 3, 3]
     rot_err = _angle_deg(np.transpose(r_gt, (0, 2, 1)) @ r_est)  # [C]

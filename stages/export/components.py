@@ -8,8 +8,6 @@ cell edges exactly: cell corner (column c, row r) is world
 
 from __future__ import annotations
 
-import colorsys
-
 import numpy as np
 import shapely
 from shapely.geometry.base import BaseGeometry
@@ -18,42 +16,6 @@ from skimage import measure
 from stages.common.blueprint import Blueprint
 from stages.common.capture import UNKNOWN
 from stages.common.errors import BlunfError
-
-# Qualitative palette (matplotlib's tab20, strong tones first): class id -> RGB.
-_PALETTE = (
-    (31, 119, 180),
-    (255, 127, 14),
-    (44, 160, 44),
-    (214, 39, 40),
-    (148, 103, 189),
-    (140, 86, 75),
-    (227, 119, 194),
-    (127, 127, 127),
-    (188, 189, 34),
-    (23, 190, 207),
-    (174, 199, 232),
-    (255, 187, 120),
-    (152, 223, 138),
-    (255, 152, 150),
-    (197, 176, 213),
-    (196, 156, 148),
-    (247, 182, 210),
-    (199, 199, 199),
-    (219, 219, 141),
-    (158, 218, 229),
-)
-UNKNOWN_COLOR = (235, 235, 235)  # unknown / unseen cells
-GOLDEN = 0.618033988749895  # hue step for ids past the palette: neighbours stay apart
-
-
-def class_color(class_id: int) -> tuple[int, int, int]:
-    """The fixed RGB (0-255) of a class id; UNKNOWN (255) is a light grey."""
-    if class_id == UNKNOWN:
-        return UNKNOWN_COLOR
-    if 0 <= class_id < len(_PALETTE):
-        return _PALETTE[class_id]
-    r, g, b = colorsys.hsv_to_rgb((class_id * GOLDEN) % 1.0, 0.55, 0.85)
-    return round(255 * r), round(255 * g), round(255 * b)
 
 
 def class_name(bp: Blueprint, class_id: int) -> str:

@@ -1,7 +1,7 @@
 """Vector plans: the blueprint's components as SVG, GeoJSON and DXF, in world metres.
 
 Geometry comes from `stages.export.components` (exact cell outlines, optionally simplified);
-colours are `class_color`, one fixed colour per class id.
+colours are `stages.export.render.class_color`, the PNG's colours (one fixed colour per class id).
 """
 
 from __future__ import annotations
@@ -21,7 +21,6 @@ from ezdxf.lldxf.validator import INVALID_LAYER_NAME_CHARACTERS
 from stages.common.blueprint import Blueprint
 from stages.common.capture import UNKNOWN
 from stages.export.components import (
-    class_color,
     class_name,
     component_map,
     components,
@@ -29,6 +28,7 @@ from stages.export.components import (
     polygons,
     rings,
 )
+from stages.export.render import class_color
 
 __all__ = [
     "class_color",

@@ -13,12 +13,19 @@ class ProjectConfig:
     impl: str = "pinhole"  # registry key in stages.project.IMPLS
     stride: int = 2  # keep every stride-th pixel in u and v (1 = every pixel)
     cell: float = 0.02  # plan cell size in metres
-    pad: float = 0.1  # metres added around the robust bounds of the points
+    # metres added around the robust bounds of the points: the plan covers the walls' thickness
+    # (points stop at their inner faces) and a margin; BluNF fills it, MVR leaves it unknown
+    pad: float = 0.3
     bounds_pct: float = 0.1  # percent of points dropped on each side when bounding the plan
     labelling: str = "auto"  # "labels" | "height" | "auto" (labels when the capture has them)
     floor_band: float = 0.05  # height labelling: z below this (metres) is floor
     ceiling_cut: float = 2.0  # height labelling: z at or above this (metres) is dropped
     max_cells: int = 25_000_000  # refuse larger plans (a sign of bad poses or units)
+    occlusion: str = "top"  # "top": keep what a top view sees (topview.py) | "none": every point
+    occlusion_cell: float = 0.06  # top view: cell (metres) over which the top is taken; 0 = cell
+    top_band: float = 0.1  # top view: a class is seen when it reaches this close to the top (m)
+    top_min_points: int = 2  # top view: the top is the n-th highest point; sparser cells kept
+    occlusion_shifts: int = 2  # top view: n x n grids offset by 1/n cell; dropped only if in all
 
 
 @dataclass(frozen=True)
@@ -29,7 +36,8 @@ class ProjectInputs:
 @dataclass(frozen=True)
 class ProjectOutputs:
     points: Path  # points.npz: xyz float32 [N, 3], label uint8 [N], view int32 [N], classes
-    grid: Path  # grid.json: the plan Grid covering the points (Grid.to_json)
+    grid: Path  # grid.json: the plan Grid (Grid.to_json) + "bounds" [xmin, ymin, xmax, ymax]
+    # of the points it was padded from
 
     @classmethod
     def at(cls, out: Path) -> ProjectOutputs:

@@ -3,6 +3,9 @@
 Every `stride`-th pixel of every frame with a valid depth reading and a label that is neither
 unknown (255) nor in the capture's ignore list becomes a point (x, y, z, label, view). Without
 labels, points are labelled by height (floor / occupied) so a plan exists before semantics.
+With occlusion "top" (the default), points a top view would not see are then dropped
+(topview.py: floor between a table's legs, under a chair's seat); "none" is the paper's Π.
+The plan grid bounds all the points (before that culling), padded by `pad`.
 """
 
 from __future__ import annotations
@@ -20,11 +23,13 @@ from stages.common.capture import UNKNOWN, Capture, Frame
 from stages.common.errors import BlunfError
 from stages.common.io import image_size, read_depth, read_json, read_label, write_json
 from stages.project.config import ProjectConfig, ProjectInputs, ProjectOutputs
+from stages.project.topview import top_view_keep
 
 log = logging.getLogger(__name__)
 
 HEIGHT_CLASSES = {0: "floor", 1: "occupied"}
 LABELLINGS = ("auto", "labels", "height")
+OCCLUSIONS = ("top", "none")
 
 
 def run(cfg: ProjectConfig, inputs: ProjectInputs, out: Path) -> ProjectOutputs:
@@ -53,7 +58,19 @@ def run(cfg: ProjectConfig, inputs: ProjectInputs, out: Path) -> ProjectOutputs:
         raise BlunfError(f"no labelled pixel with depth in {cap.root}")
     classes = HEIGHT_CLASSES if labelling == "height" else _label_classes(cap, label)
 
-    grid = plan_grid(xyz[:, :2], cfg)
+    lo, hi = plan_bounds(xyz[:, :2], cfg)
+    grid = Grid.covering(lo, hi, cfg.cell, cfg.pad)
+    if cfg.occlusion == "top":
+        keep = top_view_keep(
+            xyz,
+            label,
+            cfg.occlusion_cell or cfg.cell,
+            cfg.top_band,
+            cfg.top_min_points,
+            cfg.occlusion_shifts,
+        )
+        counts["dropped_occluded"] = int((~keep).sum())
+        xyz, label, view = xyz[keep], label[keep], view[keep]
     if grid.shape[0] * grid.shape[1] > cfg.max_cells:
         raise BlunfError(
             f"{inputs.frames}: the plan would be {grid.shape[1]}x{grid.shape[0]} cells of "
@@ -61,7 +78,7 @@ def run(cfg: ProjectConfig, inputs: ProjectInputs, out: Path) -> ProjectOutputs:
         )
     outs = ProjectOutputs.at(out)
     np.savez(outs.points, xyz=xyz, label=label, view=view, classes=_classes_json(classes))
-    write_json(outs.grid, grid.to_json())
+    write_json(outs.grid, {**grid.to_json(), "bounds": [*lo.tolist(), *hi.tolist()]})
     write_json(outs.classes, {"classes": _str_keys(classes), "labelling": labelling})
     stats = {
         "frames": len(cap.frames),
@@ -83,11 +100,11 @@ def run(cfg: ProjectConfig, inputs: ProjectInputs, out: Path) -> ProjectOutputs:
     return outs
 
 
-def plan_grid(xy: np.ndarray, cfg: ProjectConfig) -> Grid:
-    """The grid covering points xy [N, 2] without the outer `bounds_pct` % on each side."""
+def plan_bounds(xy: np.ndarray, cfg: ProjectConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(lo [2], hi [2]): the box of points xy [N, 2] without the outer `bounds_pct` % a side."""
     lo = np.percentile(xy, cfg.bounds_pct, axis=0)  # [2]
     hi = np.percentile(xy, 100.0 - cfg.bounds_pct, axis=0)  # [2]
-    return Grid.covering(lo, hi, cfg.cell, cfg.pad)
+    return lo, hi
 
 
 def read_points(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[int, str]]:
@@ -110,6 +127,20 @@ def read_grid(path: Path) -> Grid:
         return Grid.from_json(d)
     except (KeyError, TypeError, ValueError, IndexError) as e:
         raise BlunfError(f"{path}: not a plan grid ({e})") from None
+
+
+def read_bounds(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """(lo [2], hi [2]) of the points, from grid.json (None when it does not say)."""
+    b = read_json(path).get("bounds")
+    if b is None:
+        return None
+    try:
+        lo, hi = np.asarray(b[:2], np.float64), np.asarray(b[2:], np.float64)
+    except (TypeError, ValueError) as e:
+        raise BlunfError(f"{path}: bad bounds ({e})") from None
+    if lo.shape != (2,) or hi.shape != (2,) or not (lo <= hi).all():
+        raise BlunfError(f"{path}: bounds must be [xmin, ymin, xmax, ymax], got {b}")
+    return lo, hi
 
 
 def _frame_points(
@@ -219,6 +250,18 @@ def _check(cfg: ProjectConfig) -> None:
         raise BlunfError(f"project.pad must be >= 0 metres, got {cfg.pad}")
     if cfg.labelling not in LABELLINGS:
         raise BlunfError(f"project.labelling must be one of {LABELLINGS}, got {cfg.labelling!r}")
+    if cfg.occlusion not in OCCLUSIONS:
+        raise BlunfError(f"project.occlusion must be one of {OCCLUSIONS}, got {cfg.occlusion!r}")
+    if cfg.occlusion_cell < 0 or cfg.top_band < 0:
+        raise BlunfError(
+            f"project.occlusion_cell ({cfg.occlusion_cell}) and project.top_band "
+            f"({cfg.top_band}) must be >= 0 metres"
+        )
+    if cfg.top_min_points < 1 or cfg.occlusion_shifts < 1:
+        raise BlunfError(
+            f"project.top_min_points ({cfg.top_min_points}) and project.occlusion_shifts "
+            f"({cfg.occlusion_shifts}) must be >= 1"
+        )
     if not cfg.floor_band < cfg.ceiling_cut:
         raise BlunfError(
             f"project.floor_band ({cfg.floor_band}) must be below "

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from stages.blueprint import IMPLS, BlueprintConfig, BlueprintInputs, BlunfConfig, paper_recipe
-from stages.blueprint.blunf import auto_freqs, field_labels
+from stages.blueprint.blunf import _sampler, auto_freqs, field_labels
 from stages.blueprint.encoding import HashGrid2D
 from stages.common.blueprint import Blueprint, Grid
 from stages.evaluate.metrics import plan_metrics
@@ -58,7 +58,7 @@ def _gt() -> np.ndarray:
     return _labels(GRID.centers().reshape(-1, 2)).reshape(GRID.shape)
 
 
-def _run(tmp: Path, cfg: BlunfConfig, xyz=None, grid: Grid = GRID, name: str = "out"):
+def _run(tmp: Path, cfg: BlunfConfig, xyz=None, grid: Grid = GRID, name: str = "out", bounds=None):
     if xyz is None:
         xyz, lab = _points()
     else:
@@ -72,7 +72,8 @@ def _run(tmp: Path, cfg: BlunfConfig, xyz=None, grid: Grid = GRID, name: str = "
         view=np.zeros(len(lab), np.int32),
         classes=json.dumps({str(k): v for k, v in CLASSES.items()}),
     )
-    (d / "grid.json").write_text(json.dumps(grid.to_json()))
+    extra = {} if bounds is None else {"bounds": list(bounds)}
+    (d / "grid.json").write_text(json.dumps({**grid.to_json(), **extra}))
     out = d / "run"
     out.mkdir()
     outs = IMPLS["blunf"](
@@ -176,3 +177,38 @@ def test_auto_frequencies_stop_near_the_cell_size():
 def test_paper_recipe_is_the_papers():
     p = paper_recipe()
     assert (p.encoding, p.n_freqs, p.width, p.lr, p.batch) == ("pe", 12, 64, 5e-3, 50_000)
+
+
+def test_cells_beyond_the_bounds_read_the_field_at_the_edge(tmp_path):
+    # Bounds end at x = 1.5, inside the table (x 1.25 .. 1.75, y 1.125 .. 1.625). Columns 24..31
+    # (centres x = 1.53 .. 1.97) lie beyond: clamped to x = 1.5, each row repeats one label,
+    # and the table rows carry the table to the east edge of the grid, where the points say
+    # floor (x > 1.75) and the unclamped field does too.
+    cfg = BlunfConfig(**SETTINGS["pe"])
+    bp, outs = _run(tmp_path, cfg, bounds=(0.0, 0.0, 1.5, 2.0))
+    beyond = bp.labels[:, 24:]
+    assert (beyond == beyond[:, :1]).all()
+    # row r has its centre at y = (31.5 - r) / 16: the table holds rows 6..13; rows 7..12
+    # (y = 1.53 .. 1.22) are well inside it
+    rows = slice(7, 13)
+    assert (bp.labels[rows, 31] == 3).all()
+    # the saved field clamps the same way
+    far = np.array([[5.0, 1.4], [1.5, 1.4]])
+    assert field_labels(outs.blueprint.parent / "model.pt", far).tolist() == [3, 3]
+    free, _ = _run(tmp_path, replace(cfg, outside="field"), bounds=(0.0, 0.0, 1.5, 2.0), name="f")
+    assert (free.labels[rows, 31] == 0).mean() > 0.5
+
+
+def test_cell_balance_draws_every_occupied_cell_alike():
+    # 1000 points in cell 7, 10 in cell 3, 1 in cell 99: each cell a third of the draws
+    cell = torch.tensor([7] * 1000 + [3] * 10 + [99])
+    y = torch.zeros(len(cell), dtype=torch.int64)
+    c = BlunfConfig(balance="cell", batch=30_000)
+    idx = _sampler(c, y, 1, torch.Generator().manual_seed(0), cell)()
+    frac = torch.bincount(cell[idx], minlength=100)[[7, 3, 99]].double() / c.batch
+    # binomial sd = sqrt(1/3 * 2/3 / 30000) = 0.0027: +-0.015 is over 5 sd
+    torch.testing.assert_close(
+        frac, torch.full((3,), 1 / 3, dtype=torch.float64), atol=0.015, rtol=0
+    )
+    # within a cell, its points come up alike: the 10 points of cell 3 all appear
+    assert set(idx[cell[idx] == 3].tolist()) == set(range(1000, 1010))

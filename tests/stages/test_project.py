@@ -13,7 +13,7 @@ from stages.common.capture import Capture, Frame
 from stages.common.errors import BlunfError
 from stages.common.io import write_depth_png, write_image, write_label_png
 from stages.project import IMPLS, ProjectConfig, ProjectInputs
-from stages.project.points import _undistort, read_grid, read_points
+from stages.project.points import _undistort, read_bounds, read_grid, read_points
 
 # An 8x6 camera with fx = fy = 4, cx = 3.5, cy = 2.5 (principal point between the central
 # pixels), 2 m above the floor at world (1, 2, 2), looking straight down. Its axes in the world:
@@ -149,3 +149,61 @@ def test_undistort_inverts_the_opencv_model():
     uv_d = np.stack([xd * intr.fx + intr.cx, yd * intr.fy + intr.cy], -1)
     ideal = np.stack([x * intr.fx + intr.cx, y * intr.fy + intr.cy], -1)
     np.testing.assert_allclose(_undistort(uv_d, intr), ideal, atol=1e-6)
+
+
+def _frames(tmp: Path, views: list[tuple[np.ndarray, np.ndarray, np.ndarray]], classes) -> Path:
+    """frames.json of views given as (pose, depth [6, 8], label [6, 8])."""
+    root = tmp / "cap"
+    for sub in ("images", "depth", "labels"):
+        (root / sub).mkdir(parents=True, exist_ok=True)
+    frames = []
+    for i, (pose, depth, label) in enumerate(views):
+        img, dep, lab = (root / s / f"{i}.png" for s in ("images", "depth", "labels"))
+        write_image(img, np.zeros((6, 8, 3), np.uint8))
+        write_depth_png(dep, depth)
+        write_label_png(lab, label)
+        frames.append(Frame(str(i), img, INTR, dep, lab, pose))
+    Capture(root, tuple(frames), classes=classes).save(tmp / "frames.json")
+    return tmp / "frames.json"
+
+
+def test_top_view_drops_floor_seen_under_a_table(tmp_path):
+    # Two views of the floor (DOWN, 2 m up, depth 2: z = 0) and two views of a table top at
+    # z = 0.75 from 2.75 m up with depth 2: the same (x, y) as the floor points, 0.5 m apart.
+    # The table is labelled in the west half (u < 4: x < 1) only, the east half unknown.
+    # Top-view cells of 0.3 m hold one (x, y) each (no x or y lands on a cell edge: they are
+    # odd multiples of 0.25, not multiples of 0.3), i.e. 2 table and 2 floor points in the west
+    # half: top = 0.75 (2nd highest), the floor reaches 0 < 0.75 - 0.1: dropped.
+    up = DOWN.copy()
+    up[2, 3] = 2.75
+    depth = np.full((6, 8), 2.0)
+    table = np.where(np.arange(8)[None, :] < 4, 3, 255).repeat(6, 0).astype(np.uint8)
+    floor = np.zeros((6, 8), np.uint8)
+    views = [(up, depth, table), (up, depth, table), (DOWN, depth, floor), (DOWN, depth, floor)]
+    frames = _frames(tmp_path, views, {0: "floor", 3: "table"})
+    kw = dict(stride=1, cell=0.25, occlusion_cell=0.3, top_band=0.1, top_min_points=2)
+    outs, out = _run(tmp_path, frames, occlusion="top", occlusion_shifts=1, **kw)
+    xyz, lab, view, _ = read_points(outs.points)
+    # kept: 2 x 24 table points, 2 x 24 floor points of the east half (x > 1)
+    assert len(lab) == 96 and int((lab == 3).sum()) == 48
+    assert (xyz[lab == 0, 0] > 1).all() and (view[lab == 0] >= 2).all()
+    assert json.loads((out / "project.json").read_text())["dropped_occluded"] == 48
+    # the plan grid is that of all the points: the culling does not move it
+    grid = read_grid(outs.grid)
+    tmp2 = tmp_path / "none"
+    tmp2.mkdir()
+    outs2, _ = _run(tmp2, frames, occlusion="none", **kw)
+    assert len(read_points(outs2.points)[1]) == 144  # the paper's Π keeps every point
+    assert read_grid(outs2.grid) == grid
+
+
+def test_bounds_of_the_points_are_recorded_with_the_grid(tmp_path):
+    frames = _capture(tmp_path, np.full((6, 8), 2.0), np.ones((6, 8), np.uint8))
+    outs, _ = _run(tmp_path, frames, stride=1, cell=0.25, pad=0.3, bounds_pct=0.0)
+    # points span x in [-0.75, 2.75], y in [0.75, 3.25] (first test); the grid adds the pad
+    lo, hi = read_bounds(outs.grid)
+    np.testing.assert_allclose([*lo, *hi], [-0.75, 0.75, 2.75, 3.25], atol=1e-6)
+    grid = read_grid(outs.grid)
+    # origin floor((-0.75 - 0.3) / 0.25) * 0.25 = -1.25 and floor(0.45 / 0.25) * 0.25 = 0.25;
+    # W = ceil((3.05 + 1.25) / 0.25) = 18 (17.2), H = ceil((3.55 - 0.25) / 0.25) = 14 (13.2)
+    assert grid.origin == (-1.25, 0.25) and grid.shape == (14, 18)

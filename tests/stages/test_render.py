@@ -42,3 +42,11 @@ def test_colours_are_distinct_stable_and_the_legend_shows_them(tmp_path):
         assert (legend == class_color(k)).all(axis=-1).sum() >= 100, k  # a 14 x 14 swatch
     assert (legend == UNKNOWN_COLOR).all(axis=-1).sum() >= 100  # the plan has unknown cells
     assert (legend == class_color(3)).all(axis=-1).sum() == 0  # class 3 is not in the plan
+
+
+def test_vector_writers_use_the_picture_colours():
+    # one colour function for the PNG, SVG and DXF: the vector module re-exports render's
+    from stages.export import components, vector
+
+    assert vector.class_color is class_color
+    assert not hasattr(components, "class_color")
