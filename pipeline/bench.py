@@ -30,8 +30,24 @@ from stages.evaluate.plan import evaluate_plan
 log = logging.getLogger(__name__)
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-FIELDS = ["scene", "frames", "stage", "method", "variant", "steps", "repeats", "wall_s",
-          "cpu_s", "peak_rss_mb", "pacc", "fwiou", "miou", "completeness", "fps", "note"]
+FIELDS = [
+    "scene",
+    "frames",
+    "stage",
+    "method",
+    "variant",
+    "steps",
+    "repeats",
+    "wall_s",
+    "cpu_s",
+    "peak_rss_mb",
+    "pacc",
+    "fwiou",
+    "miou",
+    "completeness",
+    "fps",
+    "note",
+]
 
 
 def timed(fn: Callable[[Path], Any], repeats: int) -> tuple[list[float], list[float], float, Any]:
@@ -54,8 +70,9 @@ def _stage_folder(run_dir: Path, stage: str, impl: str | None = None) -> Path:
     return run_dir / stage / s["key"]
 
 
-def bench_blueprint(capture: Path, out: Path, frames: int, repeats: int,
-                    paper_steps: tuple[int, ...]) -> list[dict]:
+def bench_blueprint(
+    capture: Path, out: Path, frames: int, repeats: int, paper_steps: tuple[int, ...]
+) -> list[dict]:
     """BluNF (defaults), the paper's recipe at several step budgets, and MVR, on one budget."""
     run_dir = out / "runs" / f"{capture.name}-f{frames}"
     cfg = load_config(None, [f"ingest.frames={frames}"])
@@ -74,16 +91,26 @@ def bench_blueprint(capture: Path, out: Path, frames: int, repeats: int,
     rows = []
     for method, variant, vcfg, steps in variants:
         reps = repeats if variant == "default" else 1
-        walls, cpus, peak, metrics = timed(
-            lambda d, m=method, c=vcfg: evaluate_plan(
-                Blueprint.load(BLUEPRINT[m](c, inputs, d).blueprint), gt), reps)
-        rows.append({
-            "scene": capture.name, "frames": frames, "stage": "blueprint", "method": method,
-            "variant": variant, "steps": steps, "repeats": reps,
-            "wall_s": round(statistics.median(walls), 3),
-            "cpu_s": round(statistics.median(cpus), 3), "peak_rss_mb": peak,
-            **{k: round(metrics[k], 2) for k in ("pacc", "fwiou", "miou", "completeness")},
-        })
+
+        def once(d: Path, m: str = method, c: Any = vcfg) -> dict:
+            return evaluate_plan(Blueprint.load(BLUEPRINT[m](c, inputs, d).blueprint), gt)
+
+        walls, cpus, peak, metrics = timed(once, reps)
+        rows.append(
+            {
+                "scene": capture.name,
+                "frames": frames,
+                "stage": "blueprint",
+                "method": method,
+                "variant": variant,
+                "steps": steps,
+                "repeats": reps,
+                "wall_s": round(statistics.median(walls), 3),
+                "cpu_s": round(statistics.median(cpus), 3),
+                "peak_rss_mb": peak,
+                **{k: round(metrics[k], 2) for k in ("pacc", "fwiou", "miou", "completeness")},
+            }
+        )
         log.info("bench %s", rows[-1])
     return rows
 
@@ -100,12 +127,21 @@ def bench_fusion(capture: Path, out: Path, repeats: int) -> list[dict]:
     inputs = FusionInputs(frames=align / "frames.json")
     walls, cpus, peak, _ = timed(lambda d: FUSION["tsdf"](cfg["fusion"], inputs, d), repeats)
     n = len(read_json(inputs.frames)["frames"])
-    return [{"scene": capture.name, "frames": n, "stage": "fusion", "method": "tsdf",
-             "variant": "default", "repeats": repeats,
-             "wall_s": round(statistics.median(walls), 3),
-             "cpu_s": round(statistics.median(cpus), 3), "peak_rss_mb": peak,
-             "fps": round(n / statistics.median(walls), 2),
-             "note": "integrate + mesh + ray-cast depth of every view"}]
+    return [
+        {
+            "scene": capture.name,
+            "frames": n,
+            "stage": "fusion",
+            "method": "tsdf",
+            "variant": "default",
+            "repeats": repeats,
+            "wall_s": round(statistics.median(walls), 3),
+            "cpu_s": round(statistics.median(cpus), 3),
+            "peak_rss_mb": peak,
+            "fps": round(n / statistics.median(walls), 2),
+            "note": "integrate + mesh + ray-cast depth of every view",
+        }
+    ]
 
 
 def _ensure_room(out: Path, views: int, size: tuple[int, int]) -> Path:
@@ -143,25 +179,54 @@ def bench(out: Path, quick: bool = False, repeats: int = 3) -> Path:
 
 def to_markdown(rows: list[dict]) -> str:
     """The table, plus each frame budget's paper-recipe time to reach the default's fwIoU."""
-    lines = ["| scene | frames | stage | method | variant | steps | wall s (median) | cpu s |"
-             " peak MB | pAcc | fwIoU | compl. | fps |", "|" + "---|" * 13]
+    lines = [
+        "| scene | frames | stage | method | variant | steps | wall s (median) | cpu s |"
+        " peak MB | pAcc | fwIoU | compl. | fps |",
+        "|" + "---|" * 13,
+    ]
     for r in rows:
-        lines.append("| " + " | ".join(str(r.get(k, "")) for k in (
-            "scene", "frames", "stage", "method", "variant", "steps", "wall_s", "cpu_s",
-            "peak_rss_mb", "pacc", "fwiou", "completeness", "fps")) + " |")
+        lines.append(
+            "| "
+            + " | ".join(
+                str(r.get(k, ""))
+                for k in (
+                    "scene",
+                    "frames",
+                    "stage",
+                    "method",
+                    "variant",
+                    "steps",
+                    "wall_s",
+                    "cpu_s",
+                    "peak_rss_mb",
+                    "pacc",
+                    "fwiou",
+                    "completeness",
+                    "fps",
+                )
+            )
+            + " |"
+        )
     lines.append("")
     for n in sorted({r["frames"] for r in rows if r["stage"] == "blueprint"}, reverse=True):
-        ours = next(r for r in rows if r["frames"] == n and r["variant"] == "default"
-                    and r["method"] == "blunf")
+        ours = next(
+            r
+            for r in rows
+            if r["frames"] == n and r["variant"] == "default" and r["method"] == "blunf"
+        )
         paper = [r for r in rows if r["frames"] == n and r["variant"] == "paper"]
         hit = next((r for r in paper if r["fwiou"] >= ours["fwiou"] - 0.5), None)
         if hit:
-            lines.append(f"- {n} frames: the paper recipe reaches fwIoU {hit['fwiou']} (ours "
-                         f"{ours['fwiou']}) after {hit['steps']} steps, {hit['wall_s']} s: "
-                         f"{hit['wall_s'] / ours['wall_s']:.1f}x our {ours['wall_s']} s.")
+            lines.append(
+                f"- {n} frames: the paper recipe reaches fwIoU {hit['fwiou']} (ours "
+                f"{ours['fwiou']}) after {hit['steps']} steps, {hit['wall_s']} s: "
+                f"{hit['wall_s'] / ours['wall_s']:.1f}x our {ours['wall_s']} s."
+            )
         elif paper:
             best = max(paper, key=lambda r: r["fwiou"])
-            lines.append(f"- {n} frames: the paper recipe's best fwIoU is {best['fwiou']} after "
-                         f"{best['steps']} steps ({best['wall_s']} s), below ours "
-                         f"{ours['fwiou']} in {ours['wall_s']} s.")
+            lines.append(
+                f"- {n} frames: the paper recipe's best fwIoU is {best['fwiou']} after "
+                f"{best['steps']} steps ({best['wall_s']} s), below ours "
+                f"{ours['fwiou']} in {ours['wall_s']} s."
+            )
     return "\n".join(lines) + "\n"

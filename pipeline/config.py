@@ -203,8 +203,8 @@ def _coerce(v: Any, tp: Any, where: str) -> Any:
             v = [x.strip() for x in v.split(",") if x.strip()]
         if not isinstance(v, list | tuple):
             raise BlunfError(f"{where}: expected a list, got {v!r}")
-        args = [a for a in typing.get_args(tp) if a is not Ellipsis]
-        item = args[0] if args else Any
+        item_types = [a for a in typing.get_args(tp) if a is not Ellipsis]
+        item = item_types[0] if item_types else Any
         out = [_coerce(x, item, where) if item is not Any else x for x in v]
         return tuple(out) if origin is tuple else out
     if tp is bool:

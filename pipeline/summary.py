@@ -8,8 +8,20 @@ import json
 import sys
 from pathlib import Path
 
-COLUMNS = ["scene", "ok", "seconds_total", "stages_ran", "stages_cached", "stages_skipped",
-           "blunf_fwiou", "blunf_pacc", "mvr_fwiou", "ate_rmse_m", "components", "log"]
+COLUMNS = [
+    "scene",
+    "ok",
+    "seconds_total",
+    "stages_ran",
+    "stages_cached",
+    "stages_skipped",
+    "blunf_fwiou",
+    "blunf_pacc",
+    "mvr_fwiou",
+    "ate_rmse_m",
+    "components",
+    "log",
+]
 
 
 def row(run: Path) -> dict:
@@ -22,16 +34,20 @@ def row(run: Path) -> dict:
     rep = json.loads(rep_path.read_text())
     st = [s["status"] for s in rep.get("stages", [])]
     bp = rep.get("metrics", {}).get("blueprint", {})
-    r.update({
-        "ok": (run / "blueprint.png").is_file() and "blueprint.png" in rep.get("outputs", {}),
-        "seconds_total": rep.get("seconds_total"),
-        "stages_ran": st.count("ran"), "stages_cached": st.count("cached"),
-        "stages_skipped": st.count("skipped"),
-        "blunf_fwiou": bp.get("blunf", {}).get("fwiou"), "blunf_pacc": bp.get("blunf", {}).get("pacc"),
-        "mvr_fwiou": bp.get("mvr", {}).get("fwiou"),
-        "ate_rmse_m": rep.get("metrics", {}).get("poses", {}).get("ate_rmse_m"),
-        "components": len(rep.get("plan", {}).get("components", [])),
-    })
+    r.update(
+        {
+            "ok": (run / "blueprint.png").is_file() and "blueprint.png" in rep.get("outputs", {}),
+            "seconds_total": rep.get("seconds_total"),
+            "stages_ran": st.count("ran"),
+            "stages_cached": st.count("cached"),
+            "stages_skipped": st.count("skipped"),
+            "blunf_fwiou": bp.get("blunf", {}).get("fwiou"),
+            "blunf_pacc": bp.get("blunf", {}).get("pacc"),
+            "mvr_fwiou": bp.get("mvr", {}).get("fwiou"),
+            "ate_rmse_m": rep.get("metrics", {}).get("poses", {}).get("ate_rmse_m"),
+            "components": len(rep.get("plan", {}).get("components", [])),
+        }
+    )
     return r
 
 
@@ -48,14 +64,19 @@ def summarise(runs_dir: Path) -> tuple[Path, Path]:
     for r in rows:
         name = html.escape(r["scene"])
         img = f'<img src="{name}/blueprint.png" alt="{name}">' if r["ok"] else "<p>failed</p>"
-        facts = "".join(f"<li>{html.escape(k)}: {html.escape(str(r.get(k, '')))}</li>"
-                        for k in COLUMNS[1:] if r.get(k) not in (None, ""))
+        facts = "".join(
+            f"<li>{html.escape(k)}: {html.escape(str(r.get(k, '')))}</li>"
+            for k in COLUMNS[1:]
+            if r.get(k) not in (None, "")
+        )
         cells.append(f'<div class="run"><h2>{name}</h2>{img}<ul>{facts}</ul></div>')
     html_path.write_text(
         "<!DOCTYPE html><html><head><meta charset='utf-8'><title>blunf batch</title><style>"
         "body{font-family:sans-serif}.run{display:inline-block;vertical-align:top;margin:1em;"
         "max-width:480px}img{max-width:100%}</style></head><body><h1>blunf batch</h1>"
-        + "".join(cells) + "</body></html>\n")
+        + "".join(cells)
+        + "</body></html>\n"
+    )
     return csv_path, html_path
 
 

@@ -23,7 +23,11 @@ print("ok")
 
 
 def test_pycolmap_after_stages_keeps_zlib_working(tmp_path):
-    r = subprocess.run([sys.executable, "-c", SCRIPT.format(d=tmp_path)], capture_output=True,
-                       text=True, timeout=120)
+    r = subprocess.run(
+        [sys.executable, "-c", SCRIPT.format(d=tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stdout.strip() == "ok"

@@ -15,8 +15,16 @@ from stages.export.render import plan_png
 from stages.export.vector import write_dxf, write_geojson, write_svg
 from stages.ingest.nerfstudio import write_transforms
 
-FILES = ("blueprint.png", "blueprint.npz", "blueprint.svg", "blueprint.geojson", "blueprint.dxf",
-         "mesh.ply", "transforms.json", "components.json")
+FILES = (
+    "blueprint.png",
+    "blueprint.npz",
+    "blueprint.svg",
+    "blueprint.geojson",
+    "blueprint.dxf",
+    "mesh.ply",
+    "transforms.json",
+    "components.json",
+)
 
 
 @dataclass(frozen=True)
@@ -45,10 +53,13 @@ def run(cfg: ExportConfig, inputs: ExportInputs, out: Path) -> ExportOutputs:
     write_dxf(bp, out / "blueprint.dxf", tolerance_m=cfg.tolerance)
     summary = plan_summary(bp, min_area_m2=cfg.min_area)
     write_json(out / "components.json", summary)
-    write_json(out / "export.json", {
-        "components": len(summary["components"]),
-        "classes": {k: v["area_m2"] for k, v in summary["classes"].items()},
-    })
+    write_json(
+        out / "export.json",
+        {
+            "components": len(summary["components"]),
+            "classes": {k: v["area_m2"] for k, v in summary["classes"].items()},
+        },
+    )
     shutil.copyfile(inputs.mesh, out / "mesh.ply")
     write_transforms(Capture.load(inputs.frames), out / "transforms.json")
     return ExportOutputs.at(out)

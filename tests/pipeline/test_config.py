@@ -62,8 +62,17 @@ def _changed(v):
 
 def _valid_other(cfg, name, value):
     """A different value the config accepts (for fields checked in __post_init__)."""
-    for cand in (value * 2 if isinstance(value, int | float) and value else 1,
-                 "none", "sequential", "global", "exhaustive", "depth", "floor", "top", "pe"):
+    for cand in (
+        value * 2 if isinstance(value, int | float) and value else 1,
+        "none",
+        "sequential",
+        "global",
+        "exhaustive",
+        "depth",
+        "floor",
+        "top",
+        "pe",
+    ):
         if cand == value:
             continue
         try:
@@ -109,7 +118,10 @@ def _other_impl_sections(cfg, impl):
 def test_other_methods_settings_do_not_change_a_methods_key():
     cfg = default_config()["blueprint"]
     mvr_key = stage_key("blueprint", "mvr", stage_view(cfg, "mvr"), {})
-    changed = dataclasses.replace(cfg, blunf=dataclasses.replace(cfg.blunf, steps=cfg.blunf.steps + 1))
+    changed = dataclasses.replace(
+        cfg, blunf=dataclasses.replace(cfg.blunf, steps=cfg.blunf.steps + 1)
+    )
     assert stage_key("blueprint", "mvr", stage_view(changed, "mvr"), {}) == mvr_key
     assert stage_key("blueprint", "blunf", stage_view(changed, "blunf"), {}) != stage_key(
-        "blueprint", "blunf", stage_view(cfg, "blunf"), {})
+        "blueprint", "blunf", stage_view(cfg, "blunf"), {}
+    )

@@ -7,7 +7,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-
 from pipeline.cli import main
 from stages.common.blueprint import Blueprint
 
@@ -30,8 +29,16 @@ def test_run_outputs_report_and_cache(tiny_room, tmp_path):
     # The room gives poses, depth and labels: those stages are skipped, with reasons.
     assert st["poses:given"] == "skipped" and st["depth:nerf"] == "skipped"
     assert st["semantics:given"] == "skipped" and st["nerf:grid"] == "skipped"
-    for name in ("ingest:auto", "align:auto", "fusion:tsdf", "project:pinhole", "blueprint:blunf",
-                 "blueprint:mvr", "evaluate:gt", "export:files"):
+    for name in (
+        "ingest:auto",
+        "align:auto",
+        "fusion:tsdf",
+        "project:pinhole",
+        "blueprint:blunf",
+        "blueprint:mvr",
+        "evaluate:gt",
+        "export:files",
+    ):
         assert st[name] == "ran", name
     assert all(s["reason"] for s in first["stages"] if s["status"] == "skipped")
     for f in ("blueprint.png", "blueprint.npz", "mesh.ply", "transforms.json"):
@@ -49,7 +56,8 @@ def test_run_outputs_report_and_cache(tiny_room, tmp_path):
     before = (out / "blueprint.npz").read_bytes()
     second = _run(tiny_room, out)
     assert {k: v for k, v in _status(second).items() if v != "skipped"} == {
-        k: "cached" for k, v in st.items() if v == "ran"}
+        k: "cached" for k, v in st.items() if v == "ran"
+    }
     assert (out / "blueprint.npz").read_bytes() == before
     assert second["metrics"] == first["metrics"]
 
@@ -94,8 +102,19 @@ def test_unknown_config_key_fails_before_work(tiny_room, tmp_path, capsys):
 
 
 def test_module_entry_point_matches_console_script(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "pipeline", "run", str(tmp_path / "missing"),
-                        "--out", str(tmp_path / "o")], capture_output=True, text=True)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pipeline",
+            "run",
+            str(tmp_path / "missing"),
+            "--out",
+            str(tmp_path / "o"),
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 2
     assert r.stderr.strip().startswith("blunf: error:") and "Traceback" not in r.stderr
 
@@ -112,5 +131,8 @@ def test_killed_stage_leaves_no_entry(tiny_room, tmp_path):
     (dead / "partial.ply").write_text("x")
     Cache(out).sweep()
     assert not dead.exists()
-    assert all((p / "meta.json").is_file() for p in (out / "fusion").iterdir()
-               if not p.name.startswith("."))
+    assert all(
+        (p / "meta.json").is_file()
+        for p in (out / "fusion").iterdir()
+        if not p.name.startswith(".")
+    )
