@@ -76,14 +76,10 @@ def parser() -> argparse.ArgumentParser:
 
 def setup_runtime(threads: int = 0) -> int:
     """Size torch/Open3D threads to the free cores and raise glibc's malloc thresholds."""
-    n = threads or _free_cores()
+    n = threads or free_cores()
+    # OpenMP (torch, Open3D) reads this when first loaded; torch's own setting is applied by the
+    # runner once a stage that needs torch runs (a fully cached run never imports it).
     os.environ.setdefault("OMP_NUM_THREADS", str(n))
-    try:
-        import torch
-
-        torch.set_num_threads(n)
-    except ImportError:  # torch is a hard dependency; only stages that train import it later
-        raise BlunfError("torch is not installed: run `make setup`") from None
     try:  # M_TRIM_THRESHOLD = -1, M_MMAP_THRESHOLD = -3: keep big tensors in the heap
         libc = ctypes.CDLL("libc.so.6")
         libc.mallopt(-3, 32 * 1024 * 1024)
@@ -93,7 +89,7 @@ def setup_runtime(threads: int = 0) -> int:
     return n
 
 
-def _free_cores() -> int:
+def free_cores() -> int:
     """Cores this process may use minus those busy with other work (1 min load average)."""
     env = os.environ.get("BLUNF_THREADS") or os.environ.get("OMP_NUM_THREADS")
     if env and env.isdigit() and int(env) > 0:

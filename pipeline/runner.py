@@ -46,14 +46,13 @@ class Runner:
     def stage(self, stage: str, impl: str, inputs: Any, reason: str = "", cfg: Any = None) -> Any:
         """Run (or reuse) `stages.<stage>.IMPLS[impl](cfg, inputs, out)`; returns its outputs."""
         check_impl(stage, impl)
-        fn = registry(stage)[impl]
-        outputs_cls = typing.get_type_hints(fn)["return"]
         scfg = cfg if cfg is not None else self.cfg[stage]
         key = stage_key(stage, impl, stage_view(scfg, impl), self.cache.input_keys(inputs))
         with self.cache.lock(stage, key):
             folder = self.cache.folder(stage, key)
             if self.cache.is_done(stage, key):
                 meta = read_json(folder / "meta.json")
+                outputs_cls = _outputs_class(meta, stage, impl)
                 log.info("%-10s cached (%s)", stage, key)
                 self.report.add(
                     StageRecord(
@@ -62,6 +61,9 @@ class Runner:
                 )
                 return outputs_cls.at(folder)
             log.info("%-10s %s: running (%s) %s", stage, impl, key, stage_view(scfg, impl))
+            fn = registry(stage)[impl]  # imports the implementation (torch, Open3D...) only now
+            outputs_cls = typing.get_type_hints(fn)["return"]
+            _size_torch_threads(self.cfg.run.threads)
             tmp = self.cache.temp(stage, key)
             try:  # a failing stage leaves nothing behind (a killed one is swept by the next run)
                 peak_rss_reset()
@@ -79,6 +81,7 @@ class Runner:
                     "cpu_seconds": round(cpu, 3),
                     "peak_rss_mb": peak_rss_mb(),
                     "facts": facts,
+                    "outputs_class": f"{outputs_cls.__module__}:{outputs_cls.__qualname__}",
                 }
                 folder = self.cache.commit(tmp, stage, key, meta)
             except BaseException:
@@ -89,6 +92,26 @@ class Runner:
             StageRecord(stage, impl, "ran", reason, round(secs, 3), meta["peak_rss_mb"], key, facts)
         )
         return outputs_cls.at(folder)
+
+
+def _outputs_class(meta: dict, stage: str, impl: str) -> Any:
+    """The Outputs class a cached entry was written with (no need to import the stage's code)."""
+    name = meta.get("outputs_class")
+    if name:
+        module, _, qual = name.partition(":")
+        return getattr(importlib.import_module(module), qual)
+    return typing.get_type_hints(registry(stage)[impl])["return"]
+
+
+def _size_torch_threads(threads: int) -> None:
+    """Torch threads = the free cores (or run.threads), set once torch is actually needed."""
+    import os
+    import sys
+
+    if "torch" in sys.modules:
+        env = os.environ.get("OMP_NUM_THREADS", "")
+        n = threads or (int(env) if env.isdigit() and int(env) > 0 else 1)
+        sys.modules["torch"].set_num_threads(n)
 
 
 def _facts(folder: Path, stage: str, impl: str) -> dict:

@@ -5,9 +5,16 @@
 All but `none` then turn the world about z so that the walls lie on x and y (manhattan.py).
 """
 
-from stages.align import auto, floor, gravity, none
 from stages.align.config import AlignConfig, AlignInputs, AlignOutputs
+from stages.common.registry import LazyImpls
 
-IMPLS = {"auto": auto.run, "gravity": gravity.run, "floor": floor.run, "none": none.run}
+IMPLS = LazyImpls(
+    {
+        "auto": "stages.align.auto:run",
+        "gravity": "stages.align.gravity:run",
+        "floor": "stages.align.floor:run",
+        "none": "stages.align.none:run",
+    }
+)
 
 __all__ = ["IMPLS", "AlignConfig", "AlignInputs", "AlignOutputs"]

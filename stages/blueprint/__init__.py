@@ -1,6 +1,5 @@
 """Blueprint stage: projected points → the plan raster (BluNF field or the MVR baseline)."""
 
-from stages.blueprint import blunf, mvr
 from stages.blueprint.config import (
     BlueprintConfig,
     BlueprintInputs,
@@ -9,8 +8,9 @@ from stages.blueprint.config import (
     MvrConfig,
     paper_recipe,
 )
+from stages.common.registry import LazyImpls
 
-IMPLS = {"blunf": blunf.run, "mvr": mvr.run}
+IMPLS = LazyImpls({"blunf": "stages.blueprint.blunf:run", "mvr": "stages.blueprint.mvr:run"})
 
 __all__ = [
     "IMPLS",

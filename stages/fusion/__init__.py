@@ -3,9 +3,9 @@
 `IMPLS[cfg.impl]` picks the implementation; `tsdf` is Open3D's tensor VoxelBlockGrid.
 """
 
-from stages.fusion import tsdf
+from stages.common.registry import LazyImpls
 from stages.fusion.config import FusionConfig, FusionInputs, FusionOutputs
 
-IMPLS = {"tsdf": tsdf.run}
+IMPLS = LazyImpls({"tsdf": "stages.fusion.tsdf:run"})
 
 __all__ = ["IMPLS", "FusionConfig", "FusionInputs", "FusionOutputs"]
