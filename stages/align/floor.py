@@ -21,6 +21,7 @@ from stages.align.planes import (
     Floor,
     angle_deg,
     cameras_up,
+    describe,
     dominant_up,
     find_floor,
     finish,
@@ -72,18 +73,7 @@ def solve(cap: Capture, cfg: AlignConfig, where: Path) -> tuple[np.ndarray, floa
         notes.append(f"up is {cam_dev:.0f} deg from the cameras' mean up (> up_cone_deg)")
     R, yaw, note = square_up(R, s.normals, cfg)  # about z: keeps the floor height and tilt
     notes += [note] if note else []
-    info = {
-        "method": "floor",
-        "inlier_fraction": fl.inlier_fraction,
-        "up_from": up_from,
-        "notes": "; ".join(notes),
-        "frames_used": s.frames,
-        "points": len(s.points),
-        "floor_tilt_deg": None if fl.normal is None else angle_deg(fl.normal, UP),
-        "cameras_up_deg": cam_dev,
-        **yaw,
-        "seconds": round(time.perf_counter() - t0, 3),
-    }
+    info = describe("floor", up_from, notes, s, fl, cam_dev, yaw, t0)
     return R, fl.z, info
 
 

@@ -14,6 +14,7 @@ from stages.align.planes import (
     UP,
     angle_deg,
     cameras_up,
+    describe,
     find_floor,
     finish,
     load,
@@ -45,19 +46,7 @@ def solve(cap: Capture, cfg: AlignConfig, where: Path) -> tuple[np.ndarray, floa
     if cam_dev > 90.0:  # hand-held cameras are not upside down on average
         notes.append(f"the cameras' mean up is {cam_dev:.0f} deg from -gravity: check its sign")
         log.warning("align: %s", notes[-1])
-    info = {
-        "method": "gravity",
-        "inlier_fraction": fl.inlier_fraction,
-        "up_from": "gravity",
-        "notes": "; ".join(notes),
-        "frames_used": s.frames,
-        "points": len(s.points),
-        # how far the fitted floor plane leans from gravity (a check of both), degrees
-        "floor_tilt_deg": None if fl.normal is None else angle_deg(fl.normal, UP),
-        "cameras_up_deg": cam_dev,
-        **yaw,
-        "seconds": round(time.perf_counter() - t0, 3),
-    }
+    info = describe("gravity", "gravity", notes, s, fl, cam_dev, yaw, t0)
     return R, fl.z, info
 
 

@@ -7,6 +7,7 @@ and `auto` call these helpers, then `finish` writes the aligned frames and align
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -220,3 +221,29 @@ def finish(
         info.get("notes") or "no notes",
     )
     return outs
+
+
+def describe(
+    method: str,
+    up_from: str,
+    notes: list[str],
+    s: Samples,
+    fl: Floor,
+    cam_dev: float,
+    yaw: dict,
+    t0: float,
+) -> dict:
+    """align.json's description of a solve (shared by the gravity and floor impls)."""
+    return {
+        "method": method,
+        "inlier_fraction": fl.inlier_fraction,
+        "up_from": up_from,
+        "notes": "; ".join(notes),
+        "frames_used": s.frames,
+        "points": len(s.points),
+        # how far the fitted floor plane leans from the up axis (a check of both), degrees
+        "floor_tilt_deg": None if fl.normal is None else angle_deg(fl.normal, UP),
+        "cameras_up_deg": cam_dev,
+        **yaw,
+        "seconds": round(time.perf_counter() - t0, 3),
+    }

@@ -9,7 +9,7 @@ from pathlib import Path
 from stages.common.blueprint import Blueprint
 from stages.common.capture import Capture
 from stages.common.io import write_json
-from stages.export.components import plan_summary
+from stages.export.components import plan_summary, polygons
 from stages.export.config import ExportConfig
 from stages.export.render import plan_png
 from stages.export.vector import write_dxf, write_geojson, write_svg
@@ -48,9 +48,10 @@ def run(cfg: ExportConfig, inputs: ExportInputs, out: Path) -> ExportOutputs:
     bp = Blueprint.load(inputs.blueprint)
     shutil.copyfile(inputs.blueprint, out / "blueprint.npz")
     plan_png(bp, out / "blueprint.png", title=cfg.title)
-    write_svg(bp, out / "blueprint.svg", title=cfg.title, tolerance_m=cfg.tolerance)
-    write_geojson(bp, out / "blueprint.geojson", tolerance_m=cfg.tolerance)
-    write_dxf(bp, out / "blueprint.dxf", tolerance_m=cfg.tolerance)
+    polys = polygons(bp, cfg.tolerance)  # traced once, written in three formats
+    write_svg(bp, out / "blueprint.svg", title=cfg.title, polys=polys)
+    write_geojson(bp, out / "blueprint.geojson", polys=polys)
+    write_dxf(bp, out / "blueprint.dxf", polys=polys)
     summary = plan_summary(bp, min_area_m2=cfg.min_area)
     write_json(out / "components.json", summary)
     write_json(

@@ -91,13 +91,19 @@ def _sub(parent: ET.Element, tag: str, text: str | None = None, **attrs) -> ET.E
     return el
 
 
-def write_svg(bp: Blueprint, path: Path, title: str = "", tolerance_m: float = 0.02) -> None:
+def write_svg(
+    bp: Blueprint,
+    path: Path,
+    title: str = "",
+    tolerance_m: float = 0.02,
+    polys: list[dict] | None = None,
+) -> None:
     """The plan as standalone SVG 1.1: one filled path per component, legend, scale bar.
 
     The plan sits in a nested <svg> whose viewBox is in world metres (x east, -y north), so
     path coordinates are world metres with y negated; the page around it is in pixels.
     """
-    polys = polygons(bp, tolerance_m)
+    polys = polygons(bp, tolerance_m) if polys is None else polys
     h, w = bp.grid.shape
     (ox, oy), cell = bp.grid.origin, bp.grid.cell
     wm, hm = w * cell, h * cell
@@ -226,7 +232,9 @@ def _coords(ring: np.ndarray) -> list[list[float]]:
     return [[round(float(x), 9), round(float(y), 9)] for x, y in ring]
 
 
-def write_geojson(bp: Blueprint, path: Path, tolerance_m: float = 0.02) -> None:
+def write_geojson(
+    bp: Blueprint, path: Path, tolerance_m: float = 0.02, polys: list[dict] | None = None
+) -> None:
     """The components as a GeoJSON FeatureCollection in scene metres (not WGS84).
 
     One feature per component: a Polygon, or a MultiPolygon when its cells touch only at
@@ -234,14 +242,14 @@ def write_geojson(bp: Blueprint, path: Path, tolerance_m: float = 0.02) -> None:
     id, class, class_id, area_m2, cells.
     """
     features = []
-    for p in polygons(bp, tolerance_m):
-        polys = [
+    for p in polygons(bp, tolerance_m) if polys is None else polys:
+        parts = [
             [_coords(ext), *(_coords(hl) for hl in holes)] for ext, holes in rings(p["geometry"])
         ]
         geom = (
-            {"type": "Polygon", "coordinates": polys[0]}
-            if len(polys) == 1
-            else {"type": "MultiPolygon", "coordinates": polys}
+            {"type": "Polygon", "coordinates": parts[0]}
+            if len(parts) == 1
+            else {"type": "MultiPolygon", "coordinates": parts}
         )
         features.append(
             {
@@ -275,7 +283,9 @@ def dxf_layer_name(bp: Blueprint, class_id: int) -> str:
     return name or f"class_{class_id}"
 
 
-def write_dxf(bp: Blueprint, path: Path, tolerance_m: float = 0.02) -> None:
+def write_dxf(
+    bp: Blueprint, path: Path, tolerance_m: float = 0.02, polys: list[dict] | None = None
+) -> None:
     """The components as DXF R2010: one layer per class (true colour), units metres.
 
     Every ring (exteriors and holes) is a closed LWPOLYLINE on its class's layer.
@@ -285,7 +295,7 @@ def write_dxf(bp: Blueprint, path: Path, tolerance_m: float = 0.02) -> None:
     doc.header["$MEASUREMENT"] = 1  # metric
     msp = doc.modelspace()
     layers: dict[int, str] = {}
-    for p in polygons(bp, tolerance_m):
+    for p in polygons(bp, tolerance_m) if polys is None else polys:
         cid = p["class_id"]
         if cid not in layers:
             name = dxf_layer_name(bp, cid)
