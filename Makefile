@@ -7,7 +7,7 @@ PYTHON  := $(BIN)/python
 export GLIBC_TUNABLES ?= glibc.malloc.mmap_threshold=33554432:glibc.malloc.trim_threshold=4294967296
 DEMO    ?= runs/demo
 
-.PHONY: setup demo test test-slow check lint typecheck bench batch clean FORCE
+.PHONY: setup demo test test-slow check lint typecheck bench bench-quick batch clean FORCE
 
 $(BIN)/.installed: pyproject.toml
 	test -d $(VENV) || $(PY) -m venv $(VENV)
@@ -21,10 +21,15 @@ $(BIN)/.installed: pyproject.toml
 
 setup: $(BIN)/.installed  ## idempotent: creates .venv and installs the project
 
-demo: setup  ## make the default synthetic room, build its blueprint, print where it is
-	$(BIN)/blunf synth $(DEMO)/capture --views 60 --seed 0
-	$(BIN)/blunf run $(DEMO)/capture --out $(DEMO)/run
-	@echo "blueprint: $(DEMO)/run/blueprint.png  report: $(DEMO)/run/report.json"
+demo: setup  ## the default room from photos alone, then edited through its NeRF (~15 min)
+	# 1. photos and intrinsics only, as a phone gives: SfM poses, NeRF depth, geometric classes
+	test -d $(DEMO)/phone || $(BIN)/blunf synth $(DEMO)/phone --views 60 --seed 0 --photos-only
+	$(BIN)/blunf run $(DEMO)/phone --out $(DEMO)/phone-run --config configs/phone.yaml
+	# 2. the full capture (poses, depth, labels): plan, then the example edits rendered
+	test -d $(DEMO)/capture || $(BIN)/blunf synth $(DEMO)/capture --views 60 --seed 0
+	$(BIN)/blunf run $(DEMO)/capture --out $(DEMO)/run --edits configs/edits/demo.yaml
+	@echo "from photos alone: $(DEMO)/phone-run/blueprint.png  report: $(DEMO)/phone-run/report.json"
+	@echo "edited: $(DEMO)/run/edits/  blueprint: $(DEMO)/run/blueprint.png  report: $(DEMO)/run/report.json"
 
 test: setup  ## the default suite (fast; real-data tests are marked slow)
 	$(BIN)/pytest -q
@@ -41,8 +46,13 @@ lint: setup
 typecheck: setup
 	$(BIN)/mypy
 
-bench: setup  ## run time against error: runs/bench/bench.md and bench.csv
+# Run time against error over the stage variants (pipeline/bench/grid.py), one thread a run:
+# bench.md, bench.csv and the plots in the out folder. Not part of CI.
+bench: setup  ## the full grid, 3 repeats (up to ~1 h): runs/bench/
 	$(BIN)/blunf bench --out runs/bench
+
+bench-quick: setup  ## a small grid, 1 repeat (< 10 min): runs/bench-quick/
+	$(BIN)/blunf bench --quick --out runs/bench-quick
 
 # make batch CAPTURES="a b c" JOBS=2: one run per capture (1 thread each), per-scene logs,
 # then runs/batch/summary.csv and index.html. A failed capture does not stop the others.

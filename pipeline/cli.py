@@ -62,10 +62,17 @@ def parser() -> argparse.ArgumentParser:
     s.add_argument("--views", type=_positive, default=60)
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--size", type=_size, default=(320, 240), help="WxH (default 320x240)")
+    s.add_argument(
+        "--photos-only",
+        action="store_true",
+        help="keep only images and intrinsics, as a phone gives (ground truth still in gt/)",
+    )
 
-    b = sub.add_parser("bench", help="run time against error table")
+    b = sub.add_parser("bench", help="run time against error: table, CSV and plots")
     b.add_argument("--out", type=Path, default=Path("runs/bench"))
     b.add_argument("--quick", action="store_true", help="a small grid (minutes)")
+    b.add_argument("--repeats", type=_positive, help="runs per variant (default 1 quick, 3 full)")
+    b.add_argument("--threads", type=_positive, default=1, help="CPU threads a run (default 1)")
 
     i = sub.add_parser("import", help="convert another layout into a blunf capture")
     i.add_argument("kind", help="7scenes, replica-vmap, colmap, nerfstudio")
@@ -152,7 +159,13 @@ def _dispatch(args: argparse.Namespace) -> int:
         from stages.synth import make_room
 
         setup_runtime()
-        out = make_room(args.out, views=args.views, seed=args.seed, size=args.size)
+        out = make_room(
+            args.out,
+            views=args.views,
+            seed=args.seed,
+            size=args.size,
+            photos_only=args.photos_only,
+        )
         print(out)
         return 0
     if args.cmd == "import":
@@ -163,7 +176,7 @@ def _dispatch(args: argparse.Namespace) -> int:
     if args.cmd == "bench":
         from pipeline.bench import bench
 
-        setup_runtime()
-        print(bench(args.out, quick=args.quick))
+        setup_runtime(args.threads)
+        print(bench(args.out, quick=args.quick, repeats=args.repeats, threads=args.threads))
         return 0
     raise BlunfError(f"unknown command {args.cmd!r}")

@@ -33,20 +33,26 @@ def stage_configs() -> dict[str, type]:
     """Stage name -> its config dataclass, in pipeline order (the one place that lists them)."""
     from stages.align.config import AlignConfig
     from stages.blueprint.config import BlueprintConfig
+    from stages.edit.config import EditConfig
     from stages.evaluate.config import EvaluateConfig
     from stages.export.config import ExportConfig
     from stages.fusion.config import FusionConfig
     from stages.ingest.config import IngestConfig
+    from stages.nerf.config import NerfConfig
     from stages.poses.config import PosesConfig
     from stages.project.config import ProjectConfig
+    from stages.semantics.config import SemanticsConfig
 
     return {
         "ingest": IngestConfig,
         "poses": PosesConfig,
         "align": AlignConfig,
         "fusion": FusionConfig,
+        "semantics": SemanticsConfig,
+        "nerf": NerfConfig,
         "project": ProjectConfig,
         "blueprint": BlueprintConfig,
+        "edit": EditConfig,
         "evaluate": EvaluateConfig,
         "export": ExportConfig,
     }

@@ -41,6 +41,25 @@ def gt_files(cap: Capture) -> dict[str, Path]:
     return {k: Path(cap.gt) / v for k, v in names.items() if (Path(cap.gt) / v).is_file()}
 
 
+def heldout(cap: Capture, cfg: Config) -> bool:
+    """Whether plans are scored on held-out views: labels (given or from the semantics
+    stage), no ground-truth plan to score them against instead, views held out by the
+    project stage, and the score asked for."""
+    labelled = cap.has_labels or _derive_labels(cfg)
+    return (
+        labelled
+        and "blueprint" not in gt_files(cap)
+        and cfg["project"].labelling != "height"
+        and cfg["project"].holdout_every > 0
+        and cfg["evaluate"].heldout
+    )
+
+
+def _derive_labels(cfg: Config) -> bool:
+    """Whether a capture without labels gets them from the semantics stage."""
+    return cfg["semantics"].impl != "height" and cfg["project"].labelling != "height"
+
+
 def make_plan(cap: Capture, cfg: Config, edits: Path | None = None) -> Plan:
     """Decide every stage's fate for this capture and config."""
     s: list[Step] = [Step("ingest", cfg["ingest"].impl, True)]
@@ -69,40 +88,52 @@ def make_plan(cap: Capture, cfg: Config, edits: Path | None = None) -> Plan:
         s.append(Step("depth", "nerf", False, "capture gives depth"))
     else:
         missing = next((f.stem for f in cap.frames if f.depth is None), "?")
-        raise BlunfError(
-            f"{cap.root}: no depth for frame {missing!r}; depth from photos alone needs the "
-            "NeRF depth stage, which this version does not have yet (add depth/ to the capture)"
+        some = next((f.stem for f in cap.frames if f.depth is not None), None)
+        if some is not None:  # part of a depth capture is missing: a broken capture
+            raise BlunfError(
+                f"{cap.root}: no depth for frame {missing!r} while frame {some!r} has depth "
+                "(give depth for every frame, or none to have the NeRF render it)"
+            )
+        s.append(
+            Step(
+                "depth",
+                "nerf",
+                True,
+                f"no depth (e.g. frame {missing!r}): the NeRF, trained on the photos and the "
+                "SfM tracks, renders it for fusion",
+            )
         )
     s.append(Step("fusion", cfg["fusion"].impl, True))
 
     if cap.has_labels:
         s.append(Step("semantics", "given", False, "capture gives labels"))
+    elif not _derive_labels(cfg):
+        which = "project.labelling" if cfg["project"].labelling == "height" else "semantics.impl"
+        reason = f"{which}=height: the plan labels points by height (floor / occupied)"
+        s.append(Step("semantics", "height", False, reason))
     else:
-        s.append(
-            Step(
-                "semantics",
-                "height",
-                False,
-                "no labels: the plan labels points by height (floor / occupied)",
-            )
-        )
+        s.append(Step("semantics", cfg["semantics"].impl, True, "capture has no labels"))
 
-    nerf_methods = [m for m in cfg.run.methods if m == "nerf_top"]
-    if nerf_methods:
-        raise BlunfError(
-            "run.methods: nerf_top needs the NeRF stage, not available in this version"
-        )
-    if edits is not None:
-        raise BlunfError(f"{edits}: editing needs the NeRF stage, not available in this version")
-    s.append(Step("nerf", "grid", False, "no edits and no NeRF baseline asked"))
-
+    uses = (["NeRF top view baseline"] if "nerf_top" in cfg.run.methods else []) + (
+        ["edit spec"] if edits is not None else []
+    )
+    if uses:
+        s.append(Step("nerf", cfg["nerf"].impl, True, "asked for: " + ", ".join(uses)))
+    else:
+        s.append(Step("nerf", cfg["nerf"].impl, False, "no edits and no NeRF baseline asked"))
     s.append(Step("project", cfg["project"].impl, True))
     for m in cfg.run.methods:
         s.append(Step("blueprint", m, True))
-    s.append(Step("edit", "blueprint", False, "no edit spec given"))
+    if edits is None:
+        s.append(Step("edit", "nerf", False, "no edit spec given"))
+    else:
+        s.append(Step("edit", "nerf", True, f"edit spec {edits}"))
     gt = gt_files(cap)
-    if gt:
-        s.append(Step("evaluate", "gt", True, "ground truth: " + ", ".join(sorted(gt))))
+    scores = ["ground truth: " + ", ".join(sorted(gt))] if gt else []
+    if heldout(cap, cfg):
+        scores.append("held-out views")
+    if scores:
+        s.append(Step("evaluate", "gt", True, "; ".join(scores)))
     else:
         s.append(Step("evaluate", "gt", False, "capture has no ground truth"))
     s.append(Step("export", "files", True))

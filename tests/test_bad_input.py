@@ -285,6 +285,22 @@ CASES = [
     Case("frames_negative", args=("--frames", "-1"), names="'-1'"),
     Case("frames_abc", args=("--frames", "abc"), names="'abc'"),
     Case("edits_missing", args=("--edits", "{tmp}/nope.yaml"), names="{tmp}/nope.yaml"),
+    Case(
+        "edits_unknown_op",
+        _text("../edits.yaml", "edits:\n  - select: {class: chair}\n    op: explode\n"),
+        ("--edits", "{tmp}/edits.yaml"),
+        names="edits[0].op",
+    ),
+    Case(
+        "edits_texture_outside",
+        _text(
+            "../edits.yaml",
+            "edits:\n  - select: {class: chair}\n    op: retexture\n"
+            "    texture: ../../etc/passwd\n",
+        ),
+        ("--edits", "{tmp}/edits.yaml"),
+        names="edits[0].texture",
+    ),
     Case("out_inside_capture", out="{cap}/run", names="{cap}/run"),
     Case("out_is_capture", out="{cap}", names="{cap}"),
     Case("out_is_a_file", out="{tmp}/file.txt", names="{tmp}/file.txt"),

@@ -4,10 +4,13 @@ Scale and offset: the same room with the world mapped by x -> s x + o (poses' tr
 scaled and shifted, depth scaled, written as float32 .npy metres: uint16 millimetres overflow
 at s = 1e3 and round away at s = 1e-3) must give the same plan up to that similarity, once
 every config value in metres is scaled with it (`metre_fields`, found from the config
-comments). Two places are not scale-invariant by design and are set aside in those runs:
-`fusion.raycast` (the clean depth is written as uint16 mm, stages/fusion/tsdf.py `_raycast`)
-and `stages.common.io.MAX_DEPTH_M` (an absolute 20 m sensor-range cut); a strict xfail shows
-what the default ray-cast path does at s = 1e-3. Degenerate inputs: test_degenerate.py.
+comments). What makes that hold: the fused (ray-cast) depth is float32 .npy metres, the
+depth reader's far cut is relative to each map's median (stages.common.io.MAX_DEPTH_RATIO),
+points.npz keeps float32 offsets from a float64 origin (the mean camera centre), the
+top-view grids are anchored at that origin, and align turns the world about the cameras'
+centre, not the world origin. The similarity runs switch the ray-cast off (it is the same
+path at every scale, and Embree casts rays in float32); one test keeps it on at 1e-3 and 1e3.
+Degenerate inputs: test_degenerate.py.
 """
 
 from __future__ import annotations
@@ -16,7 +19,6 @@ import dataclasses
 import glob
 import inspect
 import json
-import math
 import re
 import shutil
 from pathlib import Path
@@ -27,7 +29,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-import stages.common.io as sio
 from pipeline.config import stage_configs
 from stages.common.blueprint import Blueprint, Grid
 from stages.common.capture import UNKNOWN, read_layout
@@ -176,37 +177,25 @@ def reference(room, tmp_path_factory) -> Path:
     return base
 
 
-OFFSET_XFAIL = pytest.mark.xfail(
-    strict=True,
-    raises=AssertionError,
-    reason="two causes, measured: (1) stages/project/points.py stores world xyz as float32 in "
-    "points.npz: at 1e4 m a coordinate keeps ~1 mm, which moves a few % of the points to the "
-    "next 2 cm cell (storage alone: ~97 % of the MVR cells agree; 1e5 m: 77 %; 1e6 m: 7 %; "
-    "with align.manhattan=false, MVR ~93 %, BluNF ~96 %); (2) align's Manhattan yaw turns "
-    "the world about the origin, so the room is also turned about a point 14 km away: the "
-    "whole-cell offset becomes a sub-cell one (plan re-gridded; MVR ~87 %, BluNF ~95 %) and "
-    "evaluate, which takes a plan built from given poses to be in the GT frame, scores it "
-    "pAcc ~54 instead of ~80",
-)
-
-
-@pytest.mark.parametrize(
-    "name", ["scale_1e-3", "scale_1e3", pytest.param("offset_1e4", marks=OFFSET_XFAIL)]
-)
-def test_plan_invariant_under_similarity(reference, room, tmp_path, monkeypatch, name):
+@pytest.mark.parametrize("name", ["scale_1e-3", "scale_1e3", "offset_1e4"])
+def test_plan_invariant_under_similarity(reference, room, tmp_path, name):
     """Same plan up to x -> s x + o, every metre setting scaled with the world.
 
-    Tolerances. The inputs of every stage differ only by float rounding (relative ~1e-7),
-    which can flip a point lying on a cell border or a near-tie of the trained field, and
-    nothing else: MVR (a vote, no randomness) must agree on >= 99.5 % of the cells known
-    to either plan, BluNF on >= 99 % of all cells, and no class may gain or lose more than
-    0.5 % of the plan's area. Measured at 1e-3 and 1e3: MVR 100 %, BluNF 99.98-99.99 %,
-    area fractions equal to 1e-4; for scale, BluNF with another seed agrees on only ~87 %
-    at these 60 steps, so the bound is far tighter than the method's own noise.
+    Tolerances. The inputs of every stage differ only by float rounding (relative ~1e-7:
+    the scaled depth is rounded to float32 again), which can move a point lying on a cell
+    border (within ~1e-7 of its size) into the next cell, and nothing
+    else: MVR (a vote, no randomness) must agree on >= 99.5 % of the cells known to either
+    plan. BluNF's cell-balanced sampler draws a cell index among the occupied cells, so one
+    point entering an empty cell reshuffles every batch after it: BluNF must agree on >= 97 %
+    of all cells and no class may gain or lose more than 1.5 % of the plan's area. Measured:
+    offset 1e4 MVR 100 %, BluNF 99.9 %; scale 1e-3 and 1e3 with every view projected MVR
+    100 %, BluNF 99.9 %, areas within 1e-4; with project.holdout_every = 8 (one of the 8
+    views held out) one point crosses a border: MVR 99.97 % (1 cell), BluNF 98.1 %, areas
+    within 0.8 %. For comparison, BluNF with another seed agrees on ~87 % at these 60 steps,
+    and the systematic errors this test caught (float32 points 10 km out, the yaw turned about
+    the origin) gave MVR 87-97 %, BluNF 95-96 %.
     """
     s, o = SIMILARITIES[name]
-    if s > 20:  # the 20 m sensor-range cut would drop every reading of a kilometre-size room
-        monkeypatch.setattr(sio, "MAX_DEPTH_M", math.inf)
     cap = transformed(room, tmp_path / "cap", s, o)
     report = run_ok(cap, tmp_path / "run", *scaled_sets(s), *NO_RAYCAST)
     assert_finite_outputs(tmp_path / "run")
@@ -221,8 +210,8 @@ def test_plan_invariant_under_similarity(reference, room, tmp_path, monkeypatch,
     worst = max(abs(fr0.get(k, 0.0) - fr1.get(k, 0.0)) for k in set(fr0) | set(fr1))
     print(f"{name}: mvr {mvr_agree:.4f}, blunf {agree:.4f}, area fractions within {worst:.4f}")
     assert mvr_agree >= 0.995, f"MVR agrees on {mvr_agree:.2%} of the known cells"
-    assert agree >= 0.99, f"BluNF agrees on {agree:.2%} of the cells"
-    assert worst <= 0.005, f"a class area fraction moved by {worst:.4f}"
+    assert agree >= 0.97, f"BluNF agrees on {agree:.2%} of the cells"
+    assert worst <= 0.015, f"a class area fraction moved by {worst:.4f}"
     # Against the equally transformed ground truth: the same scores (1 % of cells = 1 point).
     for method, m in report["metrics"]["blueprint"].items():
         m0 = ref_report["metrics"]["blueprint"][method]
@@ -230,39 +219,45 @@ def test_plan_invariant_under_similarity(reference, room, tmp_path, monkeypatch,
             assert abs(m[k] - m0[k]) <= 1.0, (method, k, m[k], m0[k])
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=AssertionError,
-    reason="stages/fusion/tsdf.py _raycast writes the clean depth as uint16 millimetres "
-    "(write_depth_png): at s = 1e-3 a 3 m reading becomes 3 mm and rounds to 1 mm steps, so "
-    "the projected points land in the wrong cells (at s = 1e3 it clips at 65.5 m)",
-)
-def test_default_raycast_depth_survives_small_units(reference, room, tmp_path):
-    s = 1e-3
+@pytest.fixture(scope="module")
+def reference_raycast(room, tmp_path_factory) -> Path:
+    """The room through the default ray-cast path at s = 1, o = 0."""
+    base = tmp_path_factory.mktemp("ref_raycast")
+    cap = transformed(room, base / "cap", 1.0, (0.0, 0.0, 0.0))
+    run_ok(cap, base / "run", *scaled_sets(1.0))
+    return base
+
+
+@pytest.mark.parametrize("s", [1e-3, 1e3])
+def test_default_raycast_depth_survives_units(reference_raycast, room, tmp_path, s):
+    """The default path (fusion's ray-cast depth feeding the projection) in millimetre and
+    kilometre worlds gives the plan of the metre world: uint16 millimetres would round a
+    3 mm reading (s = 1e-3) to whole steps and clip a 3 km one (s = 1e3) at 65.5 m. The
+    reference runs the same path (the ray-cast mesh depth differs from the sensor's: on this
+    64x48 room with 5 cm voxels MVR agrees with the sensor-depth plan on only ~50 % of the
+    cells, so the sensor-depth reference would not do). Measured: 100 % at both scales."""
     cap = transformed(room, tmp_path / "cap", s, (0.0, 0.0, 0.0))
     run_ok(cap, tmp_path / "run", *scaled_sets(s))  # fusion.raycast left on (the default)
-    ref, mvr = read_through(reference / "run", tmp_path / "run", s, (0, 0, 0), "mvr")
+    ref, mvr = read_through(reference_raycast / "run", tmp_path / "run", s, (0, 0, 0), "mvr")
     known = (ref.labels != UNKNOWN) | (mvr != UNKNOWN)
     agree = float((mvr == ref.labels)[known].mean())
-    print(f"raycast on at s=1e-3: MVR agrees on {agree:.2%} of the known cells")
-    assert agree >= 0.99
+    print(f"raycast on at s={s:g}: MVR agrees on {agree:.2%} of the known cells")
+    assert agree >= 0.995
 
 
-PERIOD = 0.6  # metres: a multiple of every grid the project stage anchors at world multiples
+PERIOD = 0.02  # metres: the plan cell (the plan grid sits at world multiples of it)
 
 
 @settings(max_examples=10, deadline=None)
-@given(log_s=st.floats(-3.0, 3.0), k=st.tuples(*[st.integers(-160, 160)] * 3))
+@given(log_s=st.floats(-3.0, 3.0), k=st.tuples(*[st.integers(-500_000, 500_000)] * 3))
 def test_projection_and_vote_invariant_property(room, tmp_path_factory, log_s, k):
-    """Π then the MVR vote under random similarities: s in [1e-3, 1e3], o = k 0.6 s m.
+    """Π then the MVR vote under random similarities: s in [1e-3, 1e3], o = k 0.02 s m.
 
     Stage-level (no fusion, no align: the floor stays where the capture puts it), so many
-    similarities are cheap. The project stage anchors its grids at world multiples of their
-    cell: the plan (project.cell, 2 cm) and the top-view occlusion grids (occlusion_cell,
-    6 cm, shifted by half of it): an offset that is not a multiple of all of them re-grids
-    the plan, so offsets are whole multiples of 0.6 m (measured: a 2 cm shift changes ~1 %
-    of the MVR cells, 1.25 m ~50 %). |o| <= 96 m at s = 1: a coordinate there keeps ~1e-5 s
-    in float32, 2000 times finer than a cell (see the offset xfail above for farther).
+    similarities are cheap. The plan grid sits at world multiples of its cell (project.cell,
+    2 cm) and the top-view occlusion grids at the mean camera centre, so any offset of whole
+    plan cells moves the plan by whole cells; points.npz keeps float32 offsets from a float64
+    origin, so |o| up to 1e4 s m (k up to 5e5 cells) loses nothing to float32 rounding.
     >= 99 % of the cells known to either plan must agree.
     """
     from stages.blueprint import IMPLS as BP
@@ -292,10 +287,8 @@ def test_projection_and_vote_invariant_property(room, tmp_path_factory, log_s, k
         )
         return Blueprint.load(b.blueprint)
 
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(sio, "MAX_DEPTH_M", math.inf)  # the 20 m sensor-range cut (see the top)
-        ref = plan(transformed(room, base / "a" / "cap", 1.0, (0.0, 0.0, 0.0)), 1.0)
-        other = plan(transformed(room, base / "b" / "cap", s, off), s)
+    ref = plan(transformed(room, base / "a" / "cap", 1.0, (0.0, 0.0, 0.0)), 1.0)
+    other = plan(transformed(room, base / "b" / "cap", s, off), s)
     c = ref.grid.centers().reshape(-1, 2)
     lab = other.sample(s * c + np.asarray(off[:2])).reshape(ref.grid.shape)
     known = (ref.labels != UNKNOWN) | (lab != UNKNOWN)
@@ -303,23 +296,42 @@ def test_projection_and_vote_invariant_property(room, tmp_path_factory, log_s, k
     assert agree >= 0.99, f"s={s:g}, o={off}: {agree:.2%} of the known cells agree"
 
 
+# float32 readings: 0, normal magnitudes that stay normal and finite under x 2^(+-20), and the
+# non-numbers (NaN, +-inf)
+_READING = st.one_of(
+    st.just(0.0),
+    st.floats(2.0**-100, 2.0**100, width=32),
+    st.floats(-(2.0**100), -(2.0**-100), width=32),
+    st.sampled_from([np.nan, np.inf, -np.inf]),
+)
+
+
 @settings(max_examples=60, deadline=None)
 @given(
     hnp.arrays(
         np.float32,
         hnp.array_shapes(min_dims=2, max_dims=2, min_side=1, max_side=12),
-        elements=st.floats(width=32, allow_nan=True, allow_infinity=True),
-    )
+        elements=_READING,
+    ),
+    st.integers(-20, 20),
 )
-def test_read_depth_never_returns_nan_inf_or_negative(tmp_path_factory, d):
-    """Whatever a float .npy depth map holds, read_depth gives finite metres in [0, 20)."""
-    p = tmp_path_factory.mktemp("d") / "d.npy"
-    np.save(p, d)
-    out = read_depth(p)
+def test_read_depth_never_returns_nan_inf_or_negative(tmp_path_factory, d, k):
+    """Whatever a float .npy depth map holds, read_depth gives finite metres >= 0, each the
+    reading itself or 0 (missing); readings up to the median of the positive finite ones are
+    always kept (the far cut is a multiple of that median); and the map in other units (x 2^k,
+    exact in binary floating point) reads the same times 2^k: no absolute range cut."""
+    folder = tmp_path_factory.mktemp("d")
+    np.save(folder / "d.npy", d)
+    out = read_depth(folder / "d.npy")
     assert out.shape == d.shape and out.dtype == np.float32
-    assert np.all(np.isfinite(out)) and np.all(out >= 0) and np.all(out < sio.MAX_DEPTH_M)
-    ok = np.isfinite(d) & (d >= 0) & (d < sio.MAX_DEPTH_M)
-    assert np.array_equal(out[ok], d[ok]) and np.all(out[~ok] == 0)
+    assert np.all(np.isfinite(out)) and np.all(out >= 0)
+    assert np.all((out == d) | (out == 0))
+    ok = np.isfinite(d) & (d > 0)
+    if ok.any():
+        near = ok & (d <= np.median(d[ok]))
+        assert np.array_equal(out[near], d[near])
+    np.save(folder / "s.npy", d * np.float32(2.0**k))
+    assert np.array_equal(read_depth(folder / "s.npy"), out * np.float32(2.0**k))
 
 
 def test_same_seed_same_bytes(reference, tmp_path):

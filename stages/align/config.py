@@ -15,7 +15,9 @@ class AlignConfig:
     impl: str = "auto"  # "auto" (gravity when the capture has one, else floor) | "gravity"
     #                     | "floor" | "none" (identity)
     frames_used: int = 20  # frames (evenly spaced over the capture) whose depth is sampled
-    stride: int = 8  # pixel stride when sampling those depth maps
+    stride: int = 8  # pixel stride when sampling those depth maps (at most; see min_samples)
+    min_samples: int = 1000  # the stride is lowered (down to 1) for small images until a frame
+    #                          gives this many depth samples (a 16x12 frame at stride 8 gives 2)
     plane_dist: float = 0.02  # metres: floor inlier distance, and bin of the height histogram
     max_tilt_deg: float = 15.0  # a point is on a horizontal surface when its normal is within
     #                             this angle of up
@@ -30,7 +32,7 @@ class AlignConfig:
     #                                        exp(4i azimuth) over those normals is below this
 
     def __post_init__(self) -> None:
-        for name in ("frames_used", "stride"):
+        for name in ("frames_used", "stride", "min_samples"):
             if getattr(self, name) < 1:
                 raise BlunfError(f"align.{name}: must be >= 1, got {getattr(self, name)}")
         if self.normal_neighbours < 3:

@@ -46,10 +46,11 @@ class Samples:
     points: np.ndarray  # [N, 3] world points, metres
     normals: np.ndarray  # [N, 3] unit normals (sign arbitrary)
     frames: int  # frames sampled
+    stride: int = 1  # the smallest pixel stride used (see sample_stride)
 
 
 def sample(cap: Capture, cfg: AlignConfig, where: Path) -> Samples:
-    """Back-project `cfg.frames_used` evenly spaced depth maps (every `cfg.stride` pixel).
+    """Back-project `cfg.frames_used` evenly spaced depth maps (every `sample_stride` pixel).
 
     Normals are estimated within each frame (k nearest neighbours), so a small pose error
     between frames does not blur them.
@@ -62,14 +63,17 @@ def sample(cap: Capture, cfg: AlignConfig, where: Path) -> Samples:
         raise no_depth
     n_used = min(cfg.frames_used, len(with_depth))
     idx = np.unique(np.linspace(0, len(with_depth) - 1, n_used).round().astype(int))
-    pts, nrm = [], []
+    pts, nrm, strides = [], [], []
     for i in idx:
         f = with_depth[i]
         d = read_depth(f.depth, cap.depth_scale, cap.depth_invalid)  # [H, W] metres, 0 = none
         intr = f.intrinsics
         if d.shape != (intr.height, intr.width):
             intr = intr.scaled(d.shape[1], d.shape[0])
-        p, _ = depth_to_points(d, intr.K, np.asarray(f.pose), cfg.stride)  # [n, 3]
+        # sparse depth (SfM tracks, photos only): every reading counts
+        stride = sample_stride(d.shape, cfg) if (d > 0).mean() >= 0.5 else 1
+        strides.append(stride)
+        p, _ = depth_to_points(d, intr.K, np.asarray(f.pose), stride)  # [n, 3]
         if len(p) <= cfg.normal_neighbours:
             continue
         pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
@@ -78,7 +82,15 @@ def sample(cap: Capture, cfg: AlignConfig, where: Path) -> Samples:
         nrm.append(np.asarray(pc.normals))
     if not pts:
         raise no_depth
-    return Samples(np.concatenate(pts), np.concatenate(nrm), len(idx))
+    return Samples(np.concatenate(pts), np.concatenate(nrm), len(idx), min(strides))
+
+
+def sample_stride(shape: tuple[int, ...], cfg: AlignConfig) -> int:
+    """The pixel stride for a depth map of shape (H, W): `cfg.stride`, lowered (to 1 at
+    worst) so that the map gives at least `cfg.min_samples` samples."""
+    h, w = shape[0], shape[1]
+    fit = int(np.sqrt(h * w / cfg.min_samples))  # (h / s) (w / s) >= min_samples
+    return max(1, min(cfg.stride, fit))
 
 
 def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -196,14 +208,22 @@ def _plane_normal(p: np.ndarray, spread: float) -> np.ndarray | None:
 def finish(
     cap: Capture, out: Path, R: np.ndarray, floor_z: float | None, info: dict
 ) -> AlignOutputs:
-    """Apply T = [R | -floor_z e_z] to every pose; write frames.json and align.json."""
+    """Apply T to every pose; write frames.json and align.json.
+
+    T turns the world by R about the vertical through the mean camera centre c, then shifts
+    the floor to z = 0: T x = R (x - c) + c, with z lowered by floor_z (the floor height after
+    R). Turning about the origin instead would swing a room 10 km out by metres for a
+    fraction of a degree; about c, the room stays where its cameras are.
+    """
     if not np.all(np.isfinite(R)) or (floor_z is not None and not np.isfinite(floor_z)):
         raise BlunfError(
             f"align: no floor found in {cap.root} (no usable depth points); check the depth "
             "maps or set align.impl=none"
         )
+    c = cap.poses()[:, :3, 3].mean(axis=0)  # [3] mean camera centre
     T = np.eye(4)
     T[:3, :3] = R
+    T[:2, 3] = (c - R @ c)[:2]
     T[2, 3] = -(floor_z or 0.0)
     frames = [replace(f, pose=T @ np.asarray(f.pose)) for f in cap.frames]
     gravity = None
@@ -240,6 +260,7 @@ def describe(
         "up_from": up_from,
         "notes": "; ".join(notes),
         "frames_used": s.frames,
+        "stride": s.stride,
         "points": len(s.points),
         # how far the fitted floor plane leans from the up axis (a check of both), degrees
         "floor_tilt_deg": None if fl.normal is None else angle_deg(fl.normal, UP),

@@ -6,11 +6,19 @@ from stages.blueprint.config import (
     BlueprintOutputs,
     BlunfConfig,
     MvrConfig,
+    NerfTopConfig,
+    NerfTopInputs,
     paper_recipe,
 )
 from stages.common.registry import LazyImpls
 
-IMPLS = LazyImpls({"blunf": "stages.blueprint.blunf:run", "mvr": "stages.blueprint.mvr:run"})
+IMPLS = LazyImpls(
+    {
+        "blunf": "stages.blueprint.blunf:run",
+        "mvr": "stages.blueprint.mvr:run",
+        "nerf_top": "stages.blueprint.nerf_top:run",
+    }
+)
 
 __all__ = [
     "IMPLS",
@@ -19,5 +27,7 @@ __all__ = [
     "BlueprintOutputs",
     "BlunfConfig",
     "MvrConfig",
+    "NerfTopConfig",
+    "NerfTopInputs",
     "paper_recipe",
 ]

@@ -62,21 +62,39 @@ class MvrConfig:
 
 
 @dataclass(frozen=True)
+class NerfTopConfig:
+    """The NeRF top-view baseline: vertical rays through the semantic NeRF."""
+
+    # heights (metres above the floor) the rays start from; the best by fwIoU is kept
+    heights: tuple[float, ...] = (0.5, 1.0, 1.5, 2.0, 2.5)
+    chunk: int = 16384  # rays per forward pass
+
+
+@dataclass(frozen=True)
 class BlueprintConfig:
     """Which plan builder, and the settings of each."""
 
     impl: str = "blunf"  # registry key in stages.blueprint.IMPLS: "blunf" | "mvr"
     blunf: BlunfConfig = field(default_factory=BlunfConfig)  # used when impl = "blunf"
     mvr: MvrConfig = field(default_factory=MvrConfig)  # used when impl = "mvr"
+    nerf_top: NerfTopConfig = field(default_factory=NerfTopConfig)  # impl = "nerf_top"
 
 
-STATS_FILES = ("train.json", "mvr.json")  # the stats file each impl writes
+STATS_FILES = ("train.json", "mvr.json", "nerf_top.json")  # the stats file each impl writes
 
 
 @dataclass(frozen=True)
 class BlueprintInputs:
     points: Path  # points.npz of the project stage
     grid: Path  # grid.json of the project stage
+
+
+@dataclass(frozen=True)
+class NerfTopInputs:
+    model: Path  # model.pt of the nerf stage (with a semantic head)
+    points: Path  # points.npz of the project stage (the reference without ground truth)
+    grid: Path  # grid.json of the project stage
+    reference: Path | None = None  # ground-truth blueprint.npz, when the capture has one
 
 
 @dataclass(frozen=True)

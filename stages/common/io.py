@@ -15,8 +15,9 @@ from PIL import Image, UnidentifiedImageError
 
 from stages.common.errors import BlunfError
 
-# Depth readings at or beyond this range (metres) are treated as invalid.
-MAX_DEPTH_M = 20.0
+# Depth readings at or beyond this multiple of the map's median valid reading are treated as
+# invalid (garbage far values; a scale-free cut, so kilometre or millimetre worlds read alike).
+MAX_DEPTH_RATIO = 20.0
 
 
 def _open(path: Path) -> Image.Image:
@@ -47,12 +48,17 @@ def image_size(path: Path) -> tuple[int, int]:
 
 
 def read_depth(
-    path: Path, scale: float = 1000.0, invalid: tuple[int, ...] = (65535,)
+    path: Path,
+    scale: float = 1000.0,
+    invalid: tuple[int, ...] = (65535,),
+    max_ratio: float = MAX_DEPTH_RATIO,
 ) -> np.ndarray:
     """Read a depth map in metres. Returns float32 [H, W]; invalid readings are 0.
 
     PNG depth is divided by `scale` (units per metre). Zero, the `invalid` codes, NaN, inf,
-    negative values and readings beyond MAX_DEPTH_M all become 0 (missing).
+    negative values and readings at or beyond `max_ratio` times the median of the map's
+    positive finite readings all become 0 (missing). The cut scales with the map, so a world
+    in millimetres or kilometres reads the same as one in metres.
     """
     path = Path(path)
     if path.suffix == ".npy":
@@ -73,8 +79,22 @@ def read_depth(
         )
         d = raw.astype(np.float32) / np.float32(scale)
         d[bad] = 0.0
-    d[~np.isfinite(d) | (d < 0) | (d >= MAX_DEPTH_M)] = 0.0
+    d[~np.isfinite(d) | (d < 0)] = 0.0
+    pos = d[d > 0]  # [M]
+    if pos.size:
+        cut = max_ratio * float(np.median(pos.astype(np.float64)))  # float64: no overflow
+        d[d >= cut] = 0.0
     return d
+
+
+def write_depth_npy(path: Path, depth_m: np.ndarray) -> None:
+    """Write float metres [H, W] as float32 .npy (NaN, inf and negatives become 0 = missing).
+
+    Unlike write_depth_png's millimetres, keeps ~7 significant digits at any scale.
+    """
+    d = np.asarray(depth_m, np.float32)
+    d = np.where(np.isfinite(d) & (d > 0), d, np.float32(0.0))
+    np.save(path, d)
 
 
 def write_depth_png(path: Path, depth_m: np.ndarray) -> None:

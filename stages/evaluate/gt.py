@@ -12,6 +12,7 @@ from stages.common.blueprint import Blueprint, Grid
 from stages.common.capture import Capture
 from stages.common.io import read_json, write_json
 from stages.evaluate.config import EvaluateConfig
+from stages.evaluate.heldout import heldout_pacc
 from stages.evaluate.plan import evaluate_plan, to_frame
 from stages.evaluate.poses import pose_metrics, similarity
 
@@ -24,16 +25,19 @@ FRAME_UNALIGNED = "estimated, not aligned"  # estimated poses that could not be 
 
 @dataclass(frozen=True)
 class EvaluateInputs:
-    frames: Path  # frames.json with the poses the blueprint was built from
-    gt: Path  # the capture's gt/ folder
+    frames: Path  # frames.json the plans were projected from (poses; depth and labels for
+    #               the held-out views)
+    gt: Path | None  # the capture's gt/ folder (None: the capture has none)
     blueprints: tuple[Path, ...]  # blueprint.npz of each method
     methods: tuple[str, ...]  # the method name of each blueprint
     poses_estimated: bool  # score poses only when a stage estimated them
+    heldout: Path | None = None  # the project stage's heldout.json (None: no held-out score)
 
 
 @dataclass(frozen=True)
 class EvaluateOutputs:
-    metrics: Path  # metrics.json: {"blueprint": {method: {...}}, "poses": {...}}
+    metrics: Path  # metrics.json: {"blueprint": {method: {...}}, "poses": {...}}; held-out
+    #                scores under blueprint.<method>.heldout_pacc
 
     @classmethod
     def at(cls, out: Path) -> EvaluateOutputs:
@@ -47,17 +51,20 @@ def run(cfg: EvaluateConfig, inputs: EvaluateInputs, out: Path) -> EvaluateOutpu
     the GT cell centres mapped through the similarity from the frames' camera centres to the
     GT ones. Given poses are used so too when the align stage moved them (e.g. a Manhattan
     yaw) by more than a tenth of a GT cell. Each plan's metrics record the frame under "frame".
+    With a heldout.json listing views, each plan is also scored on those views' labelled
+    pixels (heldout.py), in its own frame: no ground truth needed for that.
     """
     metrics: dict = {}
-    gt_poses = inputs.gt / "poses.json"
+    gt_dir = inputs.gt
+    gt_poses = gt_dir / "poses.json" if gt_dir is not None else None
     est: dict[str, np.ndarray] = {}
     gtp: dict[str, np.ndarray] = {}
-    if gt_poses.is_file() and (inputs.poses_estimated or cfg.plan):
+    if gt_poses is not None and gt_poses.is_file() and (inputs.poses_estimated or cfg.plan):
         cap = Capture.load(inputs.frames)
         est = {f.stem: np.asarray(f.pose, np.float64) for f in cap.frames if f.pose is not None}
         gtp = {k: np.asarray(v, np.float64) for k, v in read_json(gt_poses).items()}
-    gt_plan = inputs.gt / "blueprint.npz"
-    if gt_plan.is_file() and cfg.plan:
+    gt_plan = gt_dir / "blueprint.npz" if gt_dir is not None else None
+    if gt_plan is not None and gt_plan.is_file() and cfg.plan:
         gt = Blueprint.load(gt_plan)
         pred_to_gt, frame = plan_frame(inputs.poses_estimated, est, gtp, gt.grid)
         metrics["blueprint"] = {
@@ -66,6 +73,13 @@ def run(cfg: EvaluateConfig, inputs: EvaluateInputs, out: Path) -> EvaluateOutpu
         }
     if gtp and inputs.poses_estimated and cfg.poses:
         metrics["poses"] = pose_metrics(est, gtp)
+    if inputs.heldout is not None and cfg.heldout:
+        stems = [str(s) for s in read_json(inputs.heldout).get("stems", [])]
+        if stems:
+            cap = Capture.load(inputs.frames)
+            for m, p in zip(inputs.methods, inputs.blueprints, strict=True):
+                scores = heldout_pacc(Blueprint.load(p), cap, stems, cfg.heldout_stride)
+                metrics.setdefault("blueprint", {}).setdefault(m, {}).update(scores)
     write_json(out / "metrics.json", metrics)
     return EvaluateOutputs.at(out)
 

@@ -18,7 +18,9 @@ def evaluate_plan(pred: Blueprint, gt: Blueprint, pred_to_gt: np.ndarray | None 
     """Metrics of `pred` read at the cell centres of `gt`'s grid (see metrics.plan_metrics).
 
     Class ids are matched by class NAME when the two tables differ; a class the prediction
-    uses whose name the GT table lacks is an error.
+    uses whose name the GT table lacks is an error, except the catch-all classes of plans
+    labelled without per-class labels ("object" of the semantics stage, "occupied" of height
+    bands): the GT is then coarsened to the prediction's classes (see coarse_gt).
 
     Args:
         pred: the predicted plan, in its own world frame.
@@ -33,8 +35,31 @@ def evaluate_plan(pred: Blueprint, gt: Blueprint, pred_to_gt: np.ndarray | None 
     else:
         labels = pred.sample(to_frame(gt.grid.centers().reshape(-1, 2), pred_to_gt))
         labels = labels.reshape(gt.grid.shape)  # [H, W]
+    gt = coarse_gt(pred, gt)
     lut = class_map(pred, gt)
     return plan_metrics(lut[labels], gt.labels, gt.classes)
+
+
+CATCH_ALL = ("object", "occupied")  # coarse classes standing for every GT class but these:
+KEPT = ("floor", "wall")  # ... (when the prediction has them; else they fall in it too)
+
+
+def coarse_gt(pred: Blueprint, gt: Blueprint) -> Blueprint:
+    """`gt` relabelled into the prediction's coarse table when the prediction has a catch-all
+    class the GT lacks (e.g. floor / wall / object against floor / wall / table / chair...):
+    a GT class named like one of the prediction's KEPT classes keeps it, every other known
+    GT class becomes the catch-all. Otherwise `gt` itself."""
+    names = {_key(n): i for i, n in pred.classes.items()}
+    gt_names = {_key(n) for n in gt.classes.values()}
+    catch = next((names[c] for c in CATCH_ALL if c in names and c not in gt_names), None)
+    if catch is None:
+        return gt
+    lut = np.full(256, catch, np.uint8)
+    lut[UNKNOWN] = UNKNOWN
+    for i, n in gt.classes.items():
+        if _key(n) in KEPT and _key(n) in names and 0 <= i < UNKNOWN:
+            lut[i] = names[_key(n)]
+    return Blueprint(lut[gt.labels], gt.grid, dict(pred.classes))
 
 
 def to_frame(xy: np.ndarray, pred_to_gt: np.ndarray) -> np.ndarray:

@@ -46,8 +46,8 @@ class FusionInputs:
 class FusionOutputs:
     mesh: Path  # mesh.ply: fused surface with vertex colours
     cloud: Path  # cloud.ply: points on the fused surface with colours and normals
-    depth: Path  # depth/: <stem>.png per view, ray-cast depth in uint16 millimetres
-    frames: Path  # frames.json: the input capture with depth pointing at depth/<stem>.png
+    depth: Path  # depth/: <stem>.npy per view, ray-cast depth in float32 metres (0 = no hit)
+    frames: Path  # frames.json: the input capture with depth pointing at depth/<stem>.npy
     stats: Path  # fusion.json: voxel size, blocks, timings, vertex and triangle counts
 
     @classmethod

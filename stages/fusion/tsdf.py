@@ -30,7 +30,7 @@ import open3d.core as o3c
 from stages.common.camera import Intrinsics, check_pose
 from stages.common.capture import Capture, Frame
 from stages.common.errors import BlunfError
-from stages.common.io import read_depth, read_image, write_depth_png, write_json
+from stages.common.io import read_depth, read_image, write_depth_npy, write_json
 from stages.fusion.config import FusionConfig, FusionInputs, FusionOutputs
 
 log = logging.getLogger(__name__)
@@ -98,7 +98,6 @@ def run(cfg: FusionConfig, inputs: FusionInputs, out: Path) -> FusionOutputs:
     valid_out = None
     if cfg.raycast:
         frames, valid_out = _raycast(mesh, cap, outs.depth)
-        cap = replace(cap, depth_scale=1000.0, depth_invalid=(65535,))  # write_depth_png's
     t_raycast = time.perf_counter() - t0
     cap.with_frames(frames).save(outs.frames)
 
@@ -218,7 +217,8 @@ def _blocks(cap: Capture, cfg: FusionConfig) -> tuple[list[o3c.Tensor | None], i
 
 def _raycast(mesh: o3d.t.geometry.TriangleMesh, cap: Capture, folder: Path
              ) -> tuple[list[Frame], float]:  # fmt: skip
-    """Depth of the fused mesh in every view, written as folder/<stem>.png (uint16 mm).
+    """Depth of the fused mesh in every view, written as folder/<stem>.npy (float32 metres:
+    millimetre PNGs would round a world in millimetres and clip one in kilometres).
 
     Returns the frames pointing at those files and the mean fraction of pixels hit.
     """
@@ -232,7 +232,7 @@ def _raycast(mesh: o3d.t.geometry.TriangleMesh, cap: Capture, folder: Path
         t = scene.cast_rays(rays)["t_hit"].numpy()  # [H, W], inf = no hit
         depth = np.where(np.isfinite(t), t, 0.0)
         hit.append(float((depth > 0).mean()))
-        path = folder / f"{f.stem}.png"
-        write_depth_png(path, depth)
+        path = folder / f"{f.stem}.npy"
+        write_depth_npy(path, depth)
         frames.append(replace(f, depth=path))
     return frames, float(np.mean(hit))

@@ -1,11 +1,32 @@
-"""NeRF stage: a CPU radiance field (+ semantics) with empty-space skipping; rendered depth."""
+"""NeRF stage: a CPU radiance field (+ semantics) with empty-space skipping; rendered depth.
 
-from stages.nerf import grid
+Torch loads on first use: the implementation registry is lazy, and so are the model and
+renderer names below (a cached run, or a config check, never imports torch).
+"""
+
+from typing import Any
+
+from stages.common.registry import LazyImpls
 from stages.nerf.config import NerfConfig, NerfInputs, NerfOutputs
-from stages.nerf.field import NerfModel, load_model
-from stages.nerf.render import render_rays, render_view, top_view_labels
 
-IMPLS = {"grid": grid.run}
+IMPLS = LazyImpls({"grid": "stages.nerf.grid:run"})
+
+_LAZY = {
+    "NerfModel": "stages.nerf.field",
+    "load_model": "stages.nerf.field",
+    "render_rays": "stages.nerf.render",
+    "render_view": "stages.nerf.render",
+    "top_view_labels": "stages.nerf.render",
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'stages.nerf' has no attribute {name!r}")
+
 
 __all__ = [
     "IMPLS",

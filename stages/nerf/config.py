@@ -18,6 +18,7 @@ class NerfConfig:
     hash_base_res: int = 16  # hash: coarsest resolution (cells across the scene box)
     hash_max_res: int = 512  # hash: finest resolution (cells across the scene box)
     width: int = 64  # hidden units of the density / colour / semantic heads
+    color_grid: bool = True  # hash: colour reads a hash grid of its own (same sizes)
     geo_features: int = 15  # features passed from the density MLP to the colour / semantic heads
     pe_freqs: int = 10  # pe: octaves of the position encoding (NeRF: 10)
     pe_dir_freqs: int = 4  # pe / view_dependent: octaves of the direction encoding (NeRF: 4)
@@ -25,23 +26,34 @@ class NerfConfig:
     pe_layers: int = 4  # pe: hidden layers of the trunk MLP
     view_dependent: bool = False  # colour also depends on the view direction (PE of dirs)
     semantics: bool = True  # train a semantic head when every frame has a label map
-    samples_across: int = 256  # ray-marching step = diagonal of the scene box / this
+    samples_across: int = 512  # ray-marching step = diagonal of the scene box / this
     near: float = 0.05  # metres: rays start this far from the camera
     occ_res: int = 128  # occupancy cells along the longest side of the scene box
     occ_every: int = 16  # steps between occupancy-grid updates
     occ_decay: float = 0.95  # decay of the cells' density estimate per update
     occ_alpha: float = 0.01  # a cell is occupied when one step through it is this opaque
     occ_cells: int = 65536  # cells re-evaluated per update (half random, half occupied)
-    occ_dilate: int = 0  # cells of dilation around depth pixels when seeding the grid
+    occ_dilate: int = 1  # cells of dilation around depth pixels when seeding the grid
     trunc_steps: int = 4  # with depth, training rays end this many steps behind it (0 = off)
     prune_eps: float = 1e-4  # samples after transmittance < this are not evaluated (0 = off)
-    batch_rays: int = 2048  # rays per step
+    batch_rays: int = 1024  # rays per step
+    surface_rays: int = 16384  # with depth: extra pixels per step whose colour is fitted at
+    # their depth point (one field query each, no marching); 0 = off
+    surface_jitter: float = 0.0  # those points are jittered along the ray by +- this many steps
+    surface_rgb_weight: float = 1.0  # weight of that colour loss
+    surface_color: bool = False  # with depth: render each ray's colour at its expected depth
+    geo_rays: int = 8192  # with depth: pixels per step whose density is fitted directly:
+    # empty in front of the depth reading, opaque just behind it (two field queries each)
+    geo_weight: float = 1.0  # weight of that loss (binary cross-entropy on one step's opacity)
+    geo_front: float = 0.3  # metres in front of the reading where the free-space point is drawn
+    dense_depth: float = 0.5  # depth on at least this fraction of pixels counts as dense
+    occ_seeded_only: bool = True  # with depth: the grid keeps exactly the seeded cells (no updates)
     lr: float = 1e-2  # Adam learning rate, decayed exponentially to lr * lr_final
     lr_final: float = 0.1  # final learning rate as a fraction of lr
     lr_decay_steps: int = 3000  # steps over which lr decays to lr * lr_final (then constant)
     rgb_loss: str = "mse"  # "mse" | "huber" (delta 0.1)
-    depth_weight: float = 0.1  # weight of the L1 loss on expected depth (metres)
-    surface_weight: float = 0.1  # with depth: weight of (1 - opacity) + weight in front of it
+    depth_weight: float = 1.0  # weight of the L1 loss on expected depth (metres)
+    surface_weight: float = 1.0  # with depth: weight of (1 - opacity) + weight in front of it
     semantic_weight: float = 0.04  # weight of the semantic cross-entropy (Semantic-NeRF: 0.04)
     holdout_every: int = 8  # every k-th view (index % k == k // 2) is held out; 0 = none
     eval_every: int = 200  # steps between held-out evaluations
@@ -53,6 +65,7 @@ class NerfConfig:
     seed: int = 0  # seeds the initialisation, ray batches and jitter
     threads: int = 0  # torch threads (0 = leave torch's setting)
     chunk: int = 16384  # rays per forward pass when rendering full views
+    depth_render_scale: int = 2  # sparse depth: depth for fusion rendered at 1/k resolution
     acc_threshold: float = 0.5  # rendered depth is 0 (missing) where opacity is below this
     aabb_pad: float = 0.05  # scene box = bounds of cameras and depth points, + this fraction
     no_depth_margin: float = 3.0  # metres around the cameras when there are no depth points
@@ -69,7 +82,7 @@ class NerfOutputs:
     model: Path  # model.pt: load with stages.nerf.load_model
     stats: Path  # nerf.json: steps, seconds, stop_reason, psnr_heldout, depth_absrel, curve
     frames: Path  # frames.json: the input capture with depth -> the rendered depth maps
-    depth: Path  # depth/<stem>.png: rendered z-depth, uint16 mm, 0 where opacity is low
+    depth: Path  # depth/<stem>.npy: rendered z-depth, float32 metres, 0 where opacity is low
 
     @classmethod
     def at(cls, out: Path) -> NerfOutputs:

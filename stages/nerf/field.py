@@ -179,9 +179,28 @@ class NerfModel(nn.Module):
             self.trunk[-1].bias[0] = -3.0
         self.dir_enc = PositionalEncoding(3, cfg.pe_dir_freqs) if cfg.view_dependent else None
         d_dir = int(self.dir_enc.out_dim) if self.dir_enc is not None else 0
-        self.color_head = mlp(g + d_dir, cfg.width, 1, 3)
+        # colour from a grid of its own: the density's losses (large, sharp gradients at the
+        # surfaces) would otherwise drown the colour's in the shared table's Adam statistics
+        self.color_encoding: nn.Module | None = None
+        d_col = g
+        if cfg.color_grid and cfg.field == "hash":
+            self.color_encoding = HashGrid3D(
+                cfg.hash_levels,
+                cfg.hash_features,
+                cfg.hash_log2_size,
+                cfg.hash_base_res,
+                max(cfg.hash_max_res, cfg.hash_base_res),
+            )
+            d_col = int(self.color_encoding.out_dim)
+        self.color_head = mlp(d_col + d_dir, cfg.width, 1, 3)
         self.sem_head = mlp(g, cfg.width, 1, len(class_ids)) if class_ids else None
         self._cache: tuple[Tensor, Tensor] | None = None
+        # rendering colours each ray at its expected depth (set when trained with depth)
+        self.register_buffer("surface", torch.zeros((), dtype=torch.bool))
+
+    @property
+    def surface_color(self) -> bool:
+        return bool(self.surface)
 
     @property
     def step(self) -> float:
@@ -207,7 +226,10 @@ class NerfModel(nn.Module):
 
     def color(self, x: Tensor, dirs: Tensor) -> Tensor:
         """[N, 3] world points, [N, 3] unit directions -> [N, 3] RGB in [0, 1]."""
-        geo = self._features(x)[:, 1:]
+        if self.color_encoding is not None:
+            geo = self.color_encoding(self.normalise(x))  # [N, E]
+        else:
+            geo = self._features(x)[:, 1:]  # [N, G]
         if self.dir_enc is not None:
             geo = torch.cat([geo, self.dir_enc(dirs)], dim=-1)
         return torch.sigmoid(self.color_head(geo))

@@ -1,8 +1,10 @@
-"""NeRF stage, occupancy-grid implementation: train the field, score it, render every depth.
+"""NeRF stage, occupancy-grid implementation: train the field, score it, render depth.
 
-Outputs model.pt (load_model), nerf.json (stats), depth/<stem>.png for every view (rendered
-z-depth, uint16 mm, 0 where the opacity is below acc_threshold) and frames.json: the input
-capture whose frames' depth points at those renders (the photos-only depth path).
+Outputs model.pt (load_model), nerf.json (stats), heldout/<stem>.png renders and frames.json.
+With sparse depth (photos only: SfM tracks) every view's depth is rendered into
+depth/<stem>.npy (z-depth, float32 metres, 0 where the opacity is below acc_threshold) and
+frames.json points at those renders: the photos-only depth path. With dense depth frames.json
+is the input capture unchanged.
 """
 
 from __future__ import annotations
@@ -17,12 +19,13 @@ import torch
 
 from stages.common.capture import Capture
 from stages.common.errors import BlunfError
-from stages.common.io import write_depth_png, write_image, write_json
+from stages.common.io import write_image, write_json
 from stages.nerf.config import NerfConfig, NerfInputs, NerfOutputs
 from stages.nerf.field import save_model
 from stages.nerf.render import render_view
 from stages.nerf.train import (
     build_model,
+    depth_coverage,
     depth_points,
     gather_rays,
     load_views,
@@ -53,34 +56,48 @@ def run(cfg: NerfConfig, inputs: NerfInputs, out: Path) -> NerfOutputs:
         torch.manual_seed(cfg.seed)
         views = load_views(cap, cfg.semantics)
         tr, held = split(len(cap.frames), cfg.holdout_every)
-        pts = depth_points(cap, views, tr, cfg.depth_stride)
+        coverage = depth_coverage(views, tr)
+        dense = coverage >= cfg.dense_depth
+        log.info(
+            "nerf: depth on %.1f %% of training pixels (%s)",
+            100 * coverage,
+            "dense" if dense else "sparse",
+        )
+        pts = depth_points(cap, views, tr, cfg.depth_stride if dense else 1)
         lo, hi = scene_box(cap.poses()[:, :3, 3], pts, cfg)
-        model = build_model(cfg, lo, hi, views.class_ids, seed_points(cap, views, tr))
+        model = build_model(cfg, lo, hi, views.class_ids, seed_points(cap, views, tr), dense=dense)
         rays = gather_rays(cap, views, tr)
         held_rays = gather_rays(cap, views, held) if held else None
-        stats = train(cfg, model, rays, held_rays)
+        stats = train(cfg, model, rays, held_rays, dense=dense)
         t_render = time.perf_counter()
         outs = NerfOutputs.at(out)
         outs.depth.mkdir()
         (out / "heldout").mkdir()
-        frames, psnrs, psnrs_train, absrels = [], [], [], []
+        # depth is rendered for every view only when the input depth is sparse (photos only:
+        # fusion needs it); with dense depth only the held-out views are rendered, for scores
+        frames, psnrs, absrels = [], [], []
         for i, f in enumerate(cap.frames):
+            if not dense:  # depth for fusion, at 1 / depth_render_scale of the resolution
+                f = replace(f, depth=outs.depth / f"{f.stem}.npy")
+                np.save(f.depth, render_depth(model, f, cfg))  # metres
+            frames.append(f)
+            if i not in held:
+                continue
             v = render_view(model, np.asarray(f.pose), f.intrinsics, cfg.chunk)
             depth = np.where(v["acc"] >= cfg.acc_threshold, v["depth"], 0.0)  # type: ignore[operator]
-            write_depth_png(outs.depth / f"{f.stem}.png", depth)
-            frames.append(replace(f, depth=outs.depth / f"{f.stem}.png"))
             gt = views.rgb[i].view(v["rgb"].shape).numpy()  # type: ignore[union-attr]
-            (psnrs if i in held else psnrs_train).append(psnr(float(np.mean((v["rgb"] - gt) ** 2))))
-            if i in held:
-                rgb = v["rgb"]
-                write_image(out / "heldout" / f"{f.stem}.png", np.round(rgb * 255))  # type: ignore[operator]
-                d_gt = views.depth[i]
-                if d_gt is not None:
-                    absrels.append(depth_absrel(depth, d_gt.view(depth.shape).numpy()))
+            psnrs.append(psnr(float(np.mean((v["rgb"] - gt) ** 2))))
+            write_image(out / "heldout" / f"{f.stem}.png", np.round(v["rgb"] * 255))  # type: ignore[operator]
+            d_gt = views.depth[i]
+            if d_gt is not None and dense:  # sensor / fused depth is the reference
+                absrels.append(depth_absrel(depth, d_gt.view(depth.shape).numpy()))
     finally:
         torch.set_num_threads(old_threads)
     save_model(model, outs.model)
-    replace(cap.with_frames(frames), depth_scale=1000.0, depth_invalid=(65535,)).save(outs.frames)
+    if dense:
+        cap.with_frames(frames).save(outs.frames)  # the input depth stays the depth
+    else:
+        replace(cap.with_frames(frames), depth_scale=1.0, depth_invalid=()).save(outs.frames)
     stats.update(
         {
             "field": cfg.field,
@@ -88,9 +105,10 @@ def run(cfg: NerfConfig, inputs: NerfInputs, out: Path) -> NerfOutputs:
             "train_views": len(tr),
             "heldout_views": len(held),
             "psnr_heldout": round(float(np.mean(psnrs)), 3) if psnrs else None,
-            "psnr_train": round(float(np.mean(psnrs_train)), 3) if psnrs_train else None,
             "depth_absrel": round(float(np.mean(absrels)), 4) if absrels else None,
             "depth_supervised": rays.t_depth is not None,
+            "depth_coverage": round(coverage, 4),
+            "depth_dense": dense,
             "semantics": bool(views.class_ids) and rays.label is not None,
             "box": [lo.tolist(), hi.tolist()],
             "occupancy_shape": list(model.occupancy.shape),
@@ -109,6 +127,16 @@ def run(cfg: NerfConfig, inputs: NerfInputs, out: Path) -> NerfOutputs:
         stats["depth_absrel"],
     )
     return outs
+
+
+def render_depth(model, f, cfg: NerfConfig) -> np.ndarray:
+    """z-depth (metres, float32) of frame f at 1 / depth_render_scale of its resolution; 0
+    where the opacity is below acc_threshold (fusion rescales the intrinsics to fit)."""
+    k = max(1, cfg.depth_render_scale)
+    w, h = f.intrinsics.width, f.intrinsics.height
+    intr = f.intrinsics.scaled(max(1, w // k), max(1, h // k))
+    v = render_view(model, np.asarray(f.pose), intr, cfg.chunk)
+    return np.where(v["acc"] >= cfg.acc_threshold, v["depth"], 0.0).astype(np.float32)  # type: ignore[operator]
 
 
 def depth_absrel(pred: np.ndarray, gt: np.ndarray) -> float:

@@ -112,6 +112,32 @@ class OccupancyGrid(nn.Module):
         return int(self.binary.sum())
 
     @torch.no_grad()
+    def refresh(
+        self, density_fn: Callable[[Tensor], Tensor], threshold: float, points: int = 4
+    ) -> int:
+        """Re-measure every cell at `points` jittered points (seeded) and drop the occupied
+        cells whose highest density is below the threshold (seeded ones stay): the running
+        estimates of `update` lag behind the field, and each stale cell costs samples on every
+        ray. Never adds a cell (the field's density where no ray ever looked is noise).
+        Returns the occupied cells."""
+        gen = torch.Generator().manual_seed(0)
+        dims = torch.tensor(self.shape)
+        idx = torch.arange(self.ema.numel())
+        ijk = torch.stack(
+            [idx // (dims[1] * dims[2]), (idx // dims[2]) % dims[1], idx % dims[2]], dim=-1
+        )  # [C, 3]
+        best = torch.zeros(len(idx))
+        for _ in range(points):
+            u = (ijk + torch.rand(len(idx), 3, generator=gen)) / dims
+            x = self.lo + u * (self.hi - self.lo)
+            for i in range(0, len(x), UPDATE_CHUNK):
+                sig = torch.nan_to_num(density_fn(x[i : i + UPDATE_CHUNK]), nan=0.0)
+                best[i : i + UPDATE_CHUNK] = torch.maximum(best[i : i + UPDATE_CHUNK], sig)
+        self.ema.copy_(best.view(self.shape))
+        self.binary.copy_((self.binary & (self.ema > threshold)) | self.keep)
+        return int(self.binary.sum())
+
+    @torch.no_grad()
     def update(
         self,
         density_fn: Callable[[Tensor], Tensor],

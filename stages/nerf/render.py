@@ -49,6 +49,7 @@ def render_rays(
     background: Tensor | None = None,
     prune_eps: float = 1e-4,
     return_samples: bool = False,
+    surface_color: bool = False,
 ) -> dict[str, Tensor | None]:
     """Render rays through a field given as functions.
 
@@ -62,10 +63,41 @@ def render_rays(
         perturb: jitter each sample inside its interval (training), else at its middle.
         background: [3] colour added with weight 1 - acc (default black).
         prune_eps: skip samples after transmittance < this (first pass without gradient).
+        surface_color: colour each ray once, at its expected depth, instead of compositing
+            the colours of its samples (sharp for a depth-supervised field, whose density is a
+            thin shell: off-surface samples would blend colours the field never fitted).
     Returns:
         rgb [R, 3], depth [R] (expected ray distance t, = far where acc = 0), acc [R],
         semantics [R, K] logits or None; with return_samples also ray [N], t [N], weights [N].
     """
+    if surface_color:
+        out = render_rays(
+            origins,
+            dirs,
+            density_fn,
+            _no_color,
+            semantic_fn,
+            near,
+            far,
+            occupancy,
+            step,
+            perturb,
+            gen,
+            None,
+            prune_eps,
+            return_samples,
+        )
+        hit = (out["acc"] > 1e-6).nonzero().squeeze(1)  # type: ignore[operator]
+        rgb = torch.zeros(len(origins), 3)
+        if len(hit):
+            x = origins[hit] + out["depth"][hit, None] * dirs[hit]  # type: ignore[index]
+            density_fn(x)
+            c = color_fn(x, dirs[hit])
+            rgb = rgb.index_put((hit,), out["acc"][hit, None] * c)  # type: ignore[index]
+        if background is not None:
+            rgb = rgb + (1.0 - out["acc"])[:, None] * background  # type: ignore[operator]
+        out["rgb"] = rgb
+        return out
     r = origins.shape[0]
     near_t = torch.nan_to_num(_per_ray(near, r), nan=0.0)  # [R]
     far_t = torch.maximum(torch.nan_to_num(_per_ray(far, r), nan=0.0), near_t)  # [R]
@@ -109,6 +141,10 @@ def render_rays(
         if sem_s is not None:
             out["semantics"] = out["semantics"].index_add(0, ray, w[:, None] * sem_s)
     return _finish(out, near_t, far_t, background, return_samples)
+
+
+def _no_color(x: Tensor, dirs: Tensor) -> Tensor:
+    return torch.zeros(len(x), 3)
 
 
 def _finish(
@@ -267,6 +303,7 @@ def render_model(
     return_samples: bool = False,
     far: Tensor | None = None,
     prune: bool = True,
+    surface_color: bool | None = None,
 ) -> dict[str, Tensor | None]:
     """render_rays with the model's field, box, occupancy grid and step; `far` [R] (metres)
     cuts rays shorter than the box, `prune` = False skips the transmittance pre-pass."""
@@ -290,6 +327,7 @@ def render_model(
         gen=gen,
         prune_eps=model.cfg.prune_eps if prune else 0.0,
         return_samples=return_samples,
+        surface_color=model.surface_color if surface_color is None else surface_color,
     )
     model.clear_cache()
     return out

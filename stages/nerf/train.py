@@ -25,6 +25,7 @@ from stages.nerf.render import camera_rays, render_model
 log = logging.getLogger(__name__)
 
 SEED_FACTOR = 10.0  # seeded cells start at this many times the occupancy threshold
+SPARSE_DILATE = 2  # sparse depth: cells kept round each SfM track point (at least)
 HUBER_DELTA = 0.1
 RGB_LOSSES = ("mse", "huber")
 
@@ -114,16 +115,28 @@ def occupancy_threshold(cfg: NerfConfig, step: float) -> float:
 
 
 def build_model(
-    cfg: NerfConfig, lo: Tensor, hi: Tensor, class_ids: list[int], seeds: Iterable[np.ndarray]
+    cfg: NerfConfig,
+    lo: Tensor,
+    hi: Tensor,
+    class_ids: list[int],
+    seeds: Iterable[np.ndarray],
+    dense: bool = True,
 ) -> NerfModel:
     """A fresh model whose occupancy grid is seeded from the point sets `seeds` ([N, 3]
-    each, e.g. one per depth map); every cell occupied when there are none."""
+    each, e.g. one per depth map). With dense depth the seeded cells are the grid; with
+    sparse depth (SfM tracks) the seeded cells are kept and updates add more; with no depth
+    at all every cell starts occupied."""
     occ = OccupancyGrid.for_box(lo, hi, cfg.occ_res)
     model = NerfModel(cfg, lo, hi, class_ids, occ)
     thr = occupancy_threshold(cfg, model.step)
+    dilate = cfg.occ_dilate
+    if not dense:
+        # cells round the tracks, for good; updates add the cells the field fills in
+        # between (starting from a full grid costs hundreds of samples a ray for minutes)
+        dilate = max(dilate, SPARSE_DILATE)
     n_pts = 0
     for pts in seeds:
-        occ.seed(torch.from_numpy(pts.astype(np.float32)), SEED_FACTOR * thr, cfg.occ_dilate)
+        occ.seed(torch.from_numpy(pts.astype(np.float32)), SEED_FACTOR * thr, dilate)
         n_pts += len(pts)
     if n_pts:
         n = int(occ.binary.sum())
@@ -131,6 +144,13 @@ def build_model(
     else:
         occ.fill(SEED_FACTOR * thr)
     return model
+
+
+def depth_coverage(views: Views, idx: list[int]) -> float:
+    """Fraction of the pixels of views `idx` with a depth reading (0 without depth)."""
+    n = sum(len(views.rgb[i]) for i in idx)
+    k = sum(int((views.depth[i] > 0).sum()) for i in idx if views.depth[i] is not None)  # type: ignore[operator]
+    return k / max(1, n)
 
 
 def seed_points(cap: Capture, views: Views, idx: list[int]) -> Iterator[np.ndarray]:
@@ -192,8 +212,11 @@ def score(model: NerfModel, rays: Rays, chunk: int) -> float:
     return psnr(err / max(1, rays.rgb.numel()))
 
 
-def train(cfg: NerfConfig, model: NerfModel, rays: Rays, held: Rays | None) -> dict:
-    """Optimise the model on `rays`; stop on a held-out plateau, the time budget or max_steps."""
+def train(
+    cfg: NerfConfig, model: NerfModel, rays: Rays, held: Rays | None, dense: bool = True
+) -> dict:
+    """Optimise the model on `rays`; stop on a held-out plateau, the time budget or max_steps.
+    `dense`: the depth covers most pixels (sensor or fused), not just SfM tracks."""
     if cfg.rgb_loss not in RGB_LOSSES:
         raise BlunfError(f"nerf.rgb_loss must be one of {RGB_LOSSES}, got {cfg.rgb_loss!r}")
     gen = torch.Generator().manual_seed(cfg.seed)
@@ -201,8 +224,7 @@ def train(cfg: NerfConfig, model: NerfModel, rays: Rays, held: Rays | None) -> d
     rest = [p for n, p in model.named_parameters() if not n.endswith("table")]
     groups = [{"params": rest, "eps": 1e-8}] + ([{"params": table, "eps": 1e-15}] if table else [])
     opt = torch.optim.Adam(groups, lr=cfg.lr, betas=(0.9, 0.99))
-    decay = max(1, cfg.lr_decay_steps)
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: cfg.lr_final ** min(s / decay, 1.0))
+    base = [g["lr"] for g in opt.param_groups]
     thr = occupancy_threshold(cfg, model.step)
     if held is not None and cfg.eval_rays > 0 and len(held.rgb) > cfg.eval_rays:
         pick = torch.randperm(len(held.rgb), generator=torch.Generator().manual_seed(cfg.seed))
@@ -215,6 +237,8 @@ def train(cfg: NerfConfig, model: NerfModel, rays: Rays, held: Rays | None) -> d
     train_s = cpu_s = 0.0
     losses: list[float] = []
     samples = 0
+    frozen = dense and rays.t_depth is not None and cfg.occ_seeded_only
+    model.surface.fill_(dense and rays.t_depth is not None and cfg.surface_color)
     model.train()
     while True:
         if cfg.max_steps > 0 and step >= cfg.max_steps:
@@ -240,17 +264,24 @@ def train(cfg: NerfConfig, model: NerfModel, rays: Rays, held: Rays | None) -> d
             return_samples=True,
             far=far,
             prune=prune,
+            surface_color=False,
         )
         loss = _losses(cfg, out, rays, idx, cfg.trunc_steps * model.step)
+        model.clear_cache()
+        if rays.t_depth is not None and cfg.surface_rays > 0 and cfg.surface_rgb_weight > 0:
+            loss = loss + cfg.surface_rgb_weight * _surface_loss(cfg, model, rays, gen)
+        if rays.t_depth is not None and cfg.geo_rays > 0 and cfg.geo_weight > 0:
+            loss = loss + cfg.geo_weight * _geometry_loss(cfg, model, rays, gen, dense)
         opt.zero_grad(set_to_none=True)
         if loss.requires_grad:
             loss.backward()
             opt.step()
-        sched.step()
+        for g, lr in zip(opt.param_groups, base, strict=True):
+            g["lr"] = lr * cfg.lr_final ** _progress(cfg, step + 1, train_s)
         step += 1
         samples += len(out["ray"])  # type: ignore[arg-type]
         losses.append(float(loss.detach()))
-        if step % cfg.occ_every == 0:
+        if step % cfg.occ_every == 0 and not frozen:
             model.occupancy.update(model.density, thr, cfg.occ_decay, cfg.occ_cells, gen)
             model.clear_cache()
         train_s += time.perf_counter() - t0
@@ -280,6 +311,11 @@ def train(cfg: NerfConfig, model: NerfModel, rays: Rays, held: Rays | None) -> d
                     stop = "plateau"
                     break
     model.eval()
+    if not frozen:
+        before = int(model.occupancy.binary.sum())
+        after = model.occupancy.refresh(model.density, thr)
+        model.clear_cache()
+        log.info("nerf: occupancy refreshed: %d -> %d cells", before, after)
     tail = losses[-50:]
     return {
         "steps": step,
@@ -292,6 +328,66 @@ def train(cfg: NerfConfig, model: NerfModel, rays: Rays, held: Rays | None) -> d
         "samples_per_ray": round(samples / max(1, step * cfg.batch_rays), 2),
         "occupied_cells": int(model.occupancy.binary.sum()),
     }
+
+
+def _progress(cfg: NerfConfig, step: int, seconds: float) -> float:
+    """How far training is, in [0, 1]: by the step limit or the time budget when set (the
+    nearer one), else by lr_decay_steps. The learning rate decays with it."""
+    fr = [step / cfg.max_steps] if cfg.max_steps > 0 else []
+    fr += [seconds / cfg.time_budget] if cfg.time_budget > 0 else []
+    return min(1.0, max(fr) if fr else step / max(1, cfg.lr_decay_steps))
+
+
+def _surface_loss(cfg: NerfConfig, model: NerfModel, rays: Rays, gen: torch.Generator) -> Tensor:
+    """Colour of random pixels with depth, fitted at their depth point (jittered along the
+    ray): one field query per pixel teaches the texture far faster than marching does."""
+    assert rays.t_depth is not None
+    idx = torch.randint(0, len(rays.rgb), (cfg.surface_rays,), generator=gen)
+    t = rays.t_depth[idx]
+    ok = t > 0
+    idx, t = idx[ok], t[ok]
+    if len(idx) == 0:
+        return torch.zeros(())
+    jit = (torch.rand(len(idx), generator=gen) * 2.0 - 1.0) * cfg.surface_jitter * model.step
+    x = rays.origins[idx] + (t + jit)[:, None] * rays.dirs[idx]
+    model.clear_cache()
+    c = model.color(x, rays.dirs[idx])
+    model.clear_cache()
+    return F.mse_loss(c, rays.rgb[idx])
+
+
+def _geometry_loss(
+    cfg: NerfConfig, model: NerfModel, rays: Rays, gen: torch.Generator, dense: bool = True
+) -> Tensor:
+    """Density fitted directly from depth readings: one step's opacity is 0 at a point drawn
+    in the geo_front metres (sparse depth: anywhere) in front of the reading (up to half a
+    step before it) and 1 at a point drawn in the two steps behind it. Binary cross-entropy
+    on that opacity, written with terms of sigma * step so it stays finite for any density."""
+    assert rays.t_depth is not None
+    idx = torch.randint(0, len(rays.rgb), (cfg.geo_rays,), generator=gen)
+    t = rays.t_depth[idx]
+    ok = t > 0
+    idx, t = idx[ok], t[ok]
+    if len(idx) == 0:
+        return torch.zeros(())
+    s = model.step
+    u = torch.rand(2, len(idx), generator=gen)
+    # dense depth: the grid already holds only the surfaces' cells, so the free point only
+    # sharpens the front of the surface; sparse depth: anywhere between camera and reading
+    # (the tracks' rays carve out the floaters that the photometric loss alone leaves)
+    front = cfg.geo_front if dense else t - 0.5 * s
+    t_free = (t - 0.5 * s - u[0] * front).clamp(min=0.0)
+    t_full = t + u[1] * 2.0 * s
+    tt = torch.cat([t_free, t_full])
+    o, d = rays.origins[idx].repeat(2, 1), rays.dirs[idx].repeat(2, 1)
+    model.clear_cache()
+    sd = model.density(o + tt[:, None] * d) * s  # [2M] optical depth of one step
+    model.clear_cache()
+    m = len(idx)
+    # free: -log(1 - alpha) = sd; full: -log(alpha) = -log(1 - exp(-sd))
+    free = sd[:m].mean()
+    full = -torch.log(-torch.expm1(-sd[m:].clamp(min=1e-6))).mean()
+    return free + full
 
 
 def _losses(cfg: NerfConfig, out: dict, rays: Rays, idx: Tensor, margin: float) -> Tensor:

@@ -99,6 +99,7 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
     facts["mean_track_length"] = float(rec.compute_mean_track_length())
 
     frames = []
+    sparse = out / "sparse_depth"
     for i in kept:
         im = rec.image(ids[names[i]])
         w2c = np.eye(4)
@@ -108,7 +109,13 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
             if cfg.self_calibrate
             else cap.frames[i].intrinsics
         )
-        frames.append(replace(cap.frames[i], pose=np.linalg.inv(w2c), intrinsics=intr))
+        f = replace(cap.frames[i], pose=np.linalg.inv(w2c), intrinsics=intr)
+        if f.depth is None:  # photos only: the tracks' depths are all the depth there is
+            sparse.mkdir(exist_ok=True)
+            np.save(sparse / f"{f.stem}.npy", sparse_depth(rec, im, intr))
+            f = replace(f, depth=sparse / f"{f.stem}.npy")
+        frames.append(f)
+    facts["sparse_depth"] = sparse.is_dir()
     outs = PosesOutputs.at(out)
     # The SfM world is not the capture's: a gravity vector given in the capture's frame means
     # nothing here, so alignment must find the floor itself.
@@ -288,6 +295,24 @@ def _map(
             ba.refine_extra_params = False
         recs = pycolmap.global_mapping(db, img_dir, models, g)
     return list(recs.values())
+
+
+def sparse_depth(rec: pycolmap.Reconstruction, im: pycolmap.Image, intr: Intrinsics) -> np.ndarray:
+    """z-depth (metres) of the image's triangulated keypoints at their nearest pixel, 0
+    elsewhere; the nearest point wins where two fall in one pixel. Returns float32 [H, W]."""
+    obs = im.get_observation_points2D()
+    d = np.zeros((intr.height, intr.width), np.float32)
+    if not len(obs):
+        return d
+    xy = np.array([p.xy for p in obs], np.float64).reshape(-1, 2) - 0.5  # integer centres
+    xyz = np.array([rec.points3D[p.point3D_id].xyz for p in obs]).reshape(-1, 3)
+    w2c = im.cam_from_world().matrix()  # [3, 4]
+    z = xyz @ w2c[2, :3] + w2c[2, 3]  # [N]
+    u, v = np.round(xy[:, 0]).astype(int), np.round(xy[:, 1]).astype(int)
+    ok = (z > 0) & (u >= 0) & (v >= 0) & (u < intr.width) & (v < intr.height)
+    order = np.argsort(-z[ok])  # far first, so nearer points overwrite
+    d[v[ok][order], u[ok][order]] = z[ok][order]
+    return d
 
 
 def _scale(

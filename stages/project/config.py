@@ -26,16 +26,22 @@ class ProjectConfig:
     top_band: float = 0.1  # top view: a class is seen when it reaches this close to the top (m)
     top_min_points: int = 2  # top view: the top is the n-th highest point; sparser cells kept
     occlusion_shifts: int = 2  # top view: n x n grids offset by 1/n cell; dropped only if in all
+    # views with index % k == k // 2 are held out of the plan (scored by evaluate's
+    # heldout_pacc) when the frames carry labels; 0 = none (1 is refused: nothing left)
+    holdout_every: int = 8
 
 
 @dataclass(frozen=True)
 class ProjectInputs:
     frames: Path  # frames.json of a capture with poses and depth (Capture.save)
+    holdout: bool = True  # hold views out for heldout_pacc (the planner: no GT plan to score)
 
 
 @dataclass(frozen=True)
 class ProjectOutputs:
-    points: Path  # points.npz: xyz float32 [N, 3], label uint8 [N], view int32 [N], classes
+    # points.npz: xyz float32 [N, 3] offsets from origin float64 [3] (read_points adds them),
+    # label uint8 [N], view int32 [N], classes
+    points: Path
     grid: Path  # grid.json: the plan Grid (Grid.to_json) + "bounds" [xmin, ymin, xmax, ymax]
     # of the points it was padded from
 
@@ -43,6 +49,11 @@ class ProjectOutputs:
     def at(cls, out: Path) -> ProjectOutputs:
         """The outputs inside a finished project folder."""
         return cls(points=Path(out) / "points.npz", grid=Path(out) / "grid.json")
+
+    @property
+    def heldout(self) -> Path:
+        """heldout.json beside the points: {"every": k, "views": [index], "stems": [stem]}."""
+        return self.points.parent / "heldout.json"
 
     @property
     def classes(self) -> Path:

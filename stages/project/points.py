@@ -6,6 +6,11 @@ labels, points are labelled by height (floor / occupied) so a plan exists before
 With occlusion "top" (the default), points a top view would not see are then dropped
 (topview.py: floor between a table's legs, under a chair's seat); "none" is the paper's Π.
 The plan grid bounds all the points (before that culling), padded by `pad`.
+
+Far from the world origin (a georeferenced capture 10 km out) float32 world coordinates keep
+only ~1 mm: points.npz stores them as float32 offsets from a float64 `origin` (the mean camera
+centre). The top-view grids are anchored at that origin, not at world multiples of their
+cell, so they move and scale with the world; the plan grid keeps world multiples of its cell.
 """
 
 from __future__ import annotations
@@ -42,16 +47,21 @@ def run(cfg: ProjectConfig, inputs: ProjectInputs, out: Path) -> ProjectOutputs:
         raise BlunfError(f"{inputs.frames}: the capture has no frames")
     labelling = _labelling(cfg, cap)
     ignore = np.asarray([*cap.ignore, UNKNOWN], np.int64)  # label ids never projected
+    origin = _local_origin(cap)  # [3] float64; points are kept as float32 offsets from it
     xyz_l, lab_l, view_l = [], [], []
     counts = {"sampled": 0, "no_depth": 0, "dropped_label": 0, "dropped_height": 0}
+    held_out = labelling == "labels" and inputs.holdout
+    held = heldout_views(len(cap.frames), cfg.holdout_every) if held_out else []
     for i, f in enumerate(cap.frames):
+        if i in held:
+            continue
         xyz, lab = _frame_points(cap, f, cfg, labelling == "labels", ignore, counts)
         if labelling == "height":
             xyz, lab = _height_labels(xyz, cfg, counts)
-        xyz_l.append(xyz.astype(np.float32))
+        xyz_l.append((xyz - origin).astype(np.float32))
         lab_l.append(lab)
         view_l.append(np.full(len(lab), i, np.int32))
-    xyz = np.concatenate(xyz_l)  # [N, 3]
+    xyz = np.concatenate(xyz_l)  # [N, 3] float32 offsets from origin
     label = np.concatenate(lab_l).astype(np.uint8)  # [N]
     view = np.concatenate(view_l)  # [N]
     if len(label) == 0:
@@ -59,10 +69,11 @@ def run(cfg: ProjectConfig, inputs: ProjectInputs, out: Path) -> ProjectOutputs:
     classes = HEIGHT_CLASSES if labelling == "height" else _label_classes(cap, label)
 
     lo, hi = plan_bounds(xyz[:, :2], cfg)
+    lo, hi = lo + origin[:2], hi + origin[:2]  # [2] world
     grid = Grid.covering(lo, hi, cfg.cell, cfg.pad)
     if cfg.occlusion == "top":
-        keep = top_view_keep(
-            xyz,
+        keep = top_view_keep(  # its grids anchored at the origin: they move with the world
+            xyz.astype(np.float64),
             label,
             cfg.occlusion_cell or cfg.cell,
             cfg.top_band,
@@ -77,13 +88,23 @@ def run(cfg: ProjectConfig, inputs: ProjectInputs, out: Path) -> ProjectOutputs:
             f"{cfg.cell} m (> project.max_cells = {cfg.max_cells}); check poses and depth units"
         )
     outs = ProjectOutputs.at(out)
-    np.savez(outs.points, xyz=xyz, label=label, view=view, classes=_classes_json(classes))
+    np.savez(
+        outs.points,
+        xyz=xyz,
+        origin=origin,
+        label=label,
+        view=view,
+        classes=_classes_json(classes),
+    )
     write_json(outs.grid, {**grid.to_json(), "bounds": [*lo.tolist(), *hi.tolist()]})
     write_json(outs.classes, {"classes": _str_keys(classes), "labelling": labelling})
+    stems = [cap.frames[i].stem for i in held]
+    write_json(outs.heldout, {"every": cfg.holdout_every, "views": held, "stems": stems})
     stats = {
         "frames": len(cap.frames),
         "points": int(len(label)),
         "labelling": labelling,
+        "heldout_views": len(held),
         **counts,
         "grid_shape": list(grid.shape),
         "cell": grid.cell,
@@ -100,6 +121,12 @@ def run(cfg: ProjectConfig, inputs: ProjectInputs, out: Path) -> ProjectOutputs:
     return outs
 
 
+def heldout_views(n: int, every: int) -> list[int]:
+    """Indices of the views kept out of the plan: index % every == every // 2 (the NeRF
+    stage's rule, so both hold out the same views); none when every = 0 or n < 2."""
+    return [i for i in range(n) if every > 0 and n > 1 and i % every == every // 2]
+
+
 def plan_bounds(xy: np.ndarray, cfg: ProjectConfig) -> tuple[np.ndarray, np.ndarray]:
     """(lo [2], hi [2]): the box of points xy [N, 2] without the outer `bounds_pct` % a side."""
     lo = np.percentile(xy, cfg.bounds_pct, axis=0)  # [2]
@@ -108,16 +135,20 @@ def plan_bounds(xy: np.ndarray, cfg: ProjectConfig) -> tuple[np.ndarray, np.ndar
 
 
 def read_points(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[int, str]]:
-    """Read points.npz. Returns (xyz float32 [N, 3], label uint8 [N], view int32 [N], classes)."""
+    """Read points.npz. Returns (world xyz float64 [N, 3], label uint8 [N], view int32 [N],
+    classes). The file's float32 xyz are offsets from its float64 origin (0 when absent)."""
     try:
         with np.load(path, allow_pickle=False) as z:
             xyz, label, view = z["xyz"], z["label"], z["view"]
+            origin = np.asarray(z["origin"] if "origin" in z.files else np.zeros(3), np.float64)
             classes = {int(k): str(v) for k, v in json.loads(str(z["classes"])).items()}
     except (OSError, KeyError, ValueError) as e:
         raise BlunfError(f"{path}: not a points .npz ({e})") from None
     if xyz.ndim != 2 or xyz.shape[1] != 3 or len(label) != len(xyz) or len(view) != len(xyz):
         raise BlunfError(f"{path}: xyz, label and view disagree in length")
-    return xyz, label, view, classes
+    if origin.shape != (3,):
+        raise BlunfError(f"{path}: origin must be 3 numbers, got shape {origin.shape}")
+    return xyz.astype(np.float64) + origin, label, view, classes
 
 
 def read_grid(path: Path) -> Grid:
@@ -191,6 +222,13 @@ def _frame_points(
     return unproject(uvk, d[keep], intr.K, np.asarray(f.pose, np.float64)), lab
 
 
+def _local_origin(cap: Capture) -> np.ndarray:
+    """The mean camera centre [3] (float64), or 0 when a frame has no pose (caught later)."""
+    if any(f.pose is None for f in cap.frames):
+        return np.zeros(3)
+    return np.mean([np.asarray(f.pose, np.float64)[:3, 3] for f in cap.frames], axis=0)
+
+
 def _height_labels(
     xyz: np.ndarray, cfg: ProjectConfig, counts: dict
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -240,6 +278,8 @@ def _label_classes(cap: Capture, label: np.ndarray) -> dict[int, str]:
 
 
 def _check(cfg: ProjectConfig) -> None:
+    if cfg.holdout_every < 0 or cfg.holdout_every == 1:
+        raise BlunfError(f"project.holdout_every must be 0 (off) or >= 2, got {cfg.holdout_every}")
     if cfg.stride < 1:
         raise BlunfError(f"project.stride must be >= 1, got {cfg.stride}")
     if not cfg.cell > 0:

@@ -52,7 +52,8 @@ def cell_keep(
         xyz: [N, 3] world points (z up, metres).
         label: [N] class ids (< 256).
         cell: size of the cells over which the top is taken (cells are aligned on multiples
-            of `cell`, like the plan grid).
+            of `cell` of the coordinates given: points.py passes them relative to the mean
+            camera centre, so the cells move and scale with the world).
         band: a class is seen in a cell when it reaches within `band` metres of the top.
         min_points: the top is the z of the min_points-th highest point of the cell; cells
             with fewer points keep all their points.

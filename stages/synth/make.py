@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from stages.common.errors import BlunfError
-from stages.common.io import write_depth_png, write_image, write_json, write_label_png
+from stages.common.io import read_json, write_depth_png, write_image, write_json, write_label_png
 from stages.synth.render import Tracer, camera_path, intrinsics_for, render, top_down
 from stages.synth.room import CLASSES, IGNORE, build_room, scene_mesh
 
@@ -26,8 +26,12 @@ def make_room(
     seed: int = 0,
     size: tuple[int, int] = (320, 240),
     ceiling: bool = True,
+    photos_only: bool = False,
 ) -> Path:
     """Render a procedural room to a capture at `out`. Returns `out`.
+
+    photos_only: the capture holds what a phone gives (images and intrinsics): no depth,
+    labels, poses or gravity; the ground truth in gt/ is written all the same.
 
     Same (views, seed, size, ceiling) -> byte-identical files. Writes into a temp sibling
     folder renamed into place at the end, so a failure leaves nothing behind.
@@ -49,12 +53,23 @@ def make_room(
     shutil.rmtree(tmp, ignore_errors=True)
     try:
         _write(tmp, views, seed, (w, h), ceiling)
+        if photos_only:
+            _photos_only(tmp)
         if out.exists():
             out.rmdir()
         tmp.rename(out)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return out
+
+
+def _photos_only(root: Path) -> None:
+    """Drop what a phone capture lacks: depth, labels, poses and gravity."""
+    shutil.rmtree(root / "depth")
+    shutil.rmtree(root / "labels")
+    (root / "labels.json").unlink()
+    cams = read_json(root / "cameras.json")
+    write_json(root / "cameras.json", {"intrinsics": cams["intrinsics"]})
 
 
 def _is_int(x: object) -> bool:

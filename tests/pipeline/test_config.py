@@ -72,6 +72,7 @@ def _valid_other(cfg, name, value):
         "floor",
         "top",
         "pe",
+        "unknown",
     ):
         if cand == value:
             continue

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -51,6 +52,10 @@ def test_run_outputs_report_and_cache(tiny_room, tmp_path):
         assert 0 <= m["blunf"][k] <= 100
     assert m["blunf"]["completeness"] == 100.0
     assert m["blunf"]["fwiou"] > 60  # a tiny room at 96x72 and 300 steps; the real bar is in bench
+    # a ground-truth plan to score against: every view goes into the plan, none held out
+    assert "heldout_pacc" not in m["blunf"]
+    ev = next(s for s in first["stages"] if s["name"] == "evaluate")
+    assert ev["reason"] == "ground truth: blueprint, poses"
 
     # Nothing changed: everything that ran is now cached, and the outputs are identical.
     before = (out / "blueprint.npz").read_bytes()
@@ -136,3 +141,38 @@ def test_killed_stage_leaves_no_entry(tiny_room, tmp_path):
         for p in (out / "fusion").iterdir()
         if not p.name.startswith(".")
     )
+
+
+def test_semantics_from_geometry_when_labels_are_hidden(tiny_room, tmp_path):
+    """Without labels the semantics stage derives floor / wall / object from the fused mesh
+    and the plan uses them; semantics.impl=height keeps the height bands instead."""
+    capture = tmp_path / "nolabels"
+    shutil.copytree(tiny_room, capture, ignore=shutil.ignore_patterns("labels", "labels.json"))
+    out = tmp_path / "run"
+    r = _run(capture, out)
+    st = _status(r)
+    assert st["semantics:geometry"] == "ran"
+    sem = next(s for s in r["stages"] if s["name"] == "semantics")
+    assert sem["reason"] == "capture has no labels" and sem["facts"]["objects"] >= 1
+    assert set(r["plan"]["classes"]) == {"floor", "wall", "object"}
+    m = r["metrics"]["blueprint"]["blunf"]
+    # scored against the GT plan coarsened to floor / wall / object
+    assert set(m["per_class"]) == {"floor", "wall", "object"} and m["pacc"] > 60
+    assert "heldout_pacc" not in m
+
+    h = _run(capture, out, "--set", "semantics.impl=height")
+    st = _status(h)
+    assert st["semantics:height"] == "skipped" and st["fusion:tsdf"] == "cached"
+    sem = next(s for s in h["stages"] if s["name"] == "semantics")
+    assert sem["reason"].startswith("semantics.impl=height")
+    assert set(h["plan"]["classes"]) == {"floor", "occupied"}
+    assert "heldout_pacc" not in h["metrics"]["blueprint"]["blunf"]  # no labels to score
+
+    # no ground-truth plan: views 4 and 12 of 16 are held out (project.holdout_every = 8)
+    # and the plan is scored on their own (derived) labels
+    (capture / "gt" / "blueprint.npz").unlink()
+    g = _run(capture, tmp_path / "run-nogt")
+    m = g["metrics"]["blueprint"]["blunf"]
+    assert m["heldout_views"] == 2 and m["heldout_pacc"] > 60
+    ev = next(s for s in g["stages"] if s["name"] == "evaluate")
+    assert ev["reason"] == "ground truth: poses; held-out views"

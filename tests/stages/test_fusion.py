@@ -154,7 +154,7 @@ def test_mesh_and_raycast_depth_match_the_true_room(tmp_path):
     scene = make_scene()
     errs, hits, seen_px = [], 0, 0
     for f, pose in zip(cap.frames, room_poses(), strict=True):
-        assert f.depth == outs.depth / f"{f.stem}.png"
+        assert f.depth == outs.depth / f"{f.stem}.npy"
         truth, _ = render(scene, pose)
         got = read_depth(f.depth, cap.depth_scale, cap.depth_invalid)
         both = (truth > 0) & (got > 0)
@@ -216,8 +216,8 @@ def test_invalid_depth_is_never_fused(tmp_path):
     # same vertices up to order (the hash map's block order may differ between runs)
     np.testing.assert_allclose(va[np.lexsort(va.T)], vb[np.lexsort(vb.T)], atol=1e-5)
     for f in clean.frames:
-        da = np.asarray(Image.open(a.depth / f"{f.stem}.png"))
-        db = np.asarray(Image.open(b.depth / f"{f.stem}.png"))
+        da = np.load(a.depth / f"{f.stem}.npy")
+        db = np.load(b.depth / f"{f.stem}.npy")
         assert np.array_equal(da, db)
 
 

@@ -212,3 +212,89 @@ def test_ray_box_and_camera_rays():
     torch.testing.assert_close(d[1 * 5 + 2], torch.tensor([0.0, 1.0, 0.0]))
     torch.testing.assert_close(zs[0], torch.tensor(1 / math.sqrt(0.2**2 + 0.1**2 + 1)))
     assert torch.all(o == 0)
+
+
+def _depth_colour(x: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+    """A colour that varies non-linearly with depth along +x: ((x/3)^2, 0.25, 0.5 + 0.5 sin 4x).
+
+    Non-linear on purpose: for a colour linear in x, compositing the samples' colours equals
+    the colour at the expected depth, and the two render modes could not be told apart."""
+    return torch.stack(
+        [(x[:, 0] / 3.0) ** 2, torch.full((len(x),), 0.25), 0.5 + 0.5 * torch.sin(4.0 * x[:, 0])],
+        dim=-1,
+    )
+
+
+def _at(t: float) -> torch.Tensor:
+    return _depth_colour(torch.tensor([[t, 0.0, 0.0]]), torch.zeros(1, 3))[0]
+
+
+def test_surface_color_is_the_colour_at_the_expected_depth():
+    # The slab of the first test: sigma = 2 / m over [1, 1.5), acc = 1 - e^-1 = 0.63212,
+    # expected depth 1.20902 (worked out there). surface_color colours each ray once, at
+    # o + depth * d: rgb = acc * c(1.20902) + (1 - acc) * background, e.g. red =
+    # 0.63212 * (1.20902 / 3)^2 + 0.36788 * 0.2 = 0.63212 * 0.16242 + 0.07358 = 0.17625.
+    density, _ = _slab(2.0, 1.0, 1.5)
+    o, d = _rays()
+    bg = torch.tensor([0.2, 0.4, 0.6])
+    acc = 1.0 - math.exp(-1.0)
+    depth = 1.0 + 0.5 - 0.5 * math.exp(-1.0) / (1.0 - math.exp(-1.0))
+    expect = (acc * _at(depth) + (1.0 - acc) * bg).expand(4, 3)
+    assert abs(float(expect[0, 0]) - 0.17625) < 1e-4  # the hand value above
+    kw = dict(near=0.0, far=3.0, step=0.01, background=bg, surface_color=True)
+    surf = render_rays(o, d, density, _depth_colour, prune_eps=0.0, **kw)
+    # the depth is the midpoint-sample estimate (within ~1e-4 m of the exact mean, see above)
+    # and the colour changes by < 2.5 per metre there: well within 2e-4
+    torch.testing.assert_close(surf["rgb"], expect, atol=2e-4, rtol=0)
+    torch.testing.assert_close(surf["acc"], torch.full((4,), acc), atol=1e-4, rtol=0)
+    with torch.no_grad():  # the block-wise marcher of full-view renders gives the same
+        blocks = render_rays(o, d, density, _depth_colour, prune_eps=1e-4, **kw)
+    torch.testing.assert_close(blocks["rgb"], expect, atol=2e-4, rtol=0)
+    # compositing averages c over the slab's weights instead: red = acc E[(t/3)^2] =
+    # acc (E[t]^2 + Var[t]) / 9. For the truncated exponential (rate 2 on [0, 0.5] past x = 1)
+    # E[s^2] = 2/4 - (0.25 + 0.5) e^-1 / (1 - e^-1) = 0.06351, Var = 0.06351 - 0.20902^2 =
+    # 0.01982: red = 0.63212 (1.46173 + 0.01982) / 9 = 0.10406, vs 0.10267 at the surface.
+    comp = render_rays(o, d, density, _depth_colour, prune_eps=0.0, near=0.0, far=3.0, step=0.01)
+    torch.testing.assert_close(comp["rgb"][:, 0], torch.full((4,), 0.10406), atol=2e-4, rtol=0)
+    torch.testing.assert_close(
+        surf["rgb"][:, 0] - (1.0 - acc) * bg[0], torch.full((4,), 0.10267), atol=2e-4, rtol=0
+    )
+
+
+def test_surface_color_matches_compositing_for_a_sharp_step():
+    # All the weight in the first sample past x = 2 (at its middle, 2.005): compositing
+    # gives c(2.005), and so does colouring once at the expected depth 2.005.
+    density, _ = _slab(1e5, 2.0, 10.0)
+    o, d = _rays()
+    bg = torch.tensor([0.2, 0.4, 0.6])
+    kw = dict(near=0.0, far=5.0, step=0.01, background=bg)
+    comp = render_rays(o, d, density, _depth_colour, **kw)
+    surf = render_rays(o, d, density, _depth_colour, surface_color=True, **kw)
+    torch.testing.assert_close(comp["rgb"], _at(2.005).expand(4, 3), atol=1e-5, rtol=0)
+    torch.testing.assert_close(surf["rgb"], comp["rgb"], atol=1e-5, rtol=0)
+    torch.testing.assert_close(surf["depth"], comp["depth"])
+
+
+def test_surface_color_misses_give_the_background_and_gradients_flow():
+    # Rays 0-1 hit the step at x = 2, rays 2-3 start past x = 10 (empty beyond the slab):
+    # the misses are pure background and the colour function is only asked about the hits.
+    density, _ = _slab(1e5, 2.0, 10.0)
+    o, d = _rays()
+    o[2:, 0] = 10.5
+    bg = torch.tensor([0.2, 0.4, 0.6])
+    asked: list[int] = []
+    gain = torch.tensor(1.0, requires_grad=True)
+
+    def colour(x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        asked.append(len(x))
+        return gain * _depth_colour(x, v)
+
+    out = render_rays(
+        o, d, density, colour, near=0.0, far=5.0, step=0.01, background=bg, surface_color=True
+    )
+    assert asked == [2]
+    torch.testing.assert_close(out["rgb"][2:], bg.expand(2, 3))
+    torch.testing.assert_close(out["rgb"][:2].detach(), _at(2.005).expand(2, 3), atol=1e-5, rtol=0)
+    # d(sum of the hits' rgb) / d gain = sum of c(2.005) over the two hits
+    out["rgb"].sum().backward()
+    torch.testing.assert_close(gain.grad, 2.0 * _at(2.005).sum(), atol=1e-5, rtol=0)

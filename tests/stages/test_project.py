@@ -73,7 +73,7 @@ def test_camera_looking_down_lands_every_pixel_on_the_floor_footprint(tmp_path):
     outs, out = _run(tmp_path, frames, stride=1, cell=0.25, pad=0.1, bounds_pct=0.0)
     xyz, lab, view, classes = read_points(outs.points)
     # 48 pixels - 3 dropped = 45 per view, two views
-    assert len(xyz) == 90 and xyz.dtype == np.float32 and lab.dtype == np.uint8
+    assert len(xyz) == 90 and xyz.dtype == np.float64 and lab.dtype == np.uint8
     np.testing.assert_array_equal(view, np.repeat([0, 1], 45))
     np.testing.assert_allclose(xyz[:, 2], 0.0, atol=1e-6)
     uu, vv = np.meshgrid(np.arange(8), np.arange(6))

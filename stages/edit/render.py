@@ -1,0 +1,156 @@
+"""Rendering with edits: the NeRF renderer fed with the wrapped field, plus selection masks.
+
+A selection's mask in a view is the accumulated weight of the ray samples inside its extent
+(thresholded by the caller, 0.5 by default). Masks are rendered on the field they are given:
+render them with no edits (the unedited scene) so a removed object still has its mask.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from stages.common.camera import Intrinsics
+from stages.edit.ops import ColorFn, DensityFn, FieldEdit, wrap_field
+from stages.edit.select import Extent
+from stages.nerf.field import NerfModel
+from stages.nerf.render import camera_rays, ray_box, render_rays
+
+
+@torch.no_grad()
+def render_rays_edited(
+    origins: Tensor,
+    dirs: Tensor,
+    density_fn: DensityFn,
+    color_fn: ColorFn,
+    edits: Sequence[FieldEdit] = (),
+    masks: Sequence[Extent] = (),
+    near: float | Tensor = 0.0,
+    far: float | Tensor = 1.0,
+    occupancy=None,
+    step: float = 0.01,
+    prune_eps: float = 1e-4,
+    surface_color: bool = False,
+) -> dict[str, Tensor]:
+    """`render_rays` on the field with `edits` applied.
+
+    Args:
+        origins, dirs: [R, 3] world rays (unit directions). The rest as `render_rays`.
+        masks: extents whose per-ray weight to return.
+        surface_color: colour each ray at its expected depth (`render_rays`); the edited
+            colour function is then read there.
+    Returns:
+        rgb [R, 3], depth [R] (ray distance), acc [R], and masks [M, R]: the weight of each
+        ray's samples inside each of `masks`.
+    """
+    dens, col = wrap_field(density_fn, color_fn, edits)
+    out = render_rays(
+        origins,
+        dirs,
+        dens,
+        col,
+        None,
+        near=near,
+        far=far,
+        occupancy=occupancy,
+        step=step,
+        prune_eps=prune_eps,
+        return_samples=bool(masks),
+        surface_color=surface_color,
+    )
+    res: dict[str, Tensor] = {k: v for k, v in out.items() if k in ("rgb", "depth", "acc")}  # type: ignore[misc]
+    r = len(origins)
+    if masks:
+        ray, t, w = out["ray"], out["t"], out["weights"]  # [N] each
+        assert ray is not None and t is not None and w is not None
+        x = origins[ray] + t[:, None] * dirs[ray]  # [N, 3] the samples' positions
+        res["masks"] = torch.stack(
+            [torch.zeros(r).index_add(0, ray, w * torch.as_tensor(e.contains(x))) for e in masks]
+        )
+    else:
+        res["masks"] = torch.zeros(0, r)
+    return res
+
+
+@torch.no_grad()
+def render_view_edited(
+    model: NerfModel,
+    pose: np.ndarray,
+    intr: Intrinsics,
+    edits: Sequence[FieldEdit] = (),
+    chunk: int = 16384,
+    masks: Sequence[Extent] = (),
+) -> dict[str, np.ndarray]:
+    """A full view of the edited model, as `stages.nerf.render.render_view` renders it
+    (the model's box, near plane, occupancy grid, step, pruning and colouring mode).
+
+    Returns rgb [H, W, 3] in [0, 1], depth [H, W] (z along the optical axis, metres),
+    acc [H, W] and masks [M, H, W] (weight inside each of `masks`).
+    """
+    o, d, zs = camera_rays(pose, intr)
+    parts: dict[str, list[Tensor]] = {"rgb": [], "depth": [], "acc": [], "masks": []}
+    for i in range(0, len(o), chunk):
+        oc, dc = o[i : i + chunk], d[i : i + chunk]
+        t_in, t_out = ray_box(oc, dc, model.lo, model.hi)  # type: ignore[arg-type]
+        out = render_rays_edited(
+            oc,
+            dc,
+            model.density,
+            model.color,
+            edits,
+            masks,
+            near=t_in.clamp(min=model.cfg.near),
+            far=t_out,
+            occupancy=model.occupancy,
+            step=model.step,
+            prune_eps=model.cfg.prune_eps,
+            surface_color=model.surface_color,
+        )
+        model.clear_cache()
+        parts["rgb"].append(out["rgb"])
+        parts["depth"].append(out["depth"] * zs[i : i + chunk])
+        parts["acc"].append(out["acc"])
+        parts["masks"].append(out["masks"])
+    h, w = intr.height, intr.width
+    return {
+        "rgb": torch.cat(parts["rgb"]).view(h, w, 3).clamp(0, 1).numpy(),
+        "depth": torch.cat(parts["depth"]).view(h, w).numpy(),
+        "acc": torch.cat(parts["acc"]).view(h, w).numpy(),
+        "masks": torch.cat(parts["masks"], dim=1).view(len(masks), h, w).numpy(),
+    }
+
+
+def orbit_poses(
+    center: tuple[float, float, float], radius: float, height: float, frames: int
+) -> np.ndarray:
+    """Cameras on a horizontal circle at z = height around `center`, each looking at it.
+
+    Returns [F, 4, 4] camera-to-world (OpenCV axes), the first camera at +x of the centre,
+    going counter-clockwise seen from above.
+    """
+    c = np.asarray(center, np.float64)
+    poses = []
+    for k in range(frames):
+        a = 2.0 * math.pi * k / frames
+        pos = np.array([c[0] + radius * math.cos(a), c[1] + radius * math.sin(a), height])
+        poses.append(look_at(pos, c))
+    return np.stack(poses)
+
+
+def look_at(pos: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Camera-to-world [4, 4] at `pos` looking at `target`, image x horizontal (z up)."""
+    fwd = np.asarray(target, np.float64) - np.asarray(pos, np.float64)
+    fwd /= np.linalg.norm(fwd)
+    right = np.cross(fwd, [0.0, 0.0, 1.0])
+    if np.linalg.norm(right) < 1e-9:  # looking straight up or down: pick x as right
+        right = np.array([1.0, 0.0, 0.0])
+    right /= np.linalg.norm(right)
+    down = np.cross(fwd, right)
+    pose = np.eye(4)
+    pose[:3, :3] = np.stack([right, down, fwd], axis=1)
+    pose[:3, 3] = pos
+    return pose

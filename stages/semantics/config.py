@@ -1,0 +1,92 @@
+"""Configuration, inputs and outputs of the semantics stage (classes derived from geometry)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from stages.common.errors import BlunfError
+
+FLOOR, WALL, CEILING, OBJECT = 0, 1, 2, 3
+CLASSES = {FLOOR: "floor", WALL: "wall", CEILING: "ceiling", OBJECT: "object"}
+IGNORE = (CEILING,)  # the ceiling is labelled in the views but never projected to the plan
+
+
+@dataclass(frozen=True)
+class SemanticsConfig:
+    """How the fused mesh is split into floor, walls, ceiling and object instances."""
+
+    impl: str = "geometry"  # "geometry": planes and clusters of the fused mesh; "height": no
+    #                         stage, the project stage labels points by height bands
+    max_tilt_deg: float = 15.0  # a triangle is horizontal when its normal is within this angle
+    #                             of z, vertical when within this angle of the horizontal
+    plane_dist: float = 0.03  # metres: RANSAC inlier distance; unlabelled triangles this close
+    #                           to a floor, wall or ceiling plane (within its extent) join it
+    ransac_iters: int = 1000  # RANSAC iterations per plane
+    ransac_points: int = 5_000  # planes are fitted on at most this many triangle centres
+    #                              (a seeded sample); inliers are counted on all of them
+    seed: int = 0  # seed of that sample and of Open3D's RANSAC
+    floor_max_z: float = 0.25  # floor: horizontal, facing up, centre within this of z = 0 (m)
+    ceiling_min_z: float = 1.9  # ceiling: horizontal, facing down, centre above this (m)
+    plane_min_area: float = 0.2  # m²: a horizontal plane smaller than this is not floor/ceiling
+    wall_min_height: float = 1.0  # a wall's inliers span at least this in z (5-95 %, metres)
+    wall_min_length: float = 1.0  # ... and at least this along the floor (5-95 %, metres)
+    wall_min_area: float = 0.6  # ... and cover at least this many m²
+    max_planes: int = 24  # at most this many planes are fitted per kind (floor, ceiling, wall)
+    cluster_eps: float = 0.08  # metres: DBSCAN radius joining object surfaces (run on voxels
+    #                            of cluster_eps / 2, one point per occupied voxel)
+    cluster_min_points: int = 3  # DBSCAN: voxels within cluster_eps for a core voxel; voxels
+    #                              DBSCAN calls noise are labelled unknown (255)
+    object_min_area: float = 0.01  # m²: smaller clusters are noise, labelled unknown (255)
+    object_max_gap: float = 0.3  # metres: a cluster whose lowest point is higher above the
+    #                              floor does not stand on it (wall cabinet, lamp, fused noise)
+    #                              and is labelled unknown (255)
+
+    def __post_init__(self) -> None:
+        if self.impl not in ("geometry", "height"):
+            raise BlunfError(f"semantics.impl: {self.impl!r} unknown (known: geometry, height)")
+        if not 0 < self.max_tilt_deg < 45:
+            raise BlunfError(f"semantics.max_tilt_deg: must be in (0, 45), got {self.max_tilt_deg}")
+        for name in ("plane_dist", "cluster_eps", "wall_min_height", "wall_min_length"):
+            if not getattr(self, name) > 0:
+                raise BlunfError(f"semantics.{name}: must be > 0, got {getattr(self, name)}")
+        for name in ("ransac_iters", "max_planes", "cluster_min_points"):
+            if getattr(self, name) < 1:
+                raise BlunfError(f"semantics.{name}: must be >= 1, got {getattr(self, name)}")
+        if self.ransac_points < 3:
+            raise BlunfError(f"semantics.ransac_points: must be >= 3, got {self.ransac_points}")
+        for name in ("plane_min_area", "wall_min_area", "object_min_area", "object_max_gap"):
+            if not getattr(self, name) >= 0:
+                raise BlunfError(f"semantics.{name}: must be >= 0, got {getattr(self, name)}")
+        if not 0 <= self.floor_max_z < self.ceiling_min_z:
+            raise BlunfError(
+                "semantics: need 0 <= floor_max_z < ceiling_min_z, got "
+                f"{self.floor_max_z} and {self.ceiling_min_z}"
+            )
+
+
+@dataclass(frozen=True)
+class SemanticsInputs:
+    frames: Path  # frames.json of the fused capture (poses, intrinsics, ray-cast depth)
+    mesh: Path  # mesh.ply: the fused surface, world frame (z up, floor at z = 0)
+
+
+@dataclass(frozen=True)
+class SemanticsOutputs:
+    frames: Path  # frames.json: the input frames with `label` at labels/<stem>.png, classes
+    #               {0: floor, 1: wall, 2: ceiling, 3: object}, ignore [2]
+    labels: Path  # labels/<stem>.png: uint8 class per pixel (255 = unknown or no surface)
+    instances: Path  # instances/<stem>.png: object instance id per pixel (0 = none; uint8,
+    #                  uint16 beyond 255 objects), numbered by decreasing area
+    stats: Path  # semantics.json: planes, objects, triangles and pixels per class, seconds
+
+    @classmethod
+    def at(cls, out: Path) -> SemanticsOutputs:
+        """The outputs inside a finished out folder."""
+        out = Path(out)
+        return cls(
+            frames=out / "frames.json",
+            labels=out / "labels",
+            instances=out / "instances",
+            stats=out / "semantics.json",
+        )

@@ -1,0 +1,149 @@
+"""Semantics from geometry: classes of the fused mesh (segment.py) ray-cast into every view.
+
+Each view's rays are cast against the mesh with Open3D's RaycastingScene (Embree), the same
+rays the fusion stage casts for its clean depth (pixel centres at integer (u, v), Open3D's
+at +0.5), so a pixel's label is that of the triangle its depth comes from. Pixels whose ray
+hits nothing are UNKNOWN. Lens distortion is ignored (pinhole), as in the fusion stage.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+import open3d.core as o3c
+
+from stages.common.camera import Intrinsics
+from stages.common.capture import UNKNOWN, Capture, Frame
+from stages.common.errors import BlunfError
+from stages.common.io import write_json, write_label_png
+from stages.semantics.config import (
+    CLASSES,
+    IGNORE,
+    SemanticsConfig,
+    SemanticsInputs,
+    SemanticsOutputs,
+)
+from stages.semantics.segment import Segmentation, segment, triangles
+
+log = logging.getLogger(__name__)
+
+CPU = o3c.Device("CPU:0")
+MISS = np.iinfo(np.uint32).max  # Open3D's INVALID_ID: the ray hit nothing
+
+
+def run(cfg: SemanticsConfig, inputs: SemanticsInputs, out: Path) -> SemanticsOutputs:
+    """Segment the fused mesh and write a class map and an instance map for every view."""
+    log.info("semantics geometry: %s", cfg)
+    t0 = time.perf_counter()
+    cap = Capture.load(inputs.frames)
+    if not cap.frames:
+        raise BlunfError(f"semantics: {inputs.frames} has no frames")
+    missing = next((f.stem for f in cap.frames if f.pose is None), None)
+    if missing is not None:
+        raise BlunfError(f"semantics: frame {missing!r} of {inputs.frames} has no pose")
+    mesh = _read_mesh(inputs.mesh)
+    verts = mesh.vertex.positions.numpy().astype(np.float64)  # [V, 3]
+    tris = mesh.triangle.indices.numpy().astype(np.int64)  # [T, 3]
+    t_read = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    seg = segment(verts, tris, cfg)
+    t_segment = time.perf_counter() - t0
+
+    outs = SemanticsOutputs.at(out)
+    outs.labels.mkdir(parents=True, exist_ok=True)
+    outs.instances.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    frames, pixels = _render(mesh, seg, cap, outs)
+    t_render = time.perf_counter() - t0
+    sem = replace(cap, frames=tuple(frames), classes=dict(CLASSES), ignore=IGNORE)
+    sem.save(outs.frames)
+
+    n_obj = int(seg.instance.max(initial=0))
+    tri_area = triangles(verts, tris)[2]  # [T] m²
+    planes = {k: sum(p["kind"] == k for p in seg.planes) for k in ("floor", "wall", "ceiling")}
+    stats = {
+        "triangles": len(tris),
+        "planes": planes,
+        "plane_list": seg.planes,
+        # vertical planes that were not walls: [length, height (5-95 %, m), area (m²)]
+        "vertical_rejected": [[*p["span"], p["area_m2"]] for p in seg.rejected],
+        "floor_z": round(seg.floor_z, 4),
+        "objects": n_obj,
+        "noise_clusters": seg.noise_clusters,  # labelled unknown
+        "noise_triangles": seg.noise_triangles,  # labelled unknown
+        "floating_clusters": seg.floating_clusters,  # labelled unknown
+        "area_m2": {
+            name: round(float(tri_area[seg.cls == k].sum()), 3)
+            for k, name in [*CLASSES.items(), (UNKNOWN, "unknown")]
+        },
+        "pixels": pixels,  # fraction of all pixels per class over every view
+        "views": len(frames),
+        "seconds": {
+            "read": round(t_read, 3),
+            "segment": round(t_segment, 3),
+            "render": round(t_render, 3),
+        },
+    }
+    write_json(outs.stats, stats)
+    log.info(
+        "semantics: %d floor, %d wall, %d ceiling planes; %d objects; %d views in %.1f s",
+        planes["floor"],
+        planes["wall"],
+        planes["ceiling"],
+        n_obj,
+        len(frames),
+        t_segment + t_render,
+    )
+    return outs
+
+
+def _read_mesh(path: Path) -> o3d.t.geometry.TriangleMesh:
+    if not Path(path).is_file():
+        raise BlunfError(f"{path}: mesh file not found")
+    mesh = o3d.t.io.read_triangle_mesh(str(path))
+    if "indices" not in mesh.triangle or mesh.triangle.indices.shape[0] == 0:
+        raise BlunfError(f"{path}: the mesh has no triangles")
+    return mesh
+
+
+def _k(intr: Intrinsics) -> o3c.Tensor:
+    """K for Open3D's rays, whose pixel centres are at +0.5 (see stages.fusion.tsdf._k)."""
+    K = intr.K
+    K[:2, 2] += 0.5
+    return o3c.Tensor(K, o3c.float64, CPU)
+
+
+def _render(
+    mesh: o3d.t.geometry.TriangleMesh, seg: Segmentation, cap: Capture, outs: SemanticsOutputs
+) -> tuple[list[Frame], dict[str, float]]:
+    """Class and instance maps of every view; returns the frames pointing at the class maps
+    and the fraction of pixels per class over all views."""
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(mesh)
+    cls = np.append(seg.cls, np.uint8(UNKNOWN))  # [T + 1]: the last entry is "no hit"
+    inst = np.append(seg.instance, 0)  # [T + 1]
+    wide = inst.max(initial=0) > 255
+    counts = np.zeros(256, np.int64)
+    frames = []
+    for f in cap.frames:
+        k = f.intrinsics
+        w2c = o3c.Tensor(np.linalg.inv(np.asarray(f.pose, np.float64)), o3c.float64, CPU)
+        rays = scene.create_rays_pinhole(_k(k), w2c, k.width, k.height)
+        prim = scene.cast_rays(rays)["primitive_ids"].numpy().astype(np.int64)  # [H, W]
+        prim[prim == MISS] = len(cls) - 1
+        label = cls[prim]  # [H, W] uint8
+        counts += np.bincount(label.reshape(-1), minlength=256)
+        path = outs.labels / f"{f.stem}.png"
+        write_label_png(path, label)
+        ids = inst[prim].astype(np.uint16 if wide else np.uint8)  # [H, W]
+        write_label_png(outs.instances / f"{f.stem}.png", ids)
+        frames.append(replace(f, label=path))
+    total = max(int(counts.sum()), 1)
+    names = {**CLASSES, UNKNOWN: "unknown"}
+    return frames, {name: round(int(counts[k]) / total, 4) for k, name in names.items()}

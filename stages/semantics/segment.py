@@ -1,0 +1,257 @@
+"""Floor, walls, ceiling and object instances of a triangle mesh in the aligned world.
+
+Every triangle gets a class (semantics.config CLASSES, or UNKNOWN) and an object instance
+id (0 = none), from its centre, unit normal and area:
+
+1. Floor: RANSAC planes (Open3D `segment_plane`) over the horizontal triangles facing up
+   whose centre is within `floor_max_z` of z = 0; ceiling: the same over horizontal
+   triangles facing down above `ceiling_min_z`. A plane counts when its inliers (within
+   `plane_dist`, normal within `max_tilt_deg`) cover `plane_min_area`.
+2. Walls: RANSAC planes over the remaining vertical triangles; a plane is a wall when its
+   inliers span `wall_min_height` in z, `wall_min_length` along the floor and cover
+   `wall_min_area` (a cabinet front is too low, a chair back too small). Planes that fail
+   stay in the object pool.
+3. Unlabelled triangles within `plane_dist` of an accepted plane, inside its extent, join it
+   whatever their normal: the rounded seams of the TSDF surface where a wall meets the
+   floor would otherwise form thin "objects" along every wall.
+4. Objects: the rest, clustered by DBSCAN (Open3D `cluster_dbscan`) on voxels of
+   cluster_eps / 2. A cluster is an object instance when it covers `object_min_area` and its
+   lowest point is within `object_max_gap` of the floor; smaller clusters, DBSCAN noise and
+   clusters hanging higher (wall cabinets, lamps, fused noise) are labelled UNKNOWN: a plan
+   holds what stands on the floor, and no class is invented for them.
+
+Mesh normals of the TSDF surface point to free space (checked on the fused rooms: every
+floor triangle faces up), which tells a floor from the underside of a table top.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+import open3d as o3d
+
+from stages.common.capture import UNKNOWN
+from stages.semantics.config import CEILING, FLOOR, OBJECT, WALL, SemanticsConfig
+
+log = logging.getLogger(__name__)
+
+SPAN_PCT = (5.0, 95.0)  # robust extent of a plane's inliers (percentiles)
+
+
+@dataclass
+class Segmentation:
+    """Per-triangle class and instance, with what was found."""
+
+    cls: np.ndarray  # [T] uint8 class id or UNKNOWN
+    instance: np.ndarray  # [T] int32 object instance (1.., by decreasing area); 0 = none
+    planes: list[dict] = field(default_factory=list)  # accepted planes: kind, normal, d, area
+    rejected: list[dict] = field(default_factory=list)  # vertical planes that were not walls
+    noise_clusters: int = 0  # clusters below object_min_area (unknown)
+    noise_triangles: int = 0  # triangles DBSCAN calls noise (unknown)
+    floating_clusters: int = 0  # clusters above object_max_gap (unknown)
+    floor_z: float = 0.0  # median height of the floor triangles (0 when no floor was found)
+
+
+def triangles(verts: np.ndarray, tris: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Centres [T, 3], unit normals [T, 3] (zero when degenerate) and areas [T] (m²)."""
+    p = np.asarray(verts, np.float64)[np.asarray(tris, np.int64)]  # [T, 3, 3]
+    cross = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])  # [T, 3]
+    norm = np.linalg.norm(cross, axis=1)  # [T]
+    normal = cross / np.where(norm > 0, norm, 1.0)[:, None]
+    return p.mean(axis=1), normal, norm / 2.0
+
+
+def segment(verts: np.ndarray, tris: np.ndarray, cfg: SemanticsConfig) -> Segmentation:
+    """Classify every triangle of a mesh (world metres, z up, floor at z = 0).
+
+    Args:
+        verts: [V, 3] vertex positions. tris: [T, 3] vertex indices.
+    """
+    o3d.utility.random.seed(cfg.seed)
+    rng = np.random.default_rng(cfg.seed)
+    c, n, area = triangles(verts, tris)
+    t = len(c)
+    seg = Segmentation(np.full(t, UNKNOWN, np.uint8), np.zeros(t, np.int32))
+    cos_t, sin_t = np.cos(np.radians(cfg.max_tilt_deg)), np.sin(np.radians(cfg.max_tilt_deg))
+    ok = area > 0
+    horiz = ok & (np.abs(n[:, 2]) > cos_t)
+    vert = ok & (np.abs(n[:, 2]) < sin_t)
+
+    pool = horiz & (n[:, 2] > 0) & (np.abs(c[:, 2]) < cfg.floor_max_z)
+    for plane, inl in _planes(c, n, area, pool, cfg, rng, horizontal=True):
+        if area[inl].sum() >= cfg.plane_min_area:
+            _accept(seg, plane, inl, "floor", FLOOR, c, area)
+    floor = seg.cls == FLOOR
+    if floor.any():
+        seg.floor_z = float(np.median(c[floor, 2]))
+    pool = horiz & (n[:, 2] < 0) & (c[:, 2] > cfg.ceiling_min_z)
+    for plane, inl in _planes(c, n, area, pool, cfg, rng, horizontal=True):
+        if area[inl].sum() >= cfg.plane_min_area:
+            _accept(seg, plane, inl, "ceiling", CEILING, c, area)
+    pool = vert & (seg.cls == UNKNOWN)
+    for plane, inl in _planes(c, n, area, pool, cfg, rng, horizontal=False):
+        if _is_wall(plane, c[inl], area[inl], cfg):
+            _accept(seg, plane, inl, "wall", WALL, c, area)
+        else:
+            seg.rejected.append(_describe(plane, inl, "vertical", c, area))
+            log.debug("semantics: not a wall %s", seg.rejected[-1])
+    _absorb(seg, c, cfg)
+    _objects(seg, c, area, ok, cfg)
+    return seg
+
+
+def _planes(
+    c: np.ndarray,
+    n: np.ndarray,
+    area: np.ndarray,
+    pool: np.ndarray,
+    cfg: SemanticsConfig,
+    rng: np.random.Generator,
+    horizontal: bool,
+) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """Yield (plane [4] = unit normal and d, inlier indices) while the pool holds a plane.
+
+    Each plane is fitted by RANSAC on a sample of the pool, refined by least squares on its
+    inliers (distance < plane_dist and normal within max_tilt_deg of the plane's); its
+    inliers leave the pool. Planes whose orientation is not the one asked are skipped.
+    """
+    pool = pool.copy()
+    cos_t = np.cos(np.radians(cfg.max_tilt_deg))
+    min_area = cfg.plane_min_area if horizontal else cfg.wall_min_area
+    for _ in range(cfg.max_planes):
+        idx = np.flatnonzero(pool)
+        if len(idx) < 3 or area[idx].sum() < min_area:
+            return
+        sample = idx if len(idx) <= cfg.ransac_points else rng.choice(idx, cfg.ransac_points, False)
+        sample = np.sort(sample)
+        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(c[sample]))
+        model, raw = pc.segment_plane(cfg.plane_dist, 3, cfg.ransac_iters)
+        plane = np.asarray(model, np.float64)
+        plane /= np.linalg.norm(plane[:3])
+        inl = _inliers(plane, c, n, idx, cfg.plane_dist, cos_t)
+        if len(inl) >= 3:
+            plane = _refit(c[inl])
+            inl = _inliers(plane, c, n, idx, cfg.plane_dist, cos_t)
+        up = abs(plane[2])
+        kind_ok = (up > cos_t) if horizontal else (up < np.sin(np.radians(cfg.max_tilt_deg)))
+        if len(inl) < 3 or not kind_ok:
+            # RANSAC's plane cuts across surfaces of other orientations (clutter): drop its
+            # points from the pool so the next fit looks elsewhere
+            pool[sample[np.asarray(raw, np.int64)]] = False
+            continue
+        pool[inl] = False
+        yield plane, inl
+
+
+def _inliers(
+    plane: np.ndarray, c: np.ndarray, n: np.ndarray, idx: np.ndarray, dist: float, cos_t: float
+) -> np.ndarray:
+    """Indices of idx within `dist` of the plane whose normal is within the tilt of its."""
+    near = np.abs(c[idx] @ plane[:3] + plane[3]) < dist
+    along = np.abs(n[idx] @ plane[:3]) > cos_t
+    return idx[near & along]
+
+
+def _refit(p: np.ndarray) -> np.ndarray:
+    """Least-squares plane [4] (unit normal, d) through points [N, 3]."""
+    mid = p.mean(axis=0)
+    normal = np.linalg.svd(p - mid, full_matrices=False)[2][-1]
+    return np.append(normal, -normal @ mid)
+
+
+def _axes(plane: np.ndarray) -> np.ndarray:
+    """Unit horizontal direction [3] along a vertical plane."""
+    u = np.cross([0.0, 0.0, 1.0], plane[:3])
+    return u / max(np.linalg.norm(u), 1e-12)
+
+
+def _is_wall(plane: np.ndarray, c: np.ndarray, area: np.ndarray, cfg: SemanticsConfig) -> bool:
+    s = c @ _axes(plane)  # [N] position along the plane
+    lo, hi = np.percentile(np.stack([s, c[:, 2]], axis=1), SPAN_PCT, axis=0)  # [2] each
+    length, height = hi - lo
+    return bool(
+        height >= cfg.wall_min_height
+        and length >= cfg.wall_min_length
+        and area.sum() >= cfg.wall_min_area
+    )
+
+
+def _accept(
+    seg: Segmentation,
+    plane: np.ndarray,
+    inl: np.ndarray,
+    kind: str,
+    cls: int,
+    c: np.ndarray,
+    area: np.ndarray,
+) -> None:
+    seg.cls[inl] = cls
+    seg.planes.append(_describe(plane, inl, kind, c, area))
+    log.debug("semantics: %s plane %s", kind, seg.planes[-1])
+
+
+def _describe(plane: np.ndarray, inl: np.ndarray, kind: str, c: np.ndarray, area: np.ndarray
+              ) -> dict:  # fmt: skip
+    """A plane for semantics.json and for the seams: normal, d, area and its box, which is
+    [lo0, lo1, hi0, hi1] in xy for a horizontal plane, in (s along it, z) for a vertical one."""
+    p = c[inl]
+    q = p[:, :2] if kind in ("floor", "ceiling") else np.stack([p @ _axes(plane), p[:, 2]], 1)
+    return {
+        "kind": kind,
+        "normal": [round(float(x), 4) for x in plane[:3]],
+        "d": round(float(plane[3]), 4),
+        "area_m2": round(float(area[inl].sum()), 3),
+        "triangles": len(inl),
+        "box": [*q.min(axis=0).round(4).tolist(), *q.max(axis=0).round(4).tolist()],
+        "span": np.ptp(np.percentile(q, SPAN_PCT, axis=0), axis=0).round(3).tolist(),
+    }
+
+
+def _absorb(seg: Segmentation, c: np.ndarray, cfg: SemanticsConfig) -> None:
+    """Unlabelled triangles near an accepted plane, inside its box, join it (any normal)."""
+    ids = {"floor": FLOOR, "wall": WALL, "ceiling": CEILING}
+    for pl in seg.planes:
+        free = np.flatnonzero(seg.cls == UNKNOWN)
+        normal, d = np.asarray(pl["normal"]), pl["d"]
+        p = c[free]
+        near = np.abs(p @ normal + d) < cfg.plane_dist
+        if pl["kind"] == "wall":
+            q = np.stack([p @ _axes(np.append(normal, d)), p[:, 2]], axis=1)
+        else:
+            q = p[:, :2]
+        lo, hi = np.asarray(pl["box"][:2]), np.asarray(pl["box"][2:])
+        inside = ((q >= lo - cfg.plane_dist) & (q <= hi + cfg.plane_dist)).all(axis=1)
+        seg.cls[free[near & inside]] = ids[pl["kind"]]
+
+
+def _objects(
+    seg: Segmentation, c: np.ndarray, area: np.ndarray, ok: np.ndarray, cfg: SemanticsConfig
+) -> None:
+    """DBSCAN the unlabelled triangles; clusters standing on the floor become instances."""
+    rest = np.flatnonzero((seg.cls == UNKNOWN) & ok)
+    if len(rest) == 0:
+        return
+    vox = cfg.cluster_eps / 2.0
+    keys = np.floor(c[rest] / vox).astype(np.int64)  # [N, 3]
+    cells, inv = np.unique(keys, axis=0, return_inverse=True)  # [M, 3], [N]
+    inv = inv.reshape(-1)
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector((cells + 0.5) * vox))
+    lab = np.asarray(pc.cluster_dbscan(cfg.cluster_eps, cfg.cluster_min_points), np.int64)[inv]
+    seg.noise_triangles = int((lab < 0).sum())
+    found = []
+    for k in np.unique(lab[lab >= 0]):
+        members = rest[lab == k]
+        a = float(area[members].sum())
+        if a < cfg.object_min_area:
+            seg.noise_clusters += 1
+        elif c[members, 2].min() - seg.floor_z > cfg.object_max_gap:
+            seg.floating_clusters += 1
+        else:
+            found.append((a, int(members.min()), members))
+    found.sort(key=lambda x: (-x[0], x[1]))  # by area, then position in the mesh: deterministic
+    for i, (_, _, members) in enumerate(found, start=1):
+        seg.cls[members] = OBJECT
+        seg.instance[members] = i

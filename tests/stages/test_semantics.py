@@ -1,0 +1,279 @@
+"""Semantics from geometry: an exact room whose every surface's class is known, the procedural
+room fused from its views with its labels hidden, and (slow) the 7-Scenes kitchen."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+
+import numpy as np
+import open3d as o3d
+import pytest
+import trimesh
+
+from stages.common.camera import Intrinsics
+from stages.common.capture import UNKNOWN, Capture, Frame, read_layout
+from stages.common.errors import BlunfError
+from stages.common.io import read_label, write_image
+from stages.fusion import IMPLS as FUSION
+from stages.fusion import FusionConfig, FusionInputs
+from stages.semantics import IMPLS, SemanticsConfig, SemanticsInputs
+from stages.semantics.config import CEILING, FLOOR, OBJECT, WALL
+from stages.semantics.segment import segment, triangles
+from tests.conftest import shared_capture
+
+X, Y, Z = 4.0, 3.0, 2.5  # the exact room: interior [0, X] x [0, Y], floor z = 0, ceiling Z
+EDGE = 0.05  # triangles are subdivided to this edge length (metres)
+OTHER = -1  # expected class of hidden faces (coplanar with a wall or the floor): not checked
+
+# (name, box lo, box hi, expected class of its exposed faces). The counter stands in the
+# north-west corner (its back and west faces lie on the walls); the wall cabinet hangs on
+# the north wall 1.5 m up (a cluster not standing on the floor: unknown); the die is a 2 cm
+# cube in mid air (0.0024 m² < object_min_area, and one DBSCAN voxel: noise, unknown).
+BOXES = [
+    ("counter", (0.0, 2.4, 0.0), (1.6, 3.0, 0.9), OBJECT),
+    ("box", (2.4, 0.8, 0.0), (3.0, 1.3, 0.7), OBJECT),
+    ("cabinet", (3.0, 2.7, 1.5), (3.9, 3.0, 2.1), UNKNOWN),
+    ("die", (0.5, 0.5, 1.0), (0.52, 0.52, 1.02), UNKNOWN),
+]
+
+
+def _quad(corners: list, inward: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """Two triangles of a planar quad, wound so that the normal points along `inward`."""
+    v = np.asarray(corners, np.float64)
+    f = np.array([[0, 1, 2], [0, 2, 3]])
+    if np.cross(v[1] - v[0], v[2] - v[0]) @ np.asarray(inward) < 0:
+        f = f[:, ::-1]
+    return v, f
+
+
+def exact_room() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """vertices [V, 3], triangles [T, 3], expected class [T] and part index [T] (0 floor,
+    1 ceiling, 2-5 walls, 6.. the boxes). Surfaces face the free space, as the TSDF's do."""
+    parts = [
+        (_quad([(0, 0, 0), (X, 0, 0), (X, Y, 0), (0, Y, 0)], (0, 0, 1)), FLOOR),
+        (_quad([(0, 0, Z), (X, 0, Z), (X, Y, Z), (0, Y, Z)], (0, 0, -1)), CEILING),
+        (_quad([(0, 0, 0), (X, 0, 0), (X, 0, Z), (0, 0, Z)], (0, 1, 0)), WALL),
+        (_quad([(0, Y, 0), (X, Y, 0), (X, Y, Z), (0, Y, Z)], (0, -1, 0)), WALL),
+        (_quad([(0, 0, 0), (0, Y, 0), (0, Y, Z), (0, 0, Z)], (1, 0, 0)), WALL),
+        (_quad([(X, 0, 0), (X, Y, 0), (X, Y, Z), (X, 0, Z)], (-1, 0, 0)), WALL),
+    ]
+    for _, lo, hi, cls in BOXES:
+        b = trimesh.creation.box(bounds=[lo, hi])  # outward faces
+        parts.append(((np.asarray(b.vertices), np.asarray(b.faces)), cls))
+    verts, tris, want, part, n = [], [], [], [], 0
+    for i, ((v, f), cls) in enumerate(parts):
+        v, f = trimesh.remesh.subdivide_to_size(v, f, max_edge=EDGE)
+        verts.append(v)
+        tris.append(f + n)
+        n += len(v)
+        want.append(np.full(len(f), cls))
+        part.append(np.full(len(f), i))
+    return np.concatenate(verts), np.concatenate(tris), np.concatenate(want), np.concatenate(part)
+
+
+def _hidden(c: np.ndarray, part: np.ndarray) -> np.ndarray:
+    """Box faces lying on a wall or the floor (the counter's back, west and bottom faces, the
+    cabinet's back, every bottom): no camera sees them. [T] bool"""
+    box = part >= 6
+    on = (c[:, 2] < 1e-6) | (c[:, 0] < 1e-6) | (c[:, 1] > Y - 1e-6)
+    return box & on
+
+
+def test_exact_room_classes_and_instances():
+    verts, tris, want, part = exact_room()
+    seg = segment(verts, tris, SemanticsConfig())
+    c, _, area = triangles(verts, tris)
+    want = np.where(_hidden(c, part), OTHER, want)
+    # Room surfaces: every triangle right (walls are found before the seams are absorbed,
+    # so nothing of them is lost to the floor).
+    for i in range(6):
+        m = part == i
+        assert (seg.cls[m] == want[m]).all(), (i, np.unique(seg.cls[m]))
+    # Box faces: right except the triangles whose centre is within plane_dist (3 cm) of the
+    # floor or a wall, absorbed by it (meant for the rounded seams of real meshes): a strip
+    # about 3 cm wide along the edges that touch them. The counter's exposed faces (2.94 m²)
+    # touch them along 6.2 m of edges: ~0.19 m², 6 %; the box's (1.84 m²) along 2.2 m:
+    # ~0.066 m², 3.6 %. Measured: 93.6 % and 96.1 % right.
+    for i, (name, _, _, cls) in enumerate(BOXES, start=6):
+        m = (part == i) & (want != OTHER)
+        right = area[m & (seg.cls == cls)].sum() / area[m].sum()
+        assert right > 0.9, (name, right)
+    counter, box = (seg.instance[(part == i) & (seg.cls == OBJECT)] for i in (6, 7))
+    # two instances, numbered by decreasing area: the counter (2.75 m² left) is 1, the box
+    # (1.77 m²) is 2
+    assert set(counter) == {1} and set(box) == {2}
+    assert seg.instance.max() == 2 and (seg.instance[seg.cls != OBJECT] == 0).all()
+    assert seg.floating_clusters == 1  # the cabinet (the die is DBSCAN noise)
+    kinds = sorted(p["kind"] for p in seg.planes)
+    assert kinds == ["ceiling", "floor", "wall", "wall", "wall", "wall"], kinds
+    assert seg.floor_z == pytest.approx(0.0, abs=1e-9)
+
+
+def _look(centre, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """Camera-to-world [4, 4], OpenCV axes (x right, y down, z forward)."""
+    z = np.subtract(target, centre) / np.linalg.norm(np.subtract(target, centre))
+    x = np.cross(z, up)
+    x /= np.linalg.norm(x)
+    pose = np.eye(4)
+    pose[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
+    pose[:3, 3] = centre
+    return pose
+
+
+def test_run_renders_classes_and_instances_into_views(tmp_path):
+    verts, tris, _, _ = exact_room()
+    mesh = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(verts), o3d.utility.Vector3iVector(tris.astype(np.int32))
+    )
+    o3d.io.write_triangle_mesh(str(tmp_path / "mesh.ply"), mesh)
+    intr = Intrinsics(20.0, 20.0, 15.5, 11.5, 32, 24)  # centre pixel (15.5, 11.5) = the axis
+    # Each camera's optical axis ends on a known surface: (pose, expected class at the
+    # centre). Rays through the pixel centre (15, 11) / (16, 12) land 1/40 rad off the axis.
+    views = [
+        (_look((2.0, 1.5, 1.2), (2.0, 3.0, 1.2)), WALL),  # north wall at 1.2 m
+        (_look((1.5, 1.5, 1.5), (1.5, 1.5, 0.0), up=(0, 1, 0)), FLOOR),  # straight down
+        (_look((2.7, 0.2, 1.4), (2.7, 1.05, 0.7)), OBJECT),  # the box's top centre
+        (_look((2.0, 1.5, 1.2), (2.0, 1.5, Z), up=(0, 1, 0)), CEILING),  # straight up
+        (_look((3.45, 1.0, 1.8), (3.45, 3.0, 1.8)), UNKNOWN),  # the hanging cabinet
+    ]
+    (tmp_path / "images").mkdir()
+    frames = []
+    for i, (pose, _) in enumerate(views):
+        img = tmp_path / "images" / f"v{i}.png"
+        write_image(img, np.zeros((24, 32, 3), np.uint8))
+        frames.append(Frame(f"v{i}", img, intr, None, None, pose))
+    Capture(tmp_path, tuple(frames)).save(tmp_path / "frames.json")
+    out = tmp_path / "out"
+    out.mkdir()
+    inputs = SemanticsInputs(tmp_path / "frames.json", tmp_path / "mesh.ply")
+    outs = IMPLS["geometry"](SemanticsConfig(), inputs, out)
+    sem = Capture.load(outs.frames)
+    assert sem.classes == {0: "floor", 1: "wall", 2: "ceiling", 3: "object"}
+    assert sem.ignore == (2,)
+    for f, (_, cls) in zip(sem.frames, views, strict=True):
+        lab = read_label(f.label)
+        inst = read_label(outs.instances / f"{f.stem}.png")
+        assert f.label == outs.labels / f"{f.stem}.png" and lab.shape == (24, 32)
+        assert lab[11:13, 15:17].tolist() == [[cls, cls], [cls, cls]], f.stem
+        # instance ids exactly on the object pixels
+        np.testing.assert_array_equal(inst > 0, lab == OBJECT)
+    box_view = read_label(outs.instances / "v2.png")
+    assert box_view[12, 16] == 2  # the box is the second object by area
+    stats = json.loads(outs.stats.read_text())
+    assert stats["objects"] == 2 and stats["planes"] == {"floor": 1, "wall": 4, "ceiling": 1}
+
+
+def test_run_refuses_a_mesh_without_triangles(tmp_path):
+    o3d.io.write_triangle_mesh(str(tmp_path / "mesh.ply"), o3d.geometry.TriangleMesh())
+    img = tmp_path / "a.png"
+    write_image(img, np.zeros((4, 4, 3), np.uint8))
+    frame = Frame("a", img, Intrinsics(4.0, 4.0, 1.5, 1.5, 4, 4), None, None, np.eye(4))
+    Capture(tmp_path, (frame,)).save(tmp_path / "frames.json")
+    (tmp_path / "out").mkdir()
+    inputs = SemanticsInputs(tmp_path / "frames.json", tmp_path / "mesh.ply")
+    with pytest.raises(BlunfError, match="mesh.ply"):
+        IMPLS["geometry"](SemanticsConfig(), inputs, tmp_path / "out")
+
+
+def test_config_checks():
+    with pytest.raises(BlunfError, match="semantics.impl"):
+        SemanticsConfig(impl="magic")
+    with pytest.raises(BlunfError, match="floor_max_z"):
+        SemanticsConfig(floor_max_z=2.0, ceiling_min_z=1.5)
+
+
+# GT classes of the procedural room: 0 floor, 1 wall, 2 ceiling, 3.. furniture -> object.
+COARSE = np.array([FLOOR, WALL, CEILING] + [OBJECT] * 252 + [UNKNOWN])
+
+
+def test_procedural_room_with_labels_hidden(tmp_path):
+    """8 views of 96x72, labels removed before anything reads the capture; fused at 4 cm.
+    The ray-cast classes agree with the coarsened GT label maps on 92.6 % of the pixels that
+    are floor, wall or furniture in the GT (an unknown prediction counts as wrong), measured;
+    the bar leaves 2.6 points (fused at 2 cm, the default: 95.2 %)."""
+    from stages.synth import make_room
+
+    src = make_room(tmp_path / "room", views=8, seed=3, size=(96, 72))
+    gt = {p.stem: read_label(p) for p in sorted((src / "labels").glob("*.png"))}
+    shutil.rmtree(src / "labels")
+    (src / "labels.json").unlink()
+    cap = read_layout(src)
+    assert not cap.has_labels and not cap.classes
+    cap.save(tmp_path / "frames.json")
+    (tmp_path / "fused").mkdir()
+    fused = FUSION["tsdf"](
+        FusionConfig(voxel=0.04), FusionInputs(tmp_path / "frames.json"), tmp_path / "fused"
+    )
+    (tmp_path / "sem").mkdir()
+    t0 = time.perf_counter()
+    outs = IMPLS["geometry"](
+        SemanticsConfig(), SemanticsInputs(fused.frames, fused.mesh), tmp_path / "sem"
+    )
+    secs = time.perf_counter() - t0
+    conf = np.zeros((256, 256), np.int64)  # [GT coarse, predicted]
+    for f in Capture.load(outs.frames).frames:
+        g, p = COARSE[gt[f.stem]], read_label(f.label)
+        np.add.at(conf, (g.reshape(-1), p.reshape(-1)), 1)
+    scored = conf[[FLOOR, WALL, OBJECT]].sum()
+    agree = (conf[FLOOR, FLOOR] + conf[WALL, WALL] + conf[OBJECT, OBJECT]) / scored
+    stats = json.loads(outs.stats.read_text())
+    print(f"\nprocedural room, labels hidden: {100 * agree:.1f} % agree, {secs:.1f} s, {stats}")
+    assert agree > 0.90, conf[[FLOOR, WALL, CEILING, OBJECT]][:, [0, 1, 2, 3, 255]]
+    assert stats["planes"]["floor"] >= 1 and stats["planes"]["wall"] >= 2
+    assert stats["objects"] >= 3
+
+
+@pytest.mark.slow
+def test_kitchen_plan_has_floor_walls_and_separate_objects(tmp_path):
+    """7-Scenes redkitchen (no labels): the whole pipeline derives floor / wall / object and
+    its plan shows them. The MVR plan (seen cells only) is checked for separate objects:
+    BluNF fills the unseen cells between the counters and the table, which joins them."""
+    from pipeline.cli import main
+    from stages.common.blueprint import Blueprint
+    from stages.export.components import component_map
+
+    src = shared_capture("7scenes-redkitchen")
+    out = tmp_path / "run"
+    assert main(["run", str(src), "--out", str(out), "--set", "blueprint.blunf.steps=300"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    st = {s["name"]: s for s in report["stages"]}
+    assert st["semantics"]["status"] == "ran" and st["semantics"]["impl"] == "geometry"
+    plan = report["plan"]["classes"]
+    assert set(plan) == {"floor", "wall", "object"}
+    assert plan["floor"]["components"] >= 1 and plan["wall"]["components"] >= 1
+    key = next(s["key"] for s in report["stages"] if s["impl"] == "mvr")
+    mvr = Blueprint.load(out / "blueprint" / key / "blueprint.npz")
+    cmap = component_map(mvr)
+    cells = mvr.grid.cell**2
+    big = [  # object components of at least 0.1 m²
+        k for k in np.unique(cmap[mvr.labels == OBJECT]) if (cmap == k).sum() * cells >= 0.1
+    ]
+    heldout = report["metrics"]["blueprint"]["blunf"]["heldout_pacc"]
+    print(f"\nkitchen: plan {plan}, MVR object components >= 0.1 m²: {len(big)}, "
+          f"held-out pAcc {heldout:.1f}")  # fmt: skip
+    assert len(big) >= 3
+    assert heldout > 80
+
+
+def test_floor_wall_object_plan_is_scored_against_a_furnished_gt_plan():
+    """evaluate_plan coarsens the GT to the prediction's classes when it has a catch-all
+    'object': GT floor and wall keep theirs, table and chair become object."""
+    from stages.common.blueprint import Blueprint, Grid
+    from stages.evaluate import evaluate_plan
+
+    grid = Grid((0.0, 0.0), 1.0, (2, 3))
+    gt = Blueprint(
+        np.array([[0, 1, 3], [4, 255, 0]], np.uint8),
+        grid,
+        {0: "floor", 1: "wall", 2: "ceiling", 3: "table", 4: "chair"},
+    )
+    pred = Blueprint(
+        np.array([[0, 1, 3], [3, 3, 3]], np.uint8), grid, {0: "floor", 1: "wall", 3: "object"}
+    )
+    m = evaluate_plan(pred, gt)
+    # coarse GT [[floor, wall, object], [object, -, floor]]: 5 cells, the last one wrong
+    assert m["pacc"] == pytest.approx(80.0) and m["cells"] == 5
+    # IoU: floor 1/2 (GT 2 cells, 1 right), wall 1, object 2/3 (3 predicted, 2 in the GT)
+    assert m["per_class"] == pytest.approx({"floor": 50.0, "wall": 100.0, "object": 200 / 3})
