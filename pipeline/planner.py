@@ -99,8 +99,13 @@ def make_plan(cap: Capture, cfg: Config, edits: Path | None = None) -> Plan:
                 "depth",
                 "nerf",
                 True,
-                f"no depth (e.g. frame {missing!r}): the NeRF, trained on the photos and the "
-                "SfM tracks, renders it for fusion",
+                f"no depth (e.g. frame {missing!r}): the NeRF, trained on the photos"
+                + (
+                    " and the SfM tracks"
+                    if not cap.has_poses or pimpl not in ("auto", "given")
+                    else " (poses given: no SfM tracks to supervise its depth)"
+                )
+                + ", renders it for fusion",
             )
         )
     s.append(Step("fusion", cfg["fusion"].impl, True))

@@ -170,7 +170,7 @@ def _recipe(
 
 def _nerf_metrics(stats: dict) -> dict:
     """metrics.nerf: the fixed names, plus how training ended."""
-    keys = ("psnr_heldout", "depth_absrel", "psnr_train", "steps", "seconds", "stop_reason")
+    keys = ("psnr_heldout", "depth_absrel", "steps", "seconds", "stop_reason")
     return {k: stats[k] for k in keys if stats.get(k) is not None}
 
 

@@ -39,11 +39,11 @@ class Intrinsics:
         return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1]], np.float64)
 
     def scaled(self, width: int, height: int) -> Intrinsics:
-        """The same camera at another resolution."""
+        """The same camera at another resolution. Pixel centres are integers here, so the
+        principal point scales about the image's corner at (-0.5, -0.5)."""
         sx, sy = width / self.width, height / self.height
-        return Intrinsics(
-            self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, width, height, self.dist
-        )
+        cx, cy = (self.cx + 0.5) * sx - 0.5, (self.cy + 0.5) * sy - 0.5
+        return Intrinsics(self.fx * sx, self.fy * sy, cx, cy, width, height, self.dist)
 
     def to_json(self) -> dict:
         d = {k: getattr(self, k) for k in ("fx", "fy", "cx", "cy", "width", "height")}

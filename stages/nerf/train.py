@@ -386,7 +386,9 @@ def _geometry_loss(
     m = len(idx)
     # free: -log(1 - alpha) = sd; full: -log(alpha) = -log(1 - exp(-sd))
     free = sd[:m].mean()
-    full = -torch.log(-torch.expm1(-sd[m:].clamp(min=1e-6))).mean()
+    # clamped far below any density the field can reach (exp(-15) * step), not at 1e-6: a
+    # clamp there would zero the gradient that revives a region the field emptied
+    full = -torch.log(-torch.expm1(-sd[m:].clamp(min=1e-30))).mean()
     return free + full
 
 

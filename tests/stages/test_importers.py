@@ -141,8 +141,9 @@ def test_replica_reader(tmp_path):
     src = make_replica(tmp_path / "rep")
     cap = load(src, tmp_path / "work")
     assert cap.kind == "replica-vmap" and cap.gravity is None and not cap.has_poses
-    # 600x340 -> 60x34 scales fx, fy, cx, cy = 300, 300, 300, 170 by 1/10.
-    assert cap.frames[0].intrinsics == Intrinsics(30.0, 30.0, 30.0, 17.0, 60, 34)
+    # 600x340 -> 60x34 scales fx, fy = 300 by 1/10; pixel centres are integers, so the
+    # principal point scales about (-0.5, -0.5): (300.5 / 10 - 0.5, 170.5 / 10 - 0.5)
+    assert cap.frames[0].intrinsics == Intrinsics(30.0, 30.0, 29.55, 16.55, 60, 34)
     assert cap.classes == {1: "chair", 2: "ceiling", 3: "wall"} and cap.ignore == (2,)
     lab = read_label(cap.frames[1].label)
     assert cap.frames[1].label.is_relative_to(tmp_path / "work")

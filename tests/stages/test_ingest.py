@@ -141,8 +141,9 @@ def test_stage_downscales_with_nearest_depth_and_labels(tmp_path):
     src = make_capture(tmp_path / "cap", n=2)
     cap = run_stage(src, tmp_path / "out", max_side=8)
     f = cap.frames[1]
-    # 16x12 -> longer side 8: factor 1/2, 8x6. Intrinsics.scaled halves f and c.
-    assert f.intrinsics == Intrinsics(5.0, 5.5, 4.0, 3.0, 8, 6)
+    # 16x12 -> longer side 8: factor 1/2, 8x6. Intrinsics.scaled halves f, and c about the
+    # corner (-0.5, -0.5) (pixel centres are integers): (8 + 0.5) / 2 - 0.5, (6 + 0.5) / 2 - 0.5
+    assert f.intrinsics == Intrinsics(5.0, 5.5, 3.75, 2.75, 8, 6)
     assert f.image.is_relative_to(tmp_path / "out") and read_image(f.image).shape == (6, 8, 3)
     # Nearest neighbour at half size: output pixel j samples input floor((j + 0.5) * 2) = 2j + 1.
     np.testing.assert_allclose(read_depth(f.depth), _depth(1)[1::2, 1::2], atol=1e-6)
