@@ -143,4 +143,6 @@ def _ratios(rows: list[dict], variants: list[Variant]) -> None:
 def _error_name(spec: str) -> str:
     if spec.startswith("100-"):
         return ERROR_NAMES["100-"].format(m=spec.rsplit(".", 1)[-1])
+    if spec == "40-nerf.psnr_heldout":
+        return "40 - held-out PSNR (dB)"
     return ERROR_NAMES.get(spec, spec)

@@ -182,11 +182,32 @@ def depth(source: str, frames: int, capture: str = "room", cost: str = "") -> Va
     )
 
 
-# NeRF depth and NeRF budgets: the lead fills this slot once the NeRF stage is wired into the
-# pipeline, one line each, e.g.
-#   Variant("nerf-pe-2k", "nerf", "room", ("nerf.steps=2000",), 45, fresh_from="nerf",
-#           timed=("nerf",), error="nerf.depth_absrel", reference=True)  # the plain PE NeRF
-NERF: tuple[Variant, ...] = ()
+def nerf(field: str, budget: float, frames: int = 40, capture: str = "room") -> Variant:
+    """The NeRF stage alone (sensor depth): hash grid at several time budgets, and the plain
+    positional-encoding MLP NeRF (same losses, sampler and budget) as the reference; error =
+    40 - held-out PSNR (dB), so lower is better like every other axis."""
+    return Variant(
+        _named(f"nerf-{field}-{int(budget)}s-f{frames}", capture),
+        "nerf",
+        capture,
+        (
+            "run.methods=[mvr,nerf_top]",
+            f"nerf.field={field}",
+            f"nerf.time_budget={budget}",
+            "nerf.threads=1",
+        ),
+        frames,
+        fresh_from="nerf",
+        timed=("nerf",),
+        error="40-nerf.psnr_heldout",
+        reference=field == "pe",
+    )
+
+
+NERF: tuple[Variant, ...] = (
+    *(nerf("hash", b) for b in (30.0, 60.0, 120.0)),
+    nerf("pe", 120.0),
+)
 
 
 MAPPINGS = tuple((m, g) for m in ("incremental", "global") for g in ("sequential", "exhaustive"))

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import shutil
 import statistics
 import subprocess
@@ -273,14 +274,15 @@ def summarise(v: Variant, samples: list[Sample], errors: list[str], meta: dict) 
 
 
 def error_of(spec: str, row: dict) -> float | str:
-    """The y value named by a variant's `error` ("100-<metric>" or "<metric>"); "" if absent."""
+    """The y value named by a variant's `error` ("<c>-<metric>", e.g. "100-<metric>", or
+    "<metric>"); "" if absent."""
     if not spec:
         return ""
-    sub = spec.startswith("100-")
-    v = row.get(spec[4:] if sub else spec)
+    m = re.fullmatch(r"(\d+(?:\.\d+)?)-(.+)", spec)
+    v = row.get(m.group(2) if m else spec)
     if v is None or v == "" or not isinstance(v, int | float):
         return ""
-    return round(100.0 - v if sub else float(v), 4)
+    return round(float(m.group(1)) - v if m else float(v), 4)
 
 
 def capture_facts(capture: Path, frames: int) -> dict:

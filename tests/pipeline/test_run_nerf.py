@@ -1,0 +1,74 @@
+"""The NeRF paths through the whole pipeline (slow: each trains a NeRF): edits and the NeRF
+top view on a room with depth, and a phone capture (photos and intrinsics only)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from pipeline.cli import main
+
+ROOT = Path(__file__).resolve().parents[2]
+FAST = ["--set", "blueprint.blunf.steps=300", "--set", "fusion.voxel=0.04"]
+NERF = ["--set", "nerf.time_budget=0", "--set", "nerf.max_steps=200", "--set", "nerf.threads=1"]
+
+
+def _run(capture: Path, out: Path, *extra: str) -> dict:
+    assert main(["run", str(capture), "--out", str(out), *FAST, *NERF, *extra]) == 0
+    return json.loads((out / "report.json").read_text())
+
+
+def _status(report: dict) -> dict[str, str]:
+    return {f"{s['name']}:{s['impl']}": s["status"] for s in report["stages"]}
+
+
+@pytest.mark.slow
+def test_edits_and_nerf_top(tiny_room, tmp_path):
+    spec = tmp_path / "edits.yaml"
+    spec.write_text(
+        "edits:\n  - select: {class: chair}\n    op: recolor\n    color: [200, 40, 40]\n"
+        "views: [0, 8]\n"
+    )
+    out = tmp_path / "run"
+    args = ("--edits", str(spec), "--set", "run.methods=[blunf,mvr,nerf_top]")
+    args += ("--set", "edit.gif_frames=4")
+    r = _run(tiny_room, out, *args)
+    st = _status(r)
+    assert st["depth:nerf"] == "skipped"  # the room gives depth
+    for name in ("nerf:grid", "blueprint:nerf_top", "edit:nerf"):
+        assert st[name] == "ran", name
+    nerf = next(s for s in r["stages"] if s["name"] == "nerf")
+    assert nerf["reason"] == "asked for: NeRF top view baseline, edit spec"
+    n = r["metrics"]["nerf"]
+    assert n["steps"] == 200 and n["stop_reason"] == "steps"
+    assert n["depth_absrel"] < 0.05 and n["psnr_heldout"] > 15
+    assert set(r["metrics"]["blueprint"]) == {"blunf", "mvr", "nerf_top"}
+    (e,) = r["metrics"]["edit"]
+    # every chair recoloured: the changed pixels are the chairs' (GT instance masks)
+    assert e["op"] == "recolor" and e["changed_iou"] > 0.5 and e["psnr_outside"] > 25
+    for f in ("orbit.gif", "blueprint_edited.png", "mesh_edited.ply", "0000.png", "0008.png"):
+        assert (out / "edits" / f).is_file(), f
+
+    again = _run(tiny_room, out, *args)  # nothing changed: nothing recomputed
+    assert {s["status"] for s in again["stages"]} <= {"cached", "skipped"}
+    assert again["metrics"] == r["metrics"]
+
+
+@pytest.mark.slow
+def test_photos_only_capture_reaches_a_plan(tmp_path):
+    from stages.synth import make_room
+
+    cap = make_room(tmp_path / "phone", views=30, seed=0, size=(160, 120), photos_only=True)
+    out = tmp_path / "run"
+    r = _run(cap, out, "--config", str(ROOT / "configs" / "phone.yaml"))
+    st = _status(r)
+    for name in ("poses:sfm", "nerf:grid", "fusion:tsdf", "semantics:geometry", "blueprint:blunf"):
+        assert st[name] == "ran", name
+    nerf = next(s for s in r["stages"] if s["name"] == "nerf")
+    assert nerf["reason"].startswith("no depth") and "SfM tracks" in nerf["reason"]
+    assert nerf["facts"]["depth_dense"] is False
+    assert set(r["plan"]["classes"]) == {"floor", "wall", "object"}
+    m = r["metrics"]["blueprint"]["blunf"]
+    assert m["frame"] == "aligned to gt poses" and m["fwiou"] > 60, m
