@@ -62,11 +62,10 @@ def render_rays_edited(
         return_samples=bool(masks),
         surface_color=surface_color,
     )
-    res: dict[str, Tensor] = {k: v for k, v in out.items() if k in ("rgb", "depth", "acc")}  # type: ignore[misc]
+    res: dict[str, Tensor] = {"rgb": out["rgb"], "depth": out["depth"], "acc": out["acc"]}
     r = len(origins)
     if masks:
         ray, t, w = out["ray"], out["t"], out["weights"]  # [N] each
-        assert ray is not None and t is not None and w is not None
         x = origins[ray] + t[:, None] * dirs[ray]  # [N, 3] the samples' positions
         res["masks"] = torch.stack(
             [torch.zeros(r).index_add(0, ray, w * torch.as_tensor(e.contains(x))) for e in masks]
@@ -95,7 +94,7 @@ def render_view_edited(
     parts: dict[str, list[Tensor]] = {"rgb": [], "depth": [], "acc": [], "masks": []}
     for i in range(0, len(o), chunk):
         oc, dc = o[i : i + chunk], d[i : i + chunk]
-        t_in, t_out = ray_box(oc, dc, model.lo, model.hi)  # type: ignore[arg-type]
+        t_in, t_out = ray_box(oc, dc, model.lo, model.hi)
         out = render_rays_edited(
             oc,
             dc,

@@ -30,13 +30,13 @@ class TruncExp(torch.autograd.Function):
     """exp(x) with x clamped to EXP_CLAMP in the forward and the backward pass."""
 
     @staticmethod
-    def forward(ctx, x: Tensor) -> Tensor:  # type: ignore[override]
+    def forward(ctx, x: Tensor) -> Tensor:
         y = torch.exp(x.clamp(max=EXP_CLAMP))
         ctx.save_for_backward(y)
         return y
 
     @staticmethod
-    def backward(ctx, g: Tensor) -> Tensor:  # type: ignore[override]
+    def backward(ctx, g: Tensor) -> Tensor:
         (y,) = ctx.saved_tensors
         return g * y
 
@@ -47,7 +47,7 @@ class _Gather(torch.autograd.Function):
     accumulates one contiguous column at a time (1-D index_add, deterministic on CPU)."""
 
     @staticmethod
-    def forward(ctx, table: Tensor, idx: Tensor) -> Tensor:  # type: ignore[override]
+    def forward(ctx, table: Tensor, idx: Tensor) -> Tensor:
         ctx.save_for_backward(idx)
         ctx.size = table.shape
         if table.shape[1] == 2 and table.dtype == torch.float32 and table.is_contiguous():
@@ -56,7 +56,7 @@ class _Gather(torch.autograd.Function):
         return table.index_select(0, idx)
 
     @staticmethod
-    def backward(ctx, g: Tensor) -> tuple[Tensor, None]:  # type: ignore[override]
+    def backward(ctx, g: Tensor) -> tuple[Tensor, None]:
         (idx,) = ctx.saved_tensors
         t, f = ctx.size
         grad = torch.zeros(f, t, dtype=g.dtype)
@@ -74,6 +74,12 @@ class HashGrid3D(nn.Module):
     (x * 1) xor (y * 2654435761) xor (z * 805459861) mod table size: both are xor of
     per-axis terms, so one code path serves every level.
     """
+
+    # buffers (registered in __init__; declared here for the type checker)
+    res: Tensor  # [L] resolution per level
+    mult: Tensor  # [L, 3] int32 per-axis multipliers
+    mask: Tensor  # [L] int32 table size - 1 per level
+    offset: Tensor  # [L] int64 first row of each level in the table
 
     def __init__(
         self, levels: int, features: int, log2_size: int, base_res: int, max_res: int
@@ -116,6 +122,8 @@ class HashGrid3D(nn.Module):
 class PositionalEncoding(nn.Module):
     """[N, D] -> [N, D (1 + 2 n_freqs)]: the input, then sin and cos of 2^k pi x."""
 
+    freqs: Tensor  # [n_freqs] buffer
+
     def __init__(self, dims: int, n_freqs: int) -> None:
         super().__init__()
         self.register_buffer("freqs", math.pi * 2.0 ** torch.arange(n_freqs, dtype=torch.float32))
@@ -144,6 +152,11 @@ class NerfModel(nn.Module):
     semantics(x) -> [N, K] logits over `class_ids` (None when trained without labels).
     `color` / `semantics` called right after `density` on the same tensor reuse its features.
     """
+
+    # buffers (registered in __init__; declared here for the type checker)
+    lo: Tensor  # [3] world corner of the scene box
+    hi: Tensor  # [3]
+    surface: Tensor  # [] bool: colour rays at their expected depth
 
     def __init__(
         self,
@@ -175,8 +188,10 @@ class NerfModel(nn.Module):
             self.encoding = PositionalEncoding(3, cfg.pe_freqs)
             self.trunk = mlp(int(self.encoding.out_dim), cfg.pe_width, cfg.pe_layers, 1 + g)
         # start nearly empty (density ~ 0.05 / m) so the occupancy grid only keeps what is learnt
+        last = self.trunk[-1]
+        assert isinstance(last, nn.Linear)  # mlp() ends with its output layer
         with torch.no_grad():
-            self.trunk[-1].bias[0] = -3.0
+            last.bias[0] = -3.0
         self.dir_enc = PositionalEncoding(3, cfg.pe_dir_freqs) if cfg.view_dependent else None
         d_dir = int(self.dir_enc.out_dim) if self.dir_enc is not None else 0
         # colour from a grid of its own: the density's losses (large, sharp gradients at the

@@ -17,11 +17,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from stages.common.capture import Capture
+from stages.common.capture import Capture, Frame
 from stages.common.errors import BlunfError
 from stages.common.io import write_image, write_json
 from stages.nerf.config import NerfConfig, NerfInputs, NerfOutputs
-from stages.nerf.field import save_model
+from stages.nerf.field import NerfModel, save_model
 from stages.nerf.render import render_view
 from stages.nerf.train import (
     build_model,
@@ -78,16 +78,17 @@ def run(cfg: NerfConfig, inputs: NerfInputs, out: Path) -> NerfOutputs:
         frames, psnrs, absrels = [], [], []
         for i, f in enumerate(cap.frames):
             if not dense:  # depth for fusion, at 1 / depth_render_scale of the resolution
-                f = replace(f, depth=outs.depth / f"{f.stem}.npy")
-                np.save(f.depth, render_depth(model, f, cfg))  # metres
+                depth_path = outs.depth / f"{f.stem}.npy"
+                f = replace(f, depth=depth_path)
+                np.save(depth_path, render_depth(model, f, cfg))  # metres
             frames.append(f)
             if i not in held:
                 continue
             v = render_view(model, np.asarray(f.pose), f.intrinsics, cfg.chunk)
-            depth = np.where(v["acc"] >= cfg.acc_threshold, v["depth"], 0.0)  # type: ignore[operator]
-            gt = views.rgb[i].view(v["rgb"].shape).numpy()  # type: ignore[union-attr]
+            depth = np.where(v["acc"] >= cfg.acc_threshold, v["depth"], 0.0)
+            gt = views.rgb[i].view(v["rgb"].shape).numpy()
             psnrs.append(psnr(float(np.mean((v["rgb"] - gt) ** 2))))
-            write_image(out / "heldout" / f"{f.stem}.png", np.round(v["rgb"] * 255))  # type: ignore[operator]
+            write_image(out / "heldout" / f"{f.stem}.png", np.round(v["rgb"] * 255))
             d_gt = views.depth[i]
             if d_gt is not None and dense:  # sensor / fused depth is the reference
                 absrels.append(depth_absrel(depth, d_gt.view(depth.shape).numpy()))
@@ -129,14 +130,14 @@ def run(cfg: NerfConfig, inputs: NerfInputs, out: Path) -> NerfOutputs:
     return outs
 
 
-def render_depth(model, f, cfg: NerfConfig) -> np.ndarray:
+def render_depth(model: NerfModel, f: Frame, cfg: NerfConfig) -> np.ndarray:
     """z-depth (metres, float32) of frame f at 1 / depth_render_scale of its resolution; 0
     where the opacity is below acc_threshold (fusion rescales the intrinsics to fit)."""
     k = max(1, cfg.depth_render_scale)
     w, h = f.intrinsics.width, f.intrinsics.height
     intr = f.intrinsics.scaled(max(1, w // k), max(1, h // k))
     v = render_view(model, np.asarray(f.pose), intr, cfg.chunk)
-    return np.where(v["acc"] >= cfg.acc_threshold, v["depth"], 0.0).astype(np.float32)  # type: ignore[operator]
+    return np.where(v["acc"] >= cfg.acc_threshold, v["depth"], 0.0).astype(np.float32)
 
 
 def depth_absrel(pred: np.ndarray, gt: np.ndarray) -> float:

@@ -22,6 +22,13 @@ COARSE = 4  # cells per side of the blocks used to skip long empty stretches
 class OccupancyGrid(nn.Module):
     """Boolean occupancy over the box [lo, hi] with `shape` = (X, Y, Z) cells."""
 
+    # buffers (registered in __init__; declared here for the type checker)
+    lo: Tensor  # [3]
+    hi: Tensor  # [3]
+    ema: Tensor  # [X, Y, Z]
+    binary: Tensor  # [X, Y, Z] bool
+    keep: Tensor  # [X, Y, Z] bool
+
     def __init__(self, lo: Tensor, hi: Tensor, shape: tuple[int, int, int]) -> None:
         super().__init__()
         self.register_buffer("lo", torch.as_tensor(lo, dtype=torch.float32).clone())  # [3]
@@ -36,12 +43,13 @@ class OccupancyGrid(nn.Module):
     def for_box(lo: Tensor, hi: Tensor, res: int) -> OccupancyGrid:
         """Near-cubic cells, `res` of them along the box's longest side."""
         ext = (hi - lo).double()
-        shape = tuple(max(1, round(float(e / ext.max() * res))) for e in ext)
-        return OccupancyGrid(lo, hi, shape)  # type: ignore[arg-type]
+        sx, sy, sz = (max(1, round(float(e / ext.max() * res))) for e in ext)
+        return OccupancyGrid(lo, hi, (sx, sy, sz))
 
     @property
     def shape(self) -> tuple[int, int, int]:
-        return tuple(self.binary.shape)  # type: ignore[return-value]
+        x, y, z = self.binary.shape
+        return (x, y, z)
 
     def _cell(self, x: Tensor) -> tuple[Tensor, Tensor]:
         """World [N, 3] -> (flat cell index [N], inside the box [N])."""

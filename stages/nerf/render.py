@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import NotRequired, TypedDict
 
 import numpy as np
 import torch
@@ -28,6 +29,39 @@ ColorFn = Callable[[Tensor, Tensor], Tensor]  # [N, 3], [N, 3] dirs -> [N, 3] RG
 SemanticFn = Callable[[Tensor], Tensor]  # [N, 3] -> [N, K] logits
 MAX_SAMPLES = 8192  # samples per ray at most (a guard against a tiny step)
 EARLY_BLOCK = 8  # samples per ray evaluated per round of the early-stop pass
+
+
+class RenderOut(TypedDict):
+    """What `render_rays` / `render_model` return (a plain dict at run time)."""
+
+    rgb: Tensor  # [R, 3]
+    depth: Tensor  # [R] expected ray distance t (= far where acc = 0)
+    acc: Tensor  # [R] opacity
+    semantics: Tensor | None  # [R, K] logits; None without a semantic function
+    ray: NotRequired[Tensor]  # [N] ray of each sample (with return_samples)
+    t: NotRequired[Tensor]  # [N] ray distance of each sample
+    weights: NotRequired[Tensor]  # [N] compositing weight of each sample
+
+
+class ViewOut(TypedDict):
+    """What `render_view` returns (a plain dict at run time)."""
+
+    rgb: np.ndarray  # [H, W, 3] in [0, 1]
+    depth: np.ndarray  # [H, W] z-depth (metres)
+    acc: np.ndarray  # [H, W]
+    semantics: np.ndarray | None  # [H, W] uint8 class ids; None without a semantic head
+
+
+class _Sums(TypedDict):
+    """Per-ray weighted sums and the packed samples, before `_finish`."""
+
+    acc: Tensor  # [R] sum of w
+    rgb: Tensor  # [R, 3] sum of w c
+    wt: Tensor  # [R] sum of w t
+    semantics: Tensor | None  # [R, K] sum of w logits; None without a semantic function
+    ray: Tensor  # [N]
+    t: Tensor  # [N]
+    weights: Tensor  # [N]
 
 
 def _per_ray(v: float | Tensor, r: int) -> Tensor:
@@ -50,7 +84,7 @@ def render_rays(
     prune_eps: float = 1e-4,
     return_samples: bool = False,
     surface_color: bool = False,
-) -> dict[str, Tensor | None]:
+) -> RenderOut:
     """Render rays through a field given as functions.
 
     Args:
@@ -87,15 +121,15 @@ def render_rays(
             prune_eps,
             return_samples,
         )
-        hit = (out["acc"] > 1e-6).nonzero().squeeze(1)  # type: ignore[operator]
+        hit = (out["acc"] > 1e-6).nonzero().squeeze(1)
         rgb = torch.zeros(len(origins), 3)
         if len(hit):
-            x = origins[hit] + out["depth"][hit, None] * dirs[hit]  # type: ignore[index]
+            x = origins[hit] + out["depth"][hit, None] * dirs[hit]
             density_fn(x)
             c = color_fn(x, dirs[hit])
-            rgb = rgb.index_put((hit,), out["acc"][hit, None] * c)  # type: ignore[index]
+            rgb = rgb.index_put((hit,), out["acc"][hit, None] * c)
         if background is not None:
-            rgb = rgb + (1.0 - out["acc"])[:, None] * background  # type: ignore[operator]
+            rgb = rgb + (1.0 - out["acc"])[:, None] * background
         out["rgb"] = rgb
         return out
     r = origins.shape[0]
@@ -113,8 +147,10 @@ def render_rays(
         keep = occupancy.query(x) & (d_s > 0)
         ray, k, d_s, t, x = ray[keep], k[keep], d_s[keep], t[keep], x[keep]
     if prune_eps > 0 and len(x) and not torch.is_grad_enabled():
-        out = _march_blocks((density_fn, color_fn, semantic_fn), x, dirs, d_s, t, ray, r, prune_eps)
-        return _finish(out, near_t, far_t, background, return_samples)
+        sums = _march_blocks(
+            (density_fn, color_fn, semantic_fn), x, dirs, d_s, t, ray, r, prune_eps
+        )
+        return _finish(sums, near_t, far_t, background, return_samples)
     if prune_eps > 0 and len(x):
         keep = _early_stop(density_fn, x, d_s, ray, r, prune_eps)
         ray, k, d_s, t, x = ray[keep], k[keep], d_s[keep], t[keep], x[keep]
@@ -126,21 +162,27 @@ def render_rays(
         sigma, rgb_s, sem_s = torch.zeros(0), torch.zeros(0, 3), None
     trans, alpha = _transmittance(sigma * d_s, ray * s + k.long(), r, s)
     w = trans * alpha  # [N]
-    out = {
-        "acc": torch.zeros(r).index_add(0, ray, w),  # [R]
-        "rgb": torch.zeros(r, 3).index_add(0, ray, w[:, None] * rgb_s),  # [R, 3]
-        "wt": torch.zeros(r).index_add(0, ray, w * t),  # [R]
-        "semantics": None,
+    # acc, rgb, wt, then semantics: the order of these ops sets the order in which backward
+    # sums the gradients of w (float rounding: keep it for bit-identical training)
+    acc = torch.zeros(r).index_add(0, ray, w)  # [R]
+    rgb_sum = torch.zeros(r, 3).index_add(0, ray, w[:, None] * rgb_s)  # [R, 3]
+    wt = torch.zeros(r).index_add(0, ray, w * t)  # [R]
+    sem_sum: Tensor | None = None
+    if semantic_fn is not None:
+        k_cls = sem_s.shape[1] if sem_s is not None else 0
+        sem_sum = torch.zeros(r, k_cls)  # [R, K]
+        if sem_s is not None:
+            sem_sum = sem_sum.index_add(0, ray, w[:, None] * sem_s)
+    sums = {
+        "acc": acc,
+        "rgb": rgb_sum,
+        "wt": wt,
+        "semantics": sem_sum,
         "ray": ray,
         "t": t,
         "weights": w,
     }
-    if semantic_fn is not None:
-        k_cls = sem_s.shape[1] if sem_s is not None else 0
-        out["semantics"] = torch.zeros(r, k_cls)
-        if sem_s is not None:
-            out["semantics"] = out["semantics"].index_add(0, ray, w[:, None] * sem_s)
-    return _finish(out, near_t, far_t, background, return_samples)
+    return _finish(sums, near_t, far_t, background, return_samples)
 
 
 def _no_color(x: Tensor, dirs: Tensor) -> Tensor:
@@ -148,8 +190,8 @@ def _no_color(x: Tensor, dirs: Tensor) -> Tensor:
 
 
 def _finish(
-    out: dict, near: Tensor, far: Tensor, background: Tensor | None, return_samples: bool
-) -> dict[str, Tensor | None]:
+    out: _Sums, near: Tensor, far: Tensor, background: Tensor | None, return_samples: bool
+) -> RenderOut:
     """Expected depth (far where nothing was hit), background, and the returned keys."""
     acc = out["acc"]
     depth = torch.where(acc > 1e-10, out["wt"] / acc.clamp(min=1e-10), far)
@@ -157,15 +199,22 @@ def _finish(
     rgb = out["rgb"]
     if background is not None:
         rgb = rgb + (1.0 - acc)[:, None] * background
-    res = {"rgb": rgb, "depth": depth, "acc": acc, "semantics": out["semantics"]}
+    res: RenderOut = {"rgb": rgb, "depth": depth, "acc": acc, "semantics": out["semantics"]}
     if return_samples:
-        res.update(ray=out["ray"], t=out["t"], weights=out["weights"])
+        res["ray"], res["t"], res["weights"] = out["ray"], out["t"], out["weights"]
     return res
 
 
 def _march_blocks(
-    fns: tuple, x: Tensor, dirs: Tensor, d_s: Tensor, t: Tensor, ray: Tensor, r: int, eps: float
-) -> dict:
+    fns: tuple[DensityFn, ColorFn, SemanticFn | None],
+    x: Tensor,
+    dirs: Tensor,
+    d_s: Tensor,
+    t: Tensor,
+    ray: Tensor,
+    r: int,
+    eps: float,
+) -> _Sums:
     """Render without gradient, EARLY_BLOCK samples per ray at a time, stopping each ray
     once its transmittance is below eps: every sample's field is evaluated once."""
     density_fn, color_fn, semantic_fn = fns
@@ -175,9 +224,11 @@ def _march_blocks(
     )
     rank = torch.arange(n) - first[ray]  # [N] position of the sample along its ray
     tau = torch.zeros(r)  # [R] optical depth so far
-    out: dict = {"acc": torch.zeros(r), "rgb": torch.zeros(r, 3), "wt": torch.zeros(r)}
-    out["semantics"] = None
-    rays, ts, ws = [], [], []
+    acc, rgb_sum, wt = torch.zeros(r), torch.zeros(r, 3), torch.zeros(r)  # [R], [R, 3], [R]
+    sem_sum: Tensor | None = None  # [R, K]
+    rays: list[Tensor] = []
+    ts: list[Tensor] = []
+    ws: list[Tensor] = []
     pend = torch.arange(n)
     b = 0
     while len(pend):
@@ -192,22 +243,32 @@ def _march_blocks(
         rgb = color_fn(xi, dirs[ri])  # [M, 3]
         sem = semantic_fn(xi) if semantic_fn is not None else None  # [M, K]
         w = torch.exp(-(tau[ri] + _exclusive_cumsum(sd, ri, r))) * -torch.expm1(-sd)  # [M]
-        out["acc"].index_add_(0, ri, w)
-        out["rgb"].index_add_(0, ri, w[:, None] * rgb)
-        out["wt"].index_add_(0, ri, w * t[idx])
+        acc.index_add_(0, ri, w)
+        rgb_sum.index_add_(0, ri, w[:, None] * rgb)
+        wt.index_add_(0, ri, w * t[idx])
         if sem is not None:
-            if out["semantics"] is None:
-                out["semantics"] = torch.zeros(r, sem.shape[1])
-            out["semantics"].index_add_(0, ri, w[:, None] * sem)
+            if sem_sum is None:
+                sem_sum = torch.zeros(r, sem.shape[1])
+            sem_sum.index_add_(0, ri, w[:, None] * sem)
         tau.index_add_(0, ri, sd)
         rays.append(ri)
         ts.append(t[idx])
         ws.append(w)
-    if semantic_fn is not None and out["semantics"] is None:
-        out["semantics"] = torch.zeros(r, 0)
-    cat = lambda v, dt: torch.cat(v) if v else torch.zeros(0, dtype=dt)  # noqa: E731
-    out.update(ray=cat(rays, torch.int64), t=cat(ts, torch.float32), weights=cat(ws, torch.float32))
-    return out
+    if semantic_fn is not None and sem_sum is None:
+        sem_sum = torch.zeros(r, 0)
+
+    def cat(v: list[Tensor], dt: torch.dtype) -> Tensor:
+        return torch.cat(v) if v else torch.zeros(0, dtype=dt)
+
+    return {
+        "acc": acc,
+        "rgb": rgb_sum,
+        "wt": wt,
+        "semantics": sem_sum,
+        "ray": cat(rays, torch.int64),
+        "t": cat(ts, torch.float32),
+        "weights": cat(ws, torch.float32),
+    }
 
 
 def _exclusive_cumsum(v: Tensor, ray: Tensor, r: int) -> Tensor:
@@ -304,7 +365,7 @@ def render_model(
     far: Tensor | None = None,
     prune: bool = True,
     surface_color: bool | None = None,
-) -> dict[str, Tensor | None]:
+) -> RenderOut:
     """render_rays with the model's field, box, occupancy grid and step; `far` [R] (metres)
     cuts rays shorter than the box, `prune` = False skips the transmittance pre-pass."""
     t_in, t_out = ray_box(origins, dirs, model.lo, model.hi)
@@ -353,7 +414,7 @@ def camera_rays(pose: np.ndarray, intr: Intrinsics) -> tuple[Tensor, Tensor, Ten
 @torch.no_grad()
 def render_view(
     model: NerfModel, pose: np.ndarray, intr: Intrinsics, chunk: int = 16384
-) -> dict[str, np.ndarray | None]:
+) -> ViewOut:
     """Render a full view: rgb [H, W, 3] in [0, 1], depth [H, W] (z along the optical axis,
     metres), acc [H, W], semantics [H, W] uint8 class ids (255 where acc < acc_threshold)
     or None when the model has no semantic head."""
@@ -361,9 +422,9 @@ def render_view(
     parts: dict[str, list[Tensor]] = {"rgb": [], "depth": [], "acc": [], "sem": []}
     for i in range(0, len(o), chunk):
         out = render_model(model, o[i : i + chunk], d[i : i + chunk])
-        parts["rgb"].append(out["rgb"])  # type: ignore[arg-type]
-        parts["depth"].append(out["depth"] * zs[i : i + chunk])  # type: ignore[operator]
-        parts["acc"].append(out["acc"])  # type: ignore[arg-type]
+        parts["rgb"].append(out["rgb"])
+        parts["depth"].append(out["depth"] * zs[i : i + chunk])
+        parts["acc"].append(out["acc"])
         if out["semantics"] is not None:
             parts["sem"].append(out["semantics"].argmax(dim=1))
     h, w = intr.height, intr.width
@@ -404,15 +465,10 @@ def top_view_labels(
             d = torch.tensor([0.0, 0.0, -1.0]).expand(len(p), 3)
             res = render_model(model, o, d, near=0.0, semantics=False, return_samples=True)
             ray, t, w = res["ray"], res["t"], res["weights"]
-            wmax = torch.zeros(len(p)).scatter_reduce(0, ray, w, "amax")  # type: ignore[arg-type]
-            top = w >= wmax[ray]  # type: ignore[index]
-            t_top = torch.full((len(p),), float("inf")).scatter_reduce(
-                0,
-                ray[top],
-                t[top],
-                "amin",  # type: ignore[index]
-            )
-            hit = (res["acc"] >= model.cfg.acc_threshold) & torch.isfinite(t_top)  # type: ignore[operator]
+            wmax = torch.zeros(len(p)).scatter_reduce(0, ray, w, "amax")
+            top = w >= wmax[ray]
+            t_top = torch.full((len(p),), float("inf")).scatter_reduce(0, ray[top], t[top], "amin")
+            hit = (res["acc"] >= model.cfg.acc_threshold) & torch.isfinite(t_top)
             if hit.any():
                 x = o[hit] + t_top[hit, None] * d[hit]
                 cls = model.semantics(x).argmax(dim=1).numpy()

@@ -20,7 +20,7 @@ from stages.common.io import read_depth, read_image, read_label
 from stages.nerf.config import NerfConfig
 from stages.nerf.field import NerfModel
 from stages.nerf.occupancy import OccupancyGrid
-from stages.nerf.render import camera_rays, render_model
+from stages.nerf.render import RenderOut, camera_rays, render_model
 
 log = logging.getLogger(__name__)
 
@@ -149,7 +149,7 @@ def build_model(
 def depth_coverage(views: Views, idx: list[int]) -> float:
     """Fraction of the pixels of views `idx` with a depth reading (0 without depth)."""
     n = sum(len(views.rgb[i]) for i in idx)
-    k = sum(int((views.depth[i] > 0).sum()) for i in idx if views.depth[i] is not None)  # type: ignore[operator]
+    k = sum(int((d > 0).sum()) for i in idx if (d := views.depth[i]) is not None)
     return k / max(1, n)
 
 
@@ -174,7 +174,11 @@ class Rays:
 
 def gather_rays(cap: Capture, views: Views, idx: list[int]) -> Rays:
     """All pixels of views `idx` as rays; depth only when every one of them has depth."""
-    o, d, c, t, lab = [], [], [], [], []
+    o: list[Tensor] = []
+    d: list[Tensor] = []
+    c: list[Tensor] = []
+    t: list[Tensor] = []
+    lab: list[Tensor] = []
     with_depth = all(views.depth[i] is not None for i in idx)
     with_label = all(views.label[i] is not None for i in idx) and bool(views.class_ids)
     for i in idx:
@@ -183,16 +187,19 @@ def gather_rays(cap: Capture, views: Views, idx: list[int]) -> Rays:
         o.append(oi)
         d.append(di)
         c.append(views.rgb[i])
+        depth_i, label_i = views.depth[i], views.label[i]
         if with_depth:
-            t.append(views.depth[i] / zs)  # type: ignore[operator]
+            assert depth_i is not None  # with_depth: every view of idx has depth
+            t.append(depth_i / zs)
         if with_label:
-            lab.append(views.label[i])
+            assert label_i is not None  # with_label: every view of idx has labels
+            lab.append(label_i)
     return Rays(
         torch.cat(o),
         torch.cat(d),
         torch.cat(c),
         torch.cat(t) if with_depth else None,
-        torch.cat(lab) if with_label else None,  # type: ignore[arg-type]
+        torch.cat(lab) if with_label else None,
     )
 
 
@@ -208,7 +215,7 @@ def score(model: NerfModel, rays: Rays, chunk: int) -> float:
         out = render_model(
             model, rays.origins[i : i + chunk], rays.dirs[i : i + chunk], semantics=False
         )
-        err += float(((out["rgb"] - rays.rgb[i : i + chunk]) ** 2).sum())  # type: ignore[operator]
+        err += float(((out["rgb"] - rays.rgb[i : i + chunk]) ** 2).sum())
     return psnr(err / max(1, rays.rgb.numel()))
 
 
@@ -279,7 +286,7 @@ def train(
         for g, lr in zip(opt.param_groups, base, strict=True):
             g["lr"] = lr * cfg.lr_final ** _progress(cfg, step + 1, train_s)
         step += 1
-        samples += len(out["ray"])  # type: ignore[arg-type]
+        samples += len(out["ray"])
         losses.append(float(loss.detach()))
         if step % cfg.occ_every == 0 and not frozen:
             model.occupancy.update(model.density, thr, cfg.occ_decay, cfg.occ_cells, gen)
@@ -392,7 +399,7 @@ def _geometry_loss(
     return free + full
 
 
-def _losses(cfg: NerfConfig, out: dict, rays: Rays, idx: Tensor, margin: float) -> Tensor:
+def _losses(cfg: NerfConfig, out: RenderOut, rays: Rays, idx: Tensor, margin: float) -> Tensor:
     """RGB (+ depth L1 where valid, + semantic cross-entropy) loss of one batch."""
     target = rays.rgb[idx]
     if cfg.rgb_loss == "mse":
