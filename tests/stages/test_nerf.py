@@ -283,7 +283,7 @@ def test_losses_stay_finite_at_extreme_densities(bias, color_grid, dense):
         # density ~ e^-30: nothing in front (loss ~ 0); behind the reading the term is
         # -log(1 - e^-sd) ~ -log(sd) = -(raw + log s) ~ 30 + 4.3: large but finite, and its
         # gradient on the raw density is -1 (a region the field emptied can come back)
-        assert 25.0 < float(geo) < 45.0
+        assert 25.0 < float(geo.detach()) < 45.0
         assert model.trunk[-1].bias.grad[0] < -0.5
     # the colour loss is an MSE of colours in [0, 1] against targets in [0, 1]
     assert 0.0 <= float(surf.detach()) <= 1.0
