@@ -112,10 +112,6 @@ def _size_torch_threads(threads: int) -> None:
         env = os.environ.get("OMP_NUM_THREADS", "")
         n = threads or (int(env) if env.isdigit() and int(env) > 0 else 1)
         sys.modules["torch"].set_num_threads(n)
-        # The first optimiser imports torch._dynamo (~2 s here), and that import swallows a
-        # Ctrl-C arriving meanwhile: load it before the stage's temp folder exists, so an
-        # interrupt always lands in the stage and unwinds it.
-        import torch._dynamo  # noqa: F401
 
 
 def _facts(folder: Path, stage: str, impl: str) -> dict:
