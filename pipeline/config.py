@@ -17,6 +17,7 @@ from typing import Any
 import yaml
 
 from stages.common.errors import BlunfError
+from stages.common.io import read_yaml
 
 
 @dataclass(frozen=True)
@@ -89,14 +90,7 @@ def load_config(path: Path | None = None, sets: list[str] | tuple[str, ...] = ()
     layers = []
     if path is not None:
         path = Path(path)
-        try:
-            data = yaml.safe_load(path.read_text()) or {}
-        except FileNotFoundError:
-            raise BlunfError(f"{path}: config file not found") from None
-        except (OSError, UnicodeDecodeError) as e:
-            raise BlunfError(f"{path}: cannot read the config file ({e})") from None
-        except yaml.YAMLError as e:
-            raise BlunfError(f"{path}: invalid YAML ({str(e).splitlines()[0]})") from None
+        data = read_yaml(path, "config file") or {}
         if not isinstance(data, dict):
             raise BlunfError(f"{path}: a config must be a mapping of stage names to settings")
         layers.append(_checked(cfg, data, str(path)))

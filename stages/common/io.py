@@ -129,6 +129,22 @@ def write_image(path: Path, rgb: np.ndarray) -> None:
     Image.fromarray(np.asarray(rgb, np.uint8)).save(path)
 
 
+def read_yaml(path: Path, what: str) -> Any:
+    """The parsed YAML document at `path` (None when empty); `what` names the file in the
+    one-line errors ("config file", "edit spec")."""
+    import yaml
+
+    path = Path(path)
+    try:
+        return yaml.safe_load(path.read_text())
+    except FileNotFoundError:
+        raise BlunfError(f"{path}: {what} not found") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise BlunfError(f"{path}: cannot read the {what} ({e})") from None
+    except yaml.YAMLError as e:
+        raise BlunfError(f"{path}: invalid YAML ({str(e).splitlines()[0]})") from None
+
+
 def read_json(path: Path) -> Any:
     try:
         with open(path) as f:

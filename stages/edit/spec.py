@@ -14,11 +14,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import yaml
 from PIL import Image, UnidentifiedImageError
 from shapely.geometry import Polygon
 
 from stages.common.errors import BlunfError
+from stages.common.io import read_yaml
 
 OPS = ("mask", "recolor", "retexture", "sketch", "remove")
 SELECTORS = ("click", "pixel", "class", "polygon", "stroke")
@@ -89,14 +89,7 @@ def spec_textures(path: Path) -> tuple[Path, ...]:
 def load_spec(path: Path) -> EditSpec:
     """Read and check an edit spec. Raises BlunfError naming the bad entry."""
     path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text())
-    except FileNotFoundError:
-        raise BlunfError(f"{path}: edit spec not found") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise BlunfError(f"{path}: cannot read the edit spec ({e})") from None
-    except yaml.YAMLError as e:
-        raise BlunfError(f"{path}: invalid YAML ({str(e).splitlines()[0]})") from None
+    data = read_yaml(path, "edit spec")
     if not isinstance(data, dict):
         raise BlunfError(f"{path}: an edit spec is a mapping with 'edits' (and 'views')")
     _only(data, ("edits", "views"), f"{path}")

@@ -11,7 +11,7 @@ them (zero the density inside a box, recolour a region) without touching the tra
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import NotRequired, TypedDict
 
 import numpy as np
@@ -218,26 +218,13 @@ def _march_blocks(
     """Render without gradient, EARLY_BLOCK samples per ray at a time, stopping each ray
     once its transmittance is below eps: every sample's field is evaluated once."""
     density_fn, color_fn, semantic_fn = fns
-    n = len(x)
-    first = torch.zeros(r, dtype=torch.int64).scatter_reduce(
-        0, ray, torch.arange(n), "amin", include_self=False
-    )
-    rank = torch.arange(n) - first[ray]  # [N] position of the sample along its ray
     tau = torch.zeros(r)  # [R] optical depth so far
     acc, rgb_sum, wt = torch.zeros(r), torch.zeros(r, 3), torch.zeros(r)  # [R], [R, 3], [R]
     sem_sum: Tensor | None = None  # [R, K]
     rays: list[Tensor] = []
     ts: list[Tensor] = []
     ws: list[Tensor] = []
-    pend = torch.arange(n)
-    b = 0
-    while len(pend):
-        pend = pend[torch.exp(-tau[ray[pend]]) >= eps]
-        now = rank[pend] < b + EARLY_BLOCK
-        idx, pend = pend[now], pend[~now]
-        b += EARLY_BLOCK
-        if len(idx) == 0:
-            continue
+    for idx in _transparent_blocks(ray, r, tau, eps):
         xi, ri = x[idx], ray[idx]
         sd = (density_fn(xi) * d_s[idx]).clamp(min=0.0)  # [M]
         rgb = color_fn(xi, dirs[ri])  # [M, 3]
@@ -269,6 +256,26 @@ def _march_blocks(
         "t": cat(ts, torch.float32),
         "weights": cat(ws, torch.float32),
     }
+
+
+def _transparent_blocks(ray: Tensor, r: int, tau: Tensor, eps: float) -> Iterator[Tensor]:
+    """Indices of packed samples (sorted by ray then t), EARLY_BLOCK per ray at a time, of
+    the rays whose transmittance exp(-tau) is still >= eps; the caller adds each block's
+    optical depths to tau [R] (in place) before asking for the next block."""
+    n = len(ray)
+    first = torch.zeros(r, dtype=torch.int64).scatter_reduce(
+        0, ray, torch.arange(n), "amin", include_self=False
+    )
+    rank = torch.arange(n) - first[ray]  # [N] position of the sample along its ray
+    pend = torch.arange(n)  # samples not evaluated yet, of rays still transparent
+    b = 0
+    while len(pend):
+        pend = pend[torch.exp(-tau[ray[pend]]) >= eps]
+        now = rank[pend] < b + EARLY_BLOCK
+        idx, pend = pend[now], pend[~now]
+        b += EARLY_BLOCK
+        if len(idx):
+            yield idx
 
 
 def _exclusive_cumsum(v: Tensor, ray: Tensor, r: int) -> Tensor:
@@ -312,26 +319,13 @@ def _early_stop(
     """Which packed samples (sorted by ray then t) come before their ray's transmittance
     falls below eps. Densities are evaluated in blocks of each ray's next EARLY_BLOCK
     samples, for the rays still transparent only. Returns bool [N]."""
-    n = len(x)
-    first = torch.zeros(r, dtype=torch.int64).scatter_reduce(
-        0, ray, torch.arange(n), "amin", include_self=False
-    )
-    rank = torch.arange(n) - first[ray]  # [N] position of the sample along its ray
     tau = torch.zeros(r)  # [R] optical depth so far
-    keep = torch.zeros(n, dtype=torch.bool)
-    pend = torch.arange(n)  # samples not evaluated yet, of rays still transparent
-    b = 0
-    while len(pend):
-        pend = pend[torch.exp(-tau[ray[pend]]) >= eps]
-        now = rank[pend] < b + EARLY_BLOCK
-        idx, pend = pend[now], pend[~now]
-        b += EARLY_BLOCK
-        if len(idx) == 0:
-            continue
+    keep = torch.zeros(len(x), dtype=torch.bool)
+    for idx in _transparent_blocks(ray, r, tau, eps):
         sd = (density_fn(x[idx]) * d_s[idx]).clamp(min=0.0)  # [M]
         ri = ray[idx]
         keep[idx] = torch.exp(-(tau[ri] + _exclusive_cumsum(sd, ri, r))) >= eps
-        tau = tau.index_add(0, ray[idx], sd)
+        tau.index_add_(0, ri, sd)
     return keep
 
 

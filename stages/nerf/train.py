@@ -345,14 +345,20 @@ def _progress(cfg: NerfConfig, step: int, seconds: float) -> float:
     return min(1.0, max(fr) if fr else step / max(1, cfg.lr_decay_steps))
 
 
+def _depth_pixels(rays: Rays, n: int, gen: torch.Generator) -> tuple[Tensor, Tensor]:
+    """n random training pixels, kept where they have a depth reading: (index [M], ray
+    distance of the reading [M]), M <= n."""
+    assert rays.t_depth is not None
+    idx = torch.randint(0, len(rays.rgb), (n,), generator=gen)
+    t = rays.t_depth[idx]
+    ok = t > 0
+    return idx[ok], t[ok]
+
+
 def _surface_loss(cfg: NerfConfig, model: NerfModel, rays: Rays, gen: torch.Generator) -> Tensor:
     """Colour of random pixels with depth, fitted at their depth point (jittered along the
     ray): one field query per pixel teaches the texture far faster than marching does."""
-    assert rays.t_depth is not None
-    idx = torch.randint(0, len(rays.rgb), (cfg.surface_rays,), generator=gen)
-    t = rays.t_depth[idx]
-    ok = t > 0
-    idx, t = idx[ok], t[ok]
+    idx, t = _depth_pixels(rays, cfg.surface_rays, gen)
     if len(idx) == 0:
         return torch.zeros(())
     jit = (torch.rand(len(idx), generator=gen) * 2.0 - 1.0) * cfg.surface_jitter * model.step
@@ -370,11 +376,7 @@ def _geometry_loss(
     in the geo_front metres (sparse depth: anywhere) in front of the reading (up to half a
     step before it) and 1 at a point drawn in the two steps behind it. Binary cross-entropy
     on that opacity, written with terms of sigma * step so it stays finite for any density."""
-    assert rays.t_depth is not None
-    idx = torch.randint(0, len(rays.rgb), (cfg.geo_rays,), generator=gen)
-    t = rays.t_depth[idx]
-    ok = t > 0
-    idx, t = idx[ok], t[ok]
+    idx, t = _depth_pixels(rays, cfg.geo_rays, gen)
     if len(idx) == 0:
         return torch.zeros(())
     s = model.step
