@@ -112,11 +112,6 @@ def load_config(path: Path | None = None, sets: list[str] | tuple[str, ...] = ()
     return _build(cfg, merged)
 
 
-def apply(cfg: Config, data: dict, where: str) -> Config:
-    """Override `cfg` with a nested mapping; unknown keys and bad types are errors."""
-    return _build(cfg, _checked(cfg, data, where))
-
-
 def _checked(cfg: Config, data: dict, where: str) -> dict:
     """`data` with every key known and every value coerced to its field's type."""
     out: dict = {}

@@ -25,6 +25,7 @@ class Step:
 @dataclass(frozen=True)
 class Plan:
     steps: tuple[Step, ...]
+    heldout: bool = False  # plans are also scored on views held out of them (see heldout())
 
     def get(self, stage: str) -> Step:
         return next(s for s in self.steps if s.stage == stage)
@@ -135,11 +136,12 @@ def make_plan(cap: Capture, cfg: Config, edits: Path | None = None) -> Plan:
         s.append(Step("edit", "nerf", True, f"edit spec {edits}"))
     gt = gt_files(cap)
     scores = ["ground truth: " + ", ".join(sorted(gt))] if gt else []
-    if heldout(cap, cfg):
+    held = heldout(cap, cfg)
+    if held:
         scores.append("held-out views")
     if scores:
         s.append(Step("evaluate", "gt", True, "; ".join(scores)))
     else:
         s.append(Step("evaluate", "gt", False, "capture has no ground truth"))
     s.append(Step("export", "files", True))
-    return Plan(tuple(s))
+    return Plan(tuple(s), held)

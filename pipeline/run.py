@@ -8,7 +8,7 @@ import shutil
 from pathlib import Path
 
 from pipeline.config import Config
-from pipeline.planner import gt_files, heldout, make_plan
+from pipeline.planner import gt_files, make_plan
 from pipeline.report import Report
 from pipeline.runner import Runner, check_impl
 from stages.align import AlignInputs
@@ -95,7 +95,7 @@ def _recipe(
     pts = r.stage(
         "project",
         cfg["project"].impl,
-        ProjectInputs(frames=labelled, holdout=heldout(cap, cfg)),
+        ProjectInputs(frames=labelled, holdout=plan.heldout),
     )
     gt = gt_files(cap)
     plans = {}
@@ -141,11 +141,11 @@ def _recipe(
             step.impl,
             EvaluateInputs(
                 frames=labelled,
-                gt=next(iter(gt.values())).parent if gt else None,
+                gt=cap.gt if gt else None,  # gt_files lie in cap.gt
                 blueprints=tuple(plans.values()),
                 methods=tuple(plans),
                 poses_estimated=plan.runs("poses"),
-                heldout=pts.heldout if heldout(cap, cfg) else None,
+                heldout=pts.heldout if plan.heldout else None,
             ),
             step.reason,
         )

@@ -27,7 +27,11 @@ from stages.common.errors import BlunfError
 log = logging.getLogger(__name__)
 
 COST_STAGES = ("fusion", "project", "blueprint")  # stages whose cost is fitted against size
-ERROR_NAMES = {"100-": "100 - {m} (%)", "poses.ate_rmse_m": "ATE RMSE after a similarity (m)"}
+ERROR_NAMES = {
+    "100-": "100 - {m} (%)",
+    "poses.ate_rmse_m": "ATE RMSE after a similarity (m)",
+    "40-nerf.psnr_heldout": "40 - held-out PSNR (dB)",
+}
 
 __all__ = ["bench", "Variant", "CaptureSpec", "quick_grid", "full_grid"]
 
@@ -72,7 +76,8 @@ def bench(
         log.warning(msg)
         header.append(f"Skipped: {why}.")
     variants = [v for v in variants if v.capture in paths]
-    facts = {(v.capture, v.frames): capture_facts(paths[v.capture], v.frames) for v in variants}
+    keys = dict.fromkeys((v.capture, v.frames) for v in variants)  # each capture read once
+    facts = {k: capture_facts(paths[k[0]], k[1]) for k in keys}
 
     b = Bench(out, threads, keep_runs)
     samples: dict[str, list[Sample]] = {v.name: [] for v in variants}
@@ -93,13 +98,13 @@ def bench(
         for v in variants
     ]
     _ratios(rows, variants)
-    fronts(rows)
+    front = fronts(rows)
     names_by_group = {
         g: _error_name(next(v.error for v in variants if v.group == g))
         for g in dict.fromkeys(v.group for v in variants)
     }
     fits = {axis: cost_fits(rows, axis, COST_STAGES) for axis in ("frames", "pixels")}
-    figures = plot_fronts(rows, names_by_group, out)
+    figures = plot_fronts(front, names_by_group, out)
     figures += [p for axis, f in fits.items() if (p := plot_cost(f, axis, out)) is not None]
     for axis, per_stage in fits.items():
         for st, (_, _, (a, c, r2)) in per_stage.items():
@@ -143,6 +148,4 @@ def _ratios(rows: list[dict], variants: list[Variant]) -> None:
 def _error_name(spec: str) -> str:
     if spec.startswith("100-"):
         return ERROR_NAMES["100-"].format(m=spec.rsplit(".", 1)[-1])
-    if spec == "40-nerf.psnr_heldout":
-        return "40 - held-out PSNR (dB)"
     return ERROR_NAMES.get(spec, spec)

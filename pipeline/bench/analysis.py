@@ -71,12 +71,15 @@ def fronts(rows: list[dict]) -> dict[tuple[str, str], list[dict]]:
     return out
 
 
-def plot_fronts(rows: list[dict], error_names: dict[str, str], folder: Path) -> list[Path]:
-    """One figure per (group, capture): stage seconds (log x) against error, every variant a
-    point (references as squares), the Pareto front drawn and its points labelled."""
+def plot_fronts(
+    groups: dict[tuple[str, str], list[dict]], error_names: dict[str, str], folder: Path
+) -> list[Path]:
+    """One figure per (group, capture) of `fronts(rows)`: stage seconds (log x) against
+    error, every variant a point (references as squares), the Pareto front drawn and its
+    points labelled."""
     plt = _plt()
     files = []
-    for (group, capture), pts in sorted(fronts(rows).items()):
+    for (group, capture), pts in sorted(groups.items()):
         fig, ax = plt.subplots(figsize=(7, 4.5))
         for r in pts:
             ax.scatter(

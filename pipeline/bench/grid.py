@@ -16,24 +16,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from pipeline.config import stage_configs
 from stages.blueprint.config import BlunfConfig, paper_recipe
 
 SHARED_DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 # the pipeline's stages in run order (pipeline/run.py); a stage the list lacks sorts last
-STAGE_ORDER = (
-    "ingest",
-    "poses",
-    "align",
-    "depth",
-    "fusion",
-    "semantics",
-    "nerf",
-    "project",
-    "blueprint",
-    "edit",
-    "evaluate",
-    "export",
-)
+STAGE_ORDER = tuple(stage_configs())  # pipeline order: what `fresh_from` / `upstream` rank
 ENCODINGS = ("pe", "hash", "siren", "none")
 SIZES = ((160, 120), (320, 240), (640, 480))  # the resolution sweep (18-view rooms)
 # per-encoding settings beyond `encoding=` (the config comment: SIREN wants lr ~1e-3)

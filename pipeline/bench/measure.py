@@ -21,6 +21,7 @@ import shutil
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -289,17 +290,12 @@ def capture_facts(capture: Path, frames: int) -> dict:
     """frames used, and the image size and pixels of the capture (read from one image)."""
     from stages.ingest import load
 
-    try:
-        work = Path(os.environ.get("TMPDIR", "/tmp")) / f"blunf-bench-probe-{os.getpid()}"
-        cap = load(capture, work)
-    except BlunfError as e:
-        log.warning("bench: %s", e)
-        return {}
-    finally:
-        shutil.rmtree(
-            Path(os.environ.get("TMPDIR", "/tmp")) / f"blunf-bench-probe-{os.getpid()}",
-            ignore_errors=True,
-        )
+    with tempfile.TemporaryDirectory(prefix="blunf-bench-probe-") as work:
+        try:
+            cap = load(capture, Path(work))
+        except BlunfError as e:
+            log.warning("bench: %s", e)
+            return {}
     f = cap.frames[0]
     n = len(cap.frames) if frames <= 0 else min(frames, len(cap.frames))
     return {

@@ -323,3 +323,9 @@ def write_layout(cap: Capture, out: Path, with_poses: bool = True) -> Path:
         out.rmdir()
     tmp.rename(out)
     return out
+
+
+def heldout_views(n: int, every: int) -> list[int]:
+    """Indices of the views held out of training and scored instead (the project and NeRF
+    stages share the rule): index % every == every // 2; none when every = 0 or n < 2."""
+    return [i for i in range(n) if every > 0 and n > 1 and i % every == every // 2]

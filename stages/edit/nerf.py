@@ -70,14 +70,13 @@ def run(cfg: EditConfig, inputs: EditInputs, out: Path) -> EditOutputs:
     log.info("edit/nerf: %s", cfg)
     t_start = time.perf_counter()
     out = Path(out)
-    spec, bp, cap, cells = _checked(inputs)
+    spec, bp, cap, cells, cmap = _checked(inputs)
     outs = EditOutputs.at(out)
 
     mesh = _load_mesh(inputs.mesh)
     verts = np.asarray(mesh.vertices, np.float64)  # [V, 3]
     rgba = vertex_colors(mesh)  # [V, 4] or None
     colors = None if rgba is None else rgba[:, :3].astype(np.float64) / 255.0  # [V, 3]
-    cmap = component_map(bp)
     old_threads = torch.get_num_threads()
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
@@ -153,8 +152,11 @@ METRIC_KEYS = ("changed_iou", "psnr_outside")
 
 
 # ---- checks: all before any work ---------------------------------------------------------
-def _checked(inputs: EditInputs) -> tuple[EditSpec, Blueprint, Capture, list[np.ndarray]]:
-    """The spec, plan, capture and each edit's selected cells, or a one-line error."""
+def _checked(
+    inputs: EditInputs,
+) -> tuple[EditSpec, Blueprint, Capture, list[np.ndarray], np.ndarray]:
+    """The spec, plan, capture, each edit's selected cells and the plan's component map, or
+    a one-line error."""
     spec = load_spec(inputs.spec)
     listed = {Path(p).resolve() for p in inputs.textures}
     for t in spec.textures:
@@ -177,7 +179,7 @@ def _checked(inputs: EditInputs) -> tuple[EditSpec, Blueprint, Capture, list[np.
         p = Path(getattr(inputs, name))
         if not p.is_file():
             raise BlunfError(f"{p}: {name} file not found")
-    return spec, bp, cap, cells
+    return spec, bp, cap, cells, cmap
 
 
 def _round(v: float | None) -> float | None:
@@ -264,6 +266,7 @@ def _render_views(
         if field_ops:
             after = render_view_edited(model, v.pose, v.intr, field_ops, cfg.chunk)["rgb"]
             renders += 1
+        after_field = after  # the field edits' render, before any mask overlay
         for i, e in enumerate(edits):
             if e.op == "mask":
                 after = _overlay(after, sel[i])
@@ -274,10 +277,10 @@ def _render_views(
         inst = gt_instances(gt, v.stem, v.intr.width, v.intr.height) if gt and v.stem else None
         for i, e in enumerate(edits):
             write_label_png(outs.masks / f"{v.name}_{i}.png", sel[i].astype(np.uint8) * 255)
-            if len(edits) == 1:
-                single = after
-            elif e.op == "mask":
+            if e.op == "mask":
                 single = _overlay(before["rgb"], sel[i])
+            elif len(field_ops) == 1:  # rendered above already
+                single = after_field
             else:  # this edit alone
                 single = render_view_edited(model, v.pose, v.intr, [e], cfg.chunk)["rgb"]
                 renders += 1

@@ -18,7 +18,7 @@ from stages.common.camera import Intrinsics
 from stages.edit.ops import ColorFn, DensityFn, FieldEdit, wrap_field
 from stages.edit.select import Extent
 from stages.nerf.field import NerfModel
-from stages.nerf.render import camera_rays, ray_box, render_rays
+from stages.nerf.render import RenderOut, camera_rays, render_model, render_rays
 
 
 @torch.no_grad()
@@ -62,6 +62,14 @@ def render_rays_edited(
         return_samples=bool(masks),
         surface_color=surface_color,
     )
+    return _with_masks(out, origins, dirs, masks)
+
+
+def _with_masks(
+    out: RenderOut, origins: Tensor, dirs: Tensor, masks: Sequence[Extent]
+) -> dict[str, Tensor]:
+    """rgb, depth, acc of a render, and masks [M, R]: the weight of each ray's samples inside
+    each of `masks` (the render must have returned its samples when there are masks)."""
     res: dict[str, Tensor] = {"rgb": out["rgb"], "depth": out["depth"], "acc": out["acc"]}
     r = len(origins)
     if masks:
@@ -91,25 +99,20 @@ def render_view_edited(
     acc [H, W] and masks [M, H, W] (weight inside each of `masks`).
     """
     o, d, zs = camera_rays(pose, intr)
+    dens, col = wrap_field(model.density, model.color, edits)
     parts: dict[str, list[Tensor]] = {"rgb": [], "depth": [], "acc": [], "masks": []}
     for i in range(0, len(o), chunk):
         oc, dc = o[i : i + chunk], d[i : i + chunk]
-        t_in, t_out = ray_box(oc, dc, model.lo, model.hi)
-        out = render_rays_edited(
+        rendered = render_model(
+            model,
             oc,
             dc,
-            model.density,
-            model.color,
-            edits,
-            masks,
-            near=t_in.clamp(min=model.cfg.near),
-            far=t_out,
-            occupancy=model.occupancy,
-            step=model.step,
-            prune_eps=model.cfg.prune_eps,
-            surface_color=model.surface_color,
+            semantics=False,
+            return_samples=bool(masks),
+            density_fn=dens,
+            color_fn=col,
         )
-        model.clear_cache()
+        out = _with_masks(rendered, oc, dc, masks)
         parts["rgb"].append(out["rgb"])
         parts["depth"].append(out["depth"] * zs[i : i + chunk])
         parts["acc"].append(out["acc"])

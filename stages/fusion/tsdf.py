@@ -75,7 +75,8 @@ def run(cfg: FusionConfig, inputs: FusionInputs, out: Path) -> FusionOutputs:
         color = rgb.astype(np.float32) / np.float32(255.0)  # [H, W, 3]; float depth needs it
         ta = time.perf_counter()
         vbg.integrate(
-            bc, _image(depth), _image(color), _k(k_depth), _k(k_color), _w2c(f),
+            bc, _image(depth), _image(color),
+            o3d_intrinsic(k_depth), o3d_intrinsic(k_color), o3d_extrinsic(f),
             1.0, cfg.depth_max, cfg.trunc_voxels,
         )  # fmt: skip
         t_o3d += time.perf_counter() - ta
@@ -165,12 +166,12 @@ def _image(a: np.ndarray) -> o3d.t.geometry.Image:
     return o3d.t.geometry.Image(_tensor(a if a.ndim == 3 else a[..., None], o3c.float32))
 
 
-def _w2c(f: Frame) -> o3c.Tensor:
+def o3d_extrinsic(f: Frame) -> o3c.Tensor:
     """Open3D's extrinsic: world-to-camera [4, 4]."""
     return _tensor(np.linalg.inv(np.asarray(f.pose, np.float64)), o3c.float64)
 
 
-def _k(intr: Intrinsics) -> o3c.Tensor:
+def o3d_intrinsic(intr: Intrinsics) -> o3c.Tensor:
     """K for Open3D, whose pixel (i, j) spans [i, i + 1) x [j, j + 1) (integration truncates
     the projection, ray generation adds 0.5): its centres are half a pixel off ours. Without
     this shift the synthetic test room's depth errors grow from 3 mm to 12 mm."""
@@ -207,7 +208,7 @@ def _blocks(cap: Capture, cfg: FusionConfig) -> tuple[list[o3c.Tensor | None], i
             coords.append(None)
             continue
         bc = probe.compute_unique_block_coordinates(
-            _image(depth), _k(k), _w2c(f), 1.0, cfg.depth_max, cfg.trunc_voxels
+            _image(depth), o3d_intrinsic(k), o3d_extrinsic(f), 1.0, cfg.depth_max, cfg.trunc_voxels
         )
         coords.append(bc)
         b = bc.numpy().astype(np.int64) + 2**20  # [M, 3] block coordinates, made >= 0
@@ -228,7 +229,7 @@ def _raycast(mesh: o3d.t.geometry.TriangleMesh, cap: Capture, folder: Path
     for f in cap.frames:
         k = f.intrinsics
         # Open3D's pinhole rays have camera z = 1: the hit distance is the depth
-        rays = scene.create_rays_pinhole(_k(k), _w2c(f), k.width, k.height)
+        rays = scene.create_rays_pinhole(o3d_intrinsic(k), o3d_extrinsic(f), k.width, k.height)
         t = scene.cast_rays(rays)["t_hit"].numpy()  # [H, W], inf = no hit
         depth = np.where(np.isfinite(t), t, 0.0)
         hit.append(float((depth > 0).mean()))

@@ -11,20 +11,20 @@ from stages.nerf.config import NerfConfig, NerfInputs, NerfOutputs
 
 IMPLS = LazyImpls({"grid": "stages.nerf.grid:run"})
 
-_LAZY = {
-    "NerfModel": "stages.nerf.field",
-    "load_model": "stages.nerf.field",
-    "render_rays": "stages.nerf.render",
-    "render_view": "stages.nerf.render",
-    "top_view_labels": "stages.nerf.render",
-}
+_LAZY = LazyImpls(
+    {
+        "NerfModel": "stages.nerf.field:NerfModel",
+        "load_model": "stages.nerf.field:load_model",
+        "render_rays": "stages.nerf.render:render_rays",
+        "render_view": "stages.nerf.render:render_view",
+        "top_view_labels": "stages.nerf.render:top_view_labels",
+    }
+)
 
 
 def __getattr__(name: str) -> Any:
     if name in _LAZY:
-        import importlib
-
-        return getattr(importlib.import_module(_LAZY[name]), name)
+        return _LAZY[name]
     raise AttributeError(f"module 'stages.nerf' has no attribute {name!r}")
 
 

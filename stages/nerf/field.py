@@ -16,6 +16,7 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
+from stages.blueprint.encoding import relu_mlp
 from stages.common.errors import BlunfError
 from stages.nerf.config import NerfConfig
 from stages.nerf.occupancy import OccupancyGrid
@@ -134,17 +135,6 @@ class PositionalEncoding(nn.Module):
         return torch.cat([x, torch.sin(a), torch.cos(a)], dim=-1)
 
 
-def mlp(d_in: int, width: int, layers: int, d_out: int) -> nn.Sequential:
-    """ReLU MLP with `layers` hidden layers of `width` units."""
-    mods: list[nn.Module] = []
-    d = d_in
-    for _ in range(layers):
-        mods += [nn.Linear(d, width), nn.ReLU()]
-        d = width
-    mods.append(nn.Linear(d, d_out))
-    return nn.Sequential(*mods)
-
-
 class NerfModel(nn.Module):
     """Field + scene box + occupancy grid + class table: what render_view needs.
 
@@ -183,13 +173,13 @@ class NerfModel(nn.Module):
                 cfg.hash_base_res,
                 max(cfg.hash_max_res, cfg.hash_base_res),
             )
-            self.trunk = mlp(int(self.encoding.out_dim), cfg.width, 1, 1 + g)
+            self.trunk = relu_mlp(int(self.encoding.out_dim), cfg.width, 1, 1 + g)
         else:
             self.encoding = PositionalEncoding(3, cfg.pe_freqs)
-            self.trunk = mlp(int(self.encoding.out_dim), cfg.pe_width, cfg.pe_layers, 1 + g)
+            self.trunk = relu_mlp(int(self.encoding.out_dim), cfg.pe_width, cfg.pe_layers, 1 + g)
         # start nearly empty (density ~ 0.05 / m) so the occupancy grid only keeps what is learnt
         last = self.trunk[-1]
-        assert isinstance(last, nn.Linear)  # mlp() ends with its output layer
+        assert isinstance(last, nn.Linear)  # relu_mlp() ends with its output layer
         with torch.no_grad():
             last.bias[0] = -3.0
         self.dir_enc = PositionalEncoding(3, cfg.pe_dir_freqs) if cfg.view_dependent else None
@@ -207,8 +197,8 @@ class NerfModel(nn.Module):
                 max(cfg.hash_max_res, cfg.hash_base_res),
             )
             d_col = int(self.color_encoding.out_dim)
-        self.color_head = mlp(d_col + d_dir, cfg.width, 1, 3)
-        self.sem_head = mlp(g, cfg.width, 1, len(class_ids)) if class_ids else None
+        self.color_head = relu_mlp(d_col + d_dir, cfg.width, 1, 3)
+        self.sem_head = relu_mlp(g, cfg.width, 1, len(class_ids)) if class_ids else None
         self._cache: tuple[Tensor, Tensor] | None = None
         # rendering colours each ray at its expected depth (set when trained with depth)
         self.register_buffer("surface", torch.zeros((), dtype=torch.bool))

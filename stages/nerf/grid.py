@@ -19,7 +19,7 @@ import torch
 
 from stages.common.capture import Capture, Frame
 from stages.common.errors import BlunfError
-from stages.common.io import write_image, write_json
+from stages.common.io import write_depth_npy, write_image, write_json
 from stages.nerf.config import NerfConfig, NerfInputs, NerfOutputs
 from stages.nerf.field import NerfModel, save_model
 from stages.nerf.render import render_view
@@ -80,7 +80,7 @@ def run(cfg: NerfConfig, inputs: NerfInputs, out: Path) -> NerfOutputs:
             if not dense:  # depth for fusion, at 1 / depth_render_scale of the resolution
                 depth_path = outs.depth / f"{f.stem}.npy"
                 f = replace(f, depth=depth_path)
-                np.save(depth_path, render_depth(model, f, cfg))  # metres
+                write_depth_npy(depth_path, render_depth(model, f, cfg))
             frames.append(f)
             if i not in held:
                 continue

@@ -359,9 +359,13 @@ def render_model(
     far: Tensor | None = None,
     prune: bool = True,
     surface_color: bool | None = None,
+    density_fn: DensityFn | None = None,
+    color_fn: ColorFn | None = None,
 ) -> RenderOut:
     """render_rays with the model's field, box, occupancy grid and step; `far` [R] (metres)
-    cuts rays shorter than the box, `prune` = False skips the transmittance pre-pass."""
+    cuts rays shorter than the box, `prune` = False skips the transmittance pre-pass.
+    `density_fn` / `color_fn` replace the model's own (an edited field; no colour at all
+    when only the weights matter)."""
     t_in, t_out = ray_box(origins, dirs, model.lo, model.hi)
     if far is not None:
         t_out = torch.minimum(t_out, far)
@@ -371,8 +375,8 @@ def render_model(
     out = render_rays(
         origins,
         dirs,
-        model.density,
-        model.color,
+        model.density if density_fn is None else density_fn,
+        model.color if color_fn is None else color_fn,
         sem_fn,
         near=near_t,
         far=t_out,
@@ -457,7 +461,16 @@ def top_view_labels(
             p = xy[i : i + chunk]
             o = torch.cat([p, torch.full((len(p), 1), float(h))], dim=1)
             d = torch.tensor([0.0, 0.0, -1.0]).expand(len(p), 3)
-            res = render_model(model, o, d, near=0.0, semantics=False, return_samples=True)
+            res = render_model(
+                model,
+                o,
+                d,
+                near=0.0,
+                semantics=False,
+                return_samples=True,
+                surface_color=False,
+                color_fn=_no_color,  # the labels need the weights only
+            )
             ray, t, w = res["ray"], res["t"], res["weights"]
             wmax = torch.zeros(len(p)).scatter_reduce(0, ray, w, "amax")
             top = w >= wmax[ray]

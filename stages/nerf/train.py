@@ -14,7 +14,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from stages.common.camera import depth_to_points
-from stages.common.capture import UNKNOWN, Capture
+from stages.common.capture import UNKNOWN, Capture, heldout_views
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth, read_image, read_label
 from stages.nerf.config import NerfConfig
@@ -77,7 +77,7 @@ def load_views(cap: Capture, use_labels: bool) -> Views:
 
 def split(n: int, every: int) -> tuple[list[int], list[int]]:
     """(training, held-out) view indices: index % every == every // 2 is held out."""
-    held = [i for i in range(n) if every > 0 and n > 1 and i % every == every // 2]
+    held = heldout_views(n, every)
     return [i for i in range(n) if i not in held], held
 
 

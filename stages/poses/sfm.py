@@ -20,7 +20,7 @@ import pycolmap
 from stages.common.camera import Intrinsics
 from stages.common.capture import Capture, Frame
 from stages.common.errors import BlunfError
-from stages.common.io import image_size, read_depth, write_json
+from stages.common.io import image_size, read_depth, write_depth_npy, write_json
 from stages.poses import scale as scale_mod
 from stages.poses.config import PosesConfig, PosesInputs, PosesOutputs
 
@@ -112,7 +112,7 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
         f = replace(cap.frames[i], pose=np.linalg.inv(w2c), intrinsics=intr)
         if f.depth is None:  # photos only: the tracks' depths are all the depth there is
             sparse.mkdir(exist_ok=True)
-            np.save(sparse / f"{f.stem}.npy", sparse_depth(rec, im, intr))
+            write_depth_npy(sparse / f"{f.stem}.npy", sparse_depth(rec, im, intr))
             f = replace(f, depth=sparse / f"{f.stem}.npy")
         frames.append(f)
     facts["sparse_depth"] = sparse.is_dir()

@@ -24,7 +24,7 @@ import numpy as np
 
 from stages.common.blueprint import Grid
 from stages.common.camera import Intrinsics, pixel_grid, unproject
-from stages.common.capture import UNKNOWN, Capture, Frame
+from stages.common.capture import UNKNOWN, Capture, Frame, heldout_views
 from stages.common.errors import BlunfError
 from stages.common.io import image_size, read_depth, read_json, read_label, write_json
 from stages.project.config import ProjectConfig, ProjectInputs, ProjectOutputs
@@ -119,12 +119,6 @@ def run(cfg: ProjectConfig, inputs: ProjectInputs, out: Path) -> ProjectOutputs:
         grid.shape[0],
     )
     return outs
-
-
-def heldout_views(n: int, every: int) -> list[int]:
-    """Indices of the views kept out of the plan: index % every == every // 2 (the NeRF
-    stage's rule, so both hold out the same views); none when every = 0 or n < 2."""
-    return [i for i in range(n) if every > 0 and n > 1 and i % every == every // 2]
 
 
 def plan_bounds(xy: np.ndarray, cfg: ProjectConfig) -> tuple[np.ndarray, np.ndarray]:

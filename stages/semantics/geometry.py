@@ -17,10 +17,10 @@ import numpy as np
 import open3d as o3d
 import open3d.core as o3c
 
-from stages.common.camera import Intrinsics
 from stages.common.capture import UNKNOWN, Capture, Frame
 from stages.common.errors import BlunfError
 from stages.common.io import write_json, write_label_png
+from stages.fusion.tsdf import o3d_extrinsic, o3d_intrinsic
 from stages.semantics.config import (
     CLASSES,
     IGNORE,
@@ -112,13 +112,6 @@ def _read_mesh(path: Path) -> o3d.t.geometry.TriangleMesh:
     return mesh
 
 
-def _k(intr: Intrinsics) -> o3c.Tensor:
-    """K for Open3D's rays, whose pixel centres are at +0.5 (see stages.fusion.tsdf._k)."""
-    K = intr.K
-    K[:2, 2] += 0.5
-    return o3c.Tensor(K, o3c.float64, CPU)
-
-
 def _render(
     mesh: o3d.t.geometry.TriangleMesh, seg: Segmentation, cap: Capture, outs: SemanticsOutputs
 ) -> tuple[list[Frame], dict[str, float]]:
@@ -133,8 +126,7 @@ def _render(
     frames = []
     for f in cap.frames:
         k = f.intrinsics
-        w2c = o3c.Tensor(np.linalg.inv(np.asarray(f.pose, np.float64)), o3c.float64, CPU)
-        rays = scene.create_rays_pinhole(_k(k), w2c, k.width, k.height)
+        rays = scene.create_rays_pinhole(o3d_intrinsic(k), o3d_extrinsic(f), k.width, k.height)
         prim = scene.cast_rays(rays)["primitive_ids"].numpy().astype(np.int64)  # [H, W]
         prim[prim == MISS] = len(cls) - 1
         label = cls[prim]  # [H, W] uint8
