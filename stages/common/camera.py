@@ -73,7 +73,10 @@ class Intrinsics:
 
 def check_pose(pose: np.ndarray, where: str) -> np.ndarray:
     """Validate a 4x4 camera-to-world rigid (or similarity) transform. Returns float64 [4, 4]."""
-    p = np.asarray(pose, np.float64)
+    try:
+        p = np.asarray(pose, np.float64)
+    except (TypeError, ValueError):  # ragged nesting, strings
+        raise BlunfError(f"{where}: pose must be a finite 4x4 matrix of numbers") from None
     if p.shape != (4, 4) or not np.all(np.isfinite(p)):
         raise BlunfError(f"{where}: pose must be a finite 4x4 matrix")
     if not np.allclose(p[3], [0, 0, 0, 1], atol=1e-6):

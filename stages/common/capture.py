@@ -201,7 +201,7 @@ def read_layout(root: Path) -> Capture:
             )
         intr = Intrinsics.from_json(intr_d, f"{where} intrinsics of {stem}")
         pose = entry.get("pose")
-        pose_a = _pose(pose, f"{where} pose of {stem}") if pose is not None else None
+        pose_a = check_pose(pose, f"{where} pose of {stem}") if pose is not None else None
         depth = _find(root / "depth", stem, DEPTH_EXTS)
         label = _find(root / "labels", stem, (".png",))
         frames.append(
@@ -240,14 +240,6 @@ def read_layout(root: Path) -> Capture:
         gt=root / "gt" if (root / "gt").is_dir() else None,
         kind="blunf",
     )
-
-
-def _pose(v: object, where: str) -> np.ndarray:
-    try:
-        a = np.asarray(v, np.float64)
-    except (TypeError, ValueError):
-        raise BlunfError(f"{where}: pose must be a finite 4x4 matrix of numbers") from None
-    return check_pose(a, where)
 
 
 def _depth_scale(v: object, where: str) -> float:

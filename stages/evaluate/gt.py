@@ -12,7 +12,7 @@ from stages.common.blueprint import Blueprint, Grid
 from stages.common.capture import Capture
 from stages.common.io import read_json, write_json
 from stages.evaluate.config import EvaluateConfig
-from stages.evaluate.heldout import heldout_pacc
+from stages.evaluate.heldout import heldout_pixels, score_pixels
 from stages.evaluate.plan import evaluate_plan, to_frame
 from stages.evaluate.poses import pose_metrics, similarity
 
@@ -77,8 +77,9 @@ def run(cfg: EvaluateConfig, inputs: EvaluateInputs, out: Path) -> EvaluateOutpu
         stems = [str(s) for s in read_json(inputs.heldout).get("stems", [])]
         if stems:
             cap = Capture.load(inputs.frames)
+            xy, lab = heldout_pixels(cap, stems, cfg.heldout_stride)  # lifted once
             for m, p in zip(inputs.methods, inputs.blueprints, strict=True):
-                scores = heldout_pacc(Blueprint.load(p), cap, stems, cfg.heldout_stride)
+                scores = score_pixels(Blueprint.load(p), cap, xy, lab, len(stems))
                 metrics.setdefault("blueprint", {}).setdefault(m, {}).update(scores)
     write_json(out / "metrics.json", metrics)
     return EvaluateOutputs.at(out)

@@ -35,9 +35,18 @@ def heldout_pacc(plan: Blueprint, cap: Capture, stems: list[str], stride: int = 
         {"heldout_pacc": percent or None when no pixel was scored, "heldout_pixels": count,
         "heldout_views": number of views}.
     """
+    xy, lab = heldout_pixels(cap, stems, stride)
+    return score_pixels(plan, cap, xy, lab, len(stems))
+
+
+def heldout_pixels(
+    cap: Capture, stems: list[str], stride: int = 1
+) -> tuple[np.ndarray, np.ndarray]:
+    """The scored pixels of the frames named `stems` (labelled, not ignored), lifted with their
+    depth: (world xy [N, 2], frame label id [N]). Independent of any plan: lift once, score
+    every method's plan with `score_pixels`."""
     by_stem = {f.stem: f for f in cap.frames}
-    lut = _to_plan(cap, plan)  # [256] frame label id -> plan id (-1: the plan lacks it)
-    scored = correct = 0
+    xys, labs = [np.zeros((0, 2))], [np.zeros(0, np.int64)]
     for stem in stems:
         f = by_stem.get(stem)
         if f is None:
@@ -58,14 +67,23 @@ def heldout_pacc(plan: Blueprint, cap: Capture, stems: list[str], stride: int = 
         lab = label[stride // 2 :: stride, stride // 2 :: stride].reshape(-1)[idx]  # [N]
         keep = (lab >= 0) & (lab < UNKNOWN)
         keep[keep] = ~np.isin(lab[keep], cap.ignore)
-        want = lut[lab[keep]]  # [M] the plan id each pixel should read
-        got = plan.sample(xyz[keep, :2]).astype(np.int64)  # [M] UNKNOWN outside / unseen
-        scored += len(want)
-        correct += int(((want == got) & (got != UNKNOWN)).sum())
+        xys.append(xyz[keep, :2])
+        labs.append(lab[keep].astype(np.int64))
+    return np.concatenate(xys), np.concatenate(labs)
+
+
+def score_pixels(
+    plan: Blueprint, cap: Capture, xy: np.ndarray, lab: np.ndarray, views: int
+) -> dict:
+    """heldout_pacc's result for pixels lifted by `heldout_pixels` (`views` of them)."""
+    want = _to_plan(cap, plan)[lab]  # [N] the plan id each pixel should read
+    got = plan.sample(xy).astype(np.int64)  # [N] UNKNOWN outside / unseen
+    scored = len(want)
+    correct = int(((want == got) & (got != UNKNOWN)).sum())
     return {
         "heldout_pacc": 100.0 * correct / scored if scored else None,
         "heldout_pixels": scored,
-        "heldout_views": len(stems),
+        "heldout_views": views,
     }
 
 

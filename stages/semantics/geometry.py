@@ -28,7 +28,7 @@ from stages.semantics.config import (
     SemanticsInputs,
     SemanticsOutputs,
 )
-from stages.semantics.segment import Segmentation, segment, triangles
+from stages.semantics.segment import Segmentation, segment
 
 log = logging.getLogger(__name__)
 
@@ -65,7 +65,6 @@ def run(cfg: SemanticsConfig, inputs: SemanticsInputs, out: Path) -> SemanticsOu
     sem.save(outs.frames)
 
     n_obj = int(seg.instance.max(initial=0))
-    tri_area = triangles(verts, tris)[2]  # [T] m²
     planes = {k: sum(p["kind"] == k for p in seg.planes) for k in ("floor", "wall", "ceiling")}
     stats = {
         "triangles": len(tris),
@@ -79,7 +78,7 @@ def run(cfg: SemanticsConfig, inputs: SemanticsInputs, out: Path) -> SemanticsOu
         "noise_triangles": seg.noise_triangles,  # labelled unknown
         "floating_clusters": seg.floating_clusters,  # labelled unknown
         "area_m2": {
-            name: round(float(tri_area[seg.cls == k].sum()), 3)
+            name: round(float(seg.area[seg.cls == k].sum()), 3)
             for k, name in [*CLASSES.items(), (UNKNOWN, "unknown")]
         },
         "pixels": pixels,  # fraction of all pixels per class over every view

@@ -47,6 +47,7 @@ class Segmentation:
 
     cls: np.ndarray  # [T] uint8 class id or UNKNOWN
     instance: np.ndarray  # [T] int32 object instance (1.., by decreasing area); 0 = none
+    area: np.ndarray  # [T] triangle areas (m²)
     planes: list[dict] = field(default_factory=list)  # accepted planes: kind, normal, d, area
     rejected: list[dict] = field(default_factory=list)  # vertical planes that were not walls
     noise_clusters: int = 0  # clusters below object_min_area (unknown)
@@ -74,7 +75,7 @@ def segment(verts: np.ndarray, tris: np.ndarray, cfg: SemanticsConfig) -> Segmen
     rng = np.random.default_rng(cfg.seed)
     c, n, area = triangles(verts, tris)
     t = len(c)
-    seg = Segmentation(np.full(t, UNKNOWN, np.uint8), np.zeros(t, np.int32))
+    seg = Segmentation(np.full(t, UNKNOWN, np.uint8), np.zeros(t, np.int32), area)
     cos_t, sin_t = np.cos(np.radians(cfg.max_tilt_deg)), np.sin(np.radians(cfg.max_tilt_deg))
     ok = area > 0
     horiz = ok & (np.abs(n[:, 2]) > cos_t)
