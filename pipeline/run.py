@@ -102,7 +102,15 @@ def _recipe(
     for m in cfg.run.methods:
         if m == "nerf_top":
             assert nerf is not None
-            ins: object = NerfTopInputs(nerf.model, pts.points, pts.grid, gt.get("blueprint"))
+            ins: object = NerfTopInputs(
+                nerf.model,
+                pts.points,
+                pts.grid,
+                gt.get("blueprint"),
+                frames=labelled,
+                gt_poses=gt.get("poses"),
+                poses_estimated=plan.runs("poses"),
+            )
         else:
             ins = BlueprintInputs(points=pts.points, grid=pts.grid)
         plans[m] = r.stage("blueprint", m, ins).blueprint

@@ -95,6 +95,11 @@ class NerfTopInputs:
     points: Path  # points.npz of the project stage (the reference without ground truth)
     grid: Path  # grid.json of the project stage
     reference: Path | None = None  # ground-truth blueprint.npz, when the capture has one
+    frames: Path | None = None  # frames.json the points were projected from (their poses)
+    gt_poses: Path | None = None  # the capture's gt/poses.json, when it has one
+    poses_estimated: bool = False  # the poses of `frames` were estimated (SfM): the GT plan
+    #                                is read through the camera-centre similarity, as the
+    #                                evaluate stage reads it
 
 
 @dataclass(frozen=True)

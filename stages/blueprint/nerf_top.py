@@ -2,8 +2,9 @@
 semantic NeRF from a set of heights; the plan is the labels seen from the best height.
 
 As in the paper, the best height is the one whose plan scores the highest fwIoU against a
-reference: the ground-truth plan when the capture has one, else the majority vote of the
-projected labels (MVR), so the choice never looks at anything the other methods do not have.
+reference: the ground-truth plan when the capture has one (scored as the evaluate stage
+scores it: same frame, same class table), else the majority vote of the projected labels
+(MVR), so the choice never looks at anything the other methods do not have.
 """
 
 from __future__ import annotations
@@ -17,7 +18,9 @@ from stages.blueprint.mvr import majority_vote
 from stages.common.blueprint import Blueprint
 from stages.common.errors import BlunfError
 from stages.common.io import write_json
+from stages.evaluate.gt import gt_frame
 from stages.evaluate.metrics import plan_metrics
+from stages.evaluate.plan import evaluate_plan
 from stages.project.points import read_grid, read_points
 
 log = logging.getLogger(__name__)
@@ -36,14 +39,27 @@ def run(cfg: BlueprintConfig, inputs: NerfTopInputs, out: Path) -> BlueprintOutp
     model = load_model(inputs.model)
     if model.sem_head is None:
         raise BlunfError(f"{inputs.model}: the NeRF has no semantic head (no labels to learn)")
+    plans = top_view_labels(model, grid, list(c.heights), c.chunk)
     if inputs.reference is not None:
-        ref = Blueprint.load(inputs.reference).resample(grid)
+        # scored exactly as the evaluate stage will score it: in the GT's frame (through the
+        # camera-centre similarity for estimated poses) and class table (coarsened for
+        # derived floor / wall / object labels)
+        gt = Blueprint.load(inputs.reference)
+        frames = inputs.frames
+        pred_to_gt, _ = (
+            gt_frame(frames, inputs.gt_poses, inputs.poses_estimated, gt.grid)
+            if frames is not None
+            else (None, "")
+        )
+        scores = {
+            h: evaluate_plan(Blueprint(p, grid, classes), gt, pred_to_gt)["fwiou"]
+            for h, p in plans.items()
+        }
         against = "ground truth"
     else:
         ref, _ = majority_vote(xyz[:, :2], label, grid)
+        scores = {h: plan_metrics(p, ref, classes)["fwiou"] for h, p in plans.items()}
         against = "projected labels (MVR)"
-    plans = top_view_labels(model, grid, list(c.heights), c.chunk)
-    scores = {h: plan_metrics(p, ref, classes)["fwiou"] for h, p in plans.items()}
     best = max(scores, key=lambda h: (scores[h], -h))
     outs = BlueprintOutputs(Path(out) / "blueprint.npz", Path(out) / "nerf_top.json")
     Blueprint(plans[best], grid, classes).save(outs.blueprint)

@@ -60,9 +60,7 @@ def run(cfg: EvaluateConfig, inputs: EvaluateInputs, out: Path) -> EvaluateOutpu
     est: dict[str, np.ndarray] = {}
     gtp: dict[str, np.ndarray] = {}
     if gt_poses is not None and gt_poses.is_file() and (inputs.poses_estimated or cfg.plan):
-        cap = Capture.load(inputs.frames)
-        est = {f.stem: np.asarray(f.pose, np.float64) for f in cap.frames if f.pose is not None}
-        gtp = {k: np.asarray(v, np.float64) for k, v in read_json(gt_poses).items()}
+        est, gtp = pose_pairs(inputs.frames, gt_poses)
     gt_plan = gt_dir / "blueprint.npz" if gt_dir is not None else None
     if gt_plan is not None and gt_plan.is_file() and cfg.plan:
         gt = Blueprint.load(gt_plan)
@@ -83,6 +81,23 @@ def run(cfg: EvaluateConfig, inputs: EvaluateInputs, out: Path) -> EvaluateOutpu
                 metrics.setdefault("blueprint", {}).setdefault(m, {}).update(scores)
     write_json(out / "metrics.json", metrics)
     return EvaluateOutputs.at(out)
+
+
+def pose_pairs(frames: Path, gt_poses: Path) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """(stem -> [4, 4] pose of frames.json, stem -> [4, 4] ground-truth pose of poses.json)."""
+    cap = Capture.load(frames)
+    est = {f.stem: np.asarray(f.pose, np.float64) for f in cap.frames if f.pose is not None}
+    return est, {k: np.asarray(v, np.float64) for k, v in read_json(gt_poses).items()}
+
+
+def gt_frame(
+    frames: Path, gt_poses: Path | None, estimated: bool, grid: Grid
+) -> tuple[np.ndarray | None, str]:
+    """plan_frame for the plans projected from frames.json, given the capture's GT poses
+    (None or missing: the plans are taken to be in the GT frame unless poses were estimated)."""
+    if gt_poses is None or not gt_poses.is_file():
+        return plan_frame(estimated, {}, {}, grid)
+    return plan_frame(estimated, *pose_pairs(frames, gt_poses), grid)
 
 
 def plan_frame(

@@ -7,6 +7,7 @@ at every height is known exactly; a slow test runs it on a NeRF trained on a tin
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +16,8 @@ import torch
 
 from stages.blueprint import IMPLS, BlueprintConfig, NerfTopConfig, NerfTopInputs
 from stages.common.blueprint import Blueprint, Grid
+from stages.common.camera import Intrinsics
+from stages.common.capture import Capture, Frame
 from stages.common.errors import BlunfError
 from stages.common.io import read_json, write_json
 from stages.nerf.config import NerfConfig
@@ -111,7 +114,7 @@ def _inputs(tmp: Path, reference: np.ndarray | None, with_semantics: bool = True
 
 def _run(tmp: Path, ins: NerfTopInputs, heights=HEIGHTS):
     out = tmp / "out"
-    out.mkdir()
+    out.mkdir(parents=True)
     cfg = BlueprintConfig(impl="nerf_top", nerf_top=NerfTopConfig(heights=heights, chunk=128))
     outs = IMPLS["nerf_top"](cfg, ins, out)
     return Blueprint.load(outs.blueprint), read_json(outs.stats)
@@ -140,6 +143,43 @@ def test_reference_decides_the_height(tmp_path):
     assert stats["fwiou_by_height"] == {"2.00": 100.0, "1.00": 0.0, "1.50": 100.0, "0.50": 0.0}
     assert stats["height"] == 1.5
     np.testing.assert_array_equal(plan.labels, beam)
+
+
+def test_estimated_poses_score_the_heights_in_the_ground_truth_frame(tmp_path):
+    # poses from SfM: the plan is in the reconstruction's frame, here the GT frame turned 90
+    # degrees about z and moved by (10, -5). The heights are scored as the evaluate stage
+    # scores plans, through the camera-centre similarity: the same verdicts as in the GT
+    # frame (read cell by cell, both planes would share no cell and score 0 everywhere).
+    turn = np.array([[0.0, -1, 0, 10], [1, 0, 0, -5], [0, 0, 1, 0], [0, 0, 0, 1]])
+    gt_labels = np.full(GRID.shape, FLOOR, np.uint8)
+    gt_labels[:, :10] = RUG  # rug at y in [1, 2] here is x in [-2, -1] (+ 10) there
+    gt_grid = Grid((8.0, -5.0), 0.1, (20, 20))
+    ins = _inputs(tmp_path, None)
+    Blueprint(gt_labels, gt_grid, CLASSES).save(tmp_path / "gt_blueprint.npz")
+    centres = [(0.5, 0.5, 1.5), (1.5, 0.5, 1.4), (0.5, 1.5, 1.6), (1.5, 1.5, 1.5)]
+    est, gt = {}, {}
+    for i, c in enumerate(centres):
+        est[f"{i}"] = np.eye(4)
+        est[f"{i}"][:3, 3] = c
+        gt[f"{i}"] = (turn @ est[f"{i}"]).tolist()
+    intr = Intrinsics(50.0, 50.0, 31.5, 23.5, 64, 48)
+    frames = [Frame(k, tmp_path / f"{k}.png", intr, pose=p) for k, p in est.items()]
+    Capture(tmp_path, tuple(frames)).save(tmp_path / "frames.json")
+    write_json(tmp_path / "gt_poses.json", gt)
+    ins = replace(
+        ins,
+        reference=tmp_path / "gt_blueprint.npz",
+        frames=tmp_path / "frames.json",
+        gt_poses=tmp_path / "gt_poses.json",
+        poses_estimated=True,
+    )
+    plan, stats = _run(tmp_path, ins)
+    assert stats["fwiou_by_height"] == {"2.00": 0.0, "1.00": 100.0, "1.50": 0.0, "0.50": 100.0}
+    assert stats["height"] == 0.5
+    np.testing.assert_array_equal(plan.labels, _plan_floor_and_rug())
+    # read cell by cell instead (as if the frames were the GT's): nothing matches
+    _, flat = _run(tmp_path / "flat", replace(ins, frames=None))
+    assert set(flat["fwiou_by_height"].values()) == {0.0}
 
 
 def test_without_ground_truth_the_projected_labels_decide(tmp_path):
