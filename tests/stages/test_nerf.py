@@ -26,6 +26,7 @@ from stages.nerf.occupancy import OccupancyGrid
 from stages.nerf.render import render_view
 from stages.nerf.train import (
     Rays,
+    _depth_pixels,
     _geometry_loss,
     _progress,
     _surface_loss,
@@ -257,6 +258,24 @@ def _tiny_model(bias: float, color_grid: bool) -> tuple[NerfModel, Rays]:
     t[::4] = 0.0
     rays = Rays(torch.zeros(64, 3), dirs, torch.rand(64, 3), t, None)
     return model, rays
+
+
+def test_depth_losses_draw_only_pixels_with_depth():
+    # SfM tracks: few pixels have a reading; every draw of the depth losses is one of them
+    # (drawn from all pixels, most draws would be thrown away), at most as many as there are
+    z = torch.zeros(1000, 3)
+    few = torch.zeros(1000)
+    few[[5, 500, 999]] = torch.tensor([1.0, 2.0, 3.0])
+    idx, td = _depth_pixels(Rays(z, z, z, few, None), 256, torch.Generator().manual_seed(0))
+    assert len(idx) == 3 and set(idx.tolist()) <= {5, 500, 999}
+    assert torch.equal(td, few[idx])
+    more = few.clone()
+    more[10:410] = 4.0
+    idx, td = _depth_pixels(Rays(z, z, z, more, None), 256, torch.Generator().manual_seed(0))
+    assert len(idx) == 256 and (td > 0).all() and torch.equal(td, more[idx])
+    assert len(set(idx.tolist())) > 150  # spread over the pool, not one pixel repeated
+    empty = Rays(z, z, z, torch.zeros(1000), None)
+    assert len(_depth_pixels(empty, 256, torch.Generator())[0]) == 0
 
 
 @pytest.mark.parametrize(("color_grid", "dense"), [(True, True), (False, True), (True, False)])
