@@ -68,6 +68,12 @@ class NerfConfig:
     chunk: int = 16384  # rays per forward pass when rendering full views
     depth_render_scale: int = 2  # sparse depth: depth for fusion rendered at 1/k resolution
     acc_threshold: float = 0.5  # rendered depth is 0 (missing) where opacity is below this
+    depth_check: bool = False  # sparse depth: drop rendered readings the other views do not
+    #                           confirm (multi-view consistency, consistency.py) before fusion
+    depth_check_tol: float = 0.03  # relative depth difference within which two views agree
+    depth_check_agree: int = 1  # a reading is kept when at least this many views agree ...
+    depth_check_through: int = 0  # ... and at most this many see through it (a floater)
+    depth_check_views: int = 10  # each view is checked against the views overlapping it most
     aabb_pad: float = 0.05  # scene box = bounds of cameras and depth points, + this fraction
     no_depth_margin: float = 3.0  # metres around the cameras when there are no depth points
     depth_stride: int = 4  # pixel stride of the depth points bounding the scene box

@@ -21,6 +21,7 @@ from stages.common.capture import Capture, Frame
 from stages.common.errors import BlunfError
 from stages.common.io import write_depth_npy, write_image, write_json
 from stages.nerf.config import NerfConfig, NerfInputs, NerfOutputs
+from stages.nerf.consistency import consistent_depth
 from stages.nerf.field import NerfModel, save_model
 from stages.nerf.render import render_view
 from stages.nerf.train import (
@@ -75,15 +76,11 @@ def run(cfg: NerfConfig, inputs: NerfInputs, out: Path) -> NerfOutputs:
         (out / "heldout").mkdir()
         # depth is rendered for every view only when the input depth is sparse (photos only:
         # fusion needs it); with dense depth only the held-out views are rendered, for scores
-        frames, psnrs, absrels = [], [], []
-        for i, f in enumerate(cap.frames):
-            if not dense:  # depth for fusion, at 1 / depth_render_scale of the resolution
-                depth_path = outs.depth / f"{f.stem}.npy"
-                f = replace(f, depth=depth_path)
-                write_depth_npy(depth_path, render_depth(model, f, cfg))
-            frames.append(f)
-            if i not in held:
-                continue
+        frames, psnrs, absrels = list(cap.frames), [], []
+        if not dense:  # depth for fusion, at 1 / depth_render_scale of the resolution
+            frames, stats["depth_check_kept"] = _write_depths(model, frames, cfg, outs.depth)
+        for i in held:
+            f = frames[i]
             v = render_view(model, np.asarray(f.pose), f.intrinsics, cfg.chunk)
             depth = np.where(v["acc"] >= cfg.acc_threshold, v["depth"], 0.0)
             gt = views.rgb[i].view(v["rgb"].shape).numpy()
@@ -128,6 +125,38 @@ def run(cfg: NerfConfig, inputs: NerfInputs, out: Path) -> NerfOutputs:
         stats["depth_absrel"],
     )
     return outs
+
+
+def _write_depths(
+    model: NerfModel, frames: list[Frame], cfg: NerfConfig, folder: Path
+) -> tuple[list[Frame], float | None]:
+    """Render every frame's depth, drop the readings other views do not confirm (when
+    depth_check), write folder/<stem>.npy. Returns (the frames pointing at those files, the
+    fraction of readings kept or None without the check)."""
+    depths = [render_depth(model, f, cfg) for f in frames]
+    kept = None
+    if cfg.depth_check:
+        ks = [
+            f.intrinsics.scaled(d.shape[1], d.shape[0]).K
+            for f, d in zip(frames, depths, strict=True)
+        ]
+        poses = [np.asarray(f.pose, np.float64) for f in frames]
+        depths, kept = consistent_depth(
+            depths,
+            ks,
+            poses,
+            cfg.depth_check_tol,
+            cfg.depth_check_agree,
+            cfg.depth_check_through,
+            cfg.depth_check_views,
+        )
+        log.info("nerf: %.1f %% of the rendered depth readings confirmed by others", 100 * kept)
+    out = []
+    for f, d in zip(frames, depths, strict=True):
+        path = folder / f"{f.stem}.npy"
+        write_depth_npy(path, d)
+        out.append(replace(f, depth=path))
+    return out, None if kept is None else round(kept, 4)
 
 
 def render_depth(model: NerfModel, f: Frame, cfg: NerfConfig) -> np.ndarray:

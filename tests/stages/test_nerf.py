@@ -189,6 +189,23 @@ def test_sparse_depth_renders_every_view(tmp_path):
         assert raw.max() < 8.0
         np.testing.assert_array_equal(read_depth(f.depth, got.depth_scale), raw)
     assert not load_model(outs.model).surface_color  # sparse: colours are composited
+    # with the multi-view check: the same (seeded) renders, minus the unconfirmed readings
+    # (every pixel's depth kept, acc_threshold 0: ten steps leave the field nearly empty)
+    runs = {}
+    for check in (False, True):
+        folder = tmp_path / f"check_{check}"
+        folder.mkdir()
+        c = replace(cfg, depth_check=check, acc_threshold=0.0)
+        runs[check] = IMPLS["grid"](c, NerfInputs(_frames(cap, tmp_path)), folder)
+    kept = read_json(runs[True].stats)["depth_check_kept"]
+    assert read_json(runs[False].stats)["depth_check_kept"] is None and 0 <= kept < 1
+    n_raw = n_chk = 0
+    plain, checked_frames = (Capture.load(runs[k].frames).frames for k in (False, True))
+    for f, g in zip(plain, checked_frames, strict=True):
+        raw, checked = np.load(f.depth), np.load(g.depth)
+        assert np.all((checked == 0) | (checked == raw))
+        n_raw, n_chk = n_raw + np.count_nonzero(raw), n_chk + np.count_nonzero(checked)
+    assert n_raw > 0 and n_chk == pytest.approx(kept * n_raw, abs=1)
 
 
 # ---- seeds ---------------------------------------------------------------------------------

@@ -1,0 +1,111 @@
+"""Multi-view geometric consistency of rendered depth maps (photos-only depth path).
+
+A NeRF trained on photos and sparse SfM tracks renders floaters: density hanging in front
+of the surface in some views, seen through in others. Such a reading is checked the way
+multi-view stereo checks its depth maps before fusing them (COLMAP's fusion, Schönberger
+et al. 2016): each pixel is lifted to a world point and projected into the views that
+overlap its view. A neighbour *agrees* where its own depth at that pixel is within `tol`
+(relative) of the point's depth, and *sees through* the point where its depth lies beyond
+the point by more than `tol` (the point hangs in space that neighbour found empty). A
+pixel is kept when at least `min_agree` neighbours agree and at most `max_through` see
+through it; other pixels become missing depth, which TSDF fusion simply leaves out.
+
+Neither Open3D nor pycolmap offers this check on depth maps given from outside (pycolmap's
+stereo fusion needs its own CUDA patch-match outputs), hence this numpy implementation.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from stages.common.camera import depth_to_points, project
+from stages.common.errors import BlunfError
+
+
+def consistent_depth(
+    depths: list[np.ndarray],
+    Ks: list[np.ndarray],
+    poses: list[np.ndarray],
+    tol: float,
+    min_agree: int,
+    max_through: int,
+    neighbours: int,
+) -> tuple[list[np.ndarray], float]:
+    """Depth maps with the readings the other views do not confirm set to 0.
+
+    Args:
+        depths: per view [H, W] z-depth (metres, 0 = missing).
+        Ks: per view [3, 3] intrinsics at the depth maps' resolution.
+        poses: per view [4, 4] camera-to-world.
+        tol: relative depth difference within which two readings agree.
+        min_agree: neighbours that must agree for a reading to be kept.
+        max_through: at most this many neighbours may see through a kept reading.
+        neighbours: each view is checked against this many others: those into which the
+            most of its (strided) readings project, i.e. the views that overlap it most.
+    Returns:
+        (filtered depth maps, float32, same shapes; fraction of the readings kept).
+    """
+    if not 0 < tol < 1:
+        raise BlunfError(f"nerf.depth_check_tol must be in (0, 1), got {tol}")
+    if min_agree < 0 or max_through < 0 or neighbours < 1:
+        raise BlunfError(
+            "nerf.depth_check_agree / depth_check_through must be >= 0 and "
+            f"depth_check_views >= 1, got {min_agree}, {max_through}, {neighbours}"
+        )
+    n = len(depths)
+    order = _overlap_order(depths, Ks, poses)
+    out: list[np.ndarray] = []
+    total = kept = 0
+    for i in range(n):
+        pts, flat = depth_to_points(depths[i], Ks[i], poses[i])
+        agree = np.zeros(len(pts), np.int32)
+        through = np.zeros(len(pts), np.int32)
+        for j in order[i][:neighbours]:
+            dj, z = _depth_at(pts, depths[j], Ks[j], poses[j])
+            seen = dj > 0
+            # relative to the neighbour's reading (guarded: seen implies dj > 0)
+            rel = (z - dj) / np.where(seen, dj, 1.0)
+            agree += seen & (np.abs(rel) <= tol)
+            through += seen & (rel < -tol)
+        ok = (agree >= min_agree) & (through <= max_through)
+        d = np.zeros(depths[i].size, np.float32)
+        d[flat[ok]] = depths[i].reshape(-1)[flat[ok]]
+        out.append(d.reshape(depths[i].shape))
+        total += len(pts)
+        kept += int(ok.sum())
+    return out, kept / max(1, total)
+
+
+def _depth_at(
+    pts: np.ndarray, depth: np.ndarray, K: np.ndarray, c2w: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(reading of `depth` at the nearest pixel to each point's projection, 0 when outside
+    the view or behind it; the point's z in that view) for world points pts [N, 3]."""
+    uv, z = project(pts, K, c2w)
+    h, w = depth.shape
+    u = np.rint(uv[:, 0])
+    v = np.rint(uv[:, 1])
+    inside = (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    d = np.zeros(len(pts), np.float64)
+    d[inside] = depth[v[inside].astype(np.int64), u[inside].astype(np.int64)]
+    return d, z
+
+
+def _overlap_order(
+    depths: list[np.ndarray], Ks: list[np.ndarray], poses: list[np.ndarray], stride: int = 8
+) -> list[list[int]]:
+    """Per view, the other views by decreasing overlap: how many of its readings (on a
+    strided pixel grid) project inside them with a reading there."""
+    n = len(depths)
+    order = []
+    for i in range(n):
+        h, w = depths[i].shape
+        s = max(1, min(stride, min(h, w) // 8))
+        pts, _ = depth_to_points(depths[i], Ks[i], poses[i], s)
+        counts = np.zeros(n, np.int64)
+        for j in range(n):
+            if j != i and len(pts):
+                counts[j] = int((_depth_at(pts, depths[j], Ks[j], poses[j])[0] > 0).sum())
+        counts[i] = -1
+        order.append([int(j) for j in np.argsort(-counts, kind="stable") if counts[j] > 0])
+    return order

@@ -1,0 +1,70 @@
+"""Multi-view consistency check of rendered depth (stages/nerf/consistency.py), on the exact
+depth of the procedural room: true readings survive, floaters pasted into one view do not."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stages.common.capture import read_layout
+from stages.common.errors import BlunfError
+from stages.common.io import read_depth
+from stages.nerf.consistency import consistent_depth
+
+ARGS = {"tol": 0.03, "min_agree": 1, "max_through": 0, "neighbours": 8}
+
+
+@pytest.fixture(scope="module")
+def views(tiny_room):
+    cap = read_layout(tiny_room)
+    depths = [read_depth(f.depth).astype(np.float32) for f in cap.frames]
+    return depths, [f.intrinsics.K for f in cap.frames], [np.asarray(f.pose) for f in cap.frames]
+
+
+def test_true_depth_is_kept_and_floaters_dropped(views):
+    depths, ks, poses = views
+    out, kept = consistent_depth(depths, ks, poses, **ARGS)
+    # exact depth: a reading is dropped only where no other view sees its point, or where a
+    # neighbour's nearest pixel reads across a depth edge
+    assert kept > 0.85
+    for d, o in zip(depths, out, strict=True):
+        assert o.dtype == np.float32 and o.shape == d.shape
+        assert np.all((o == 0) | (o == d))  # kept readings are unchanged
+    # a floater: a patch of view 3 read at 60 % of its depth (density hanging in free space)
+    bad = [d.copy() for d in depths]
+    bad[3][20:40, 30:60] *= 0.6
+    out_bad, _ = consistent_depth(bad, ks, poses, **ARGS)
+    patch = out_bad[3][20:40, 30:60]
+    assert np.count_nonzero(patch) <= 0.02 * patch.size
+    # the rest of view 3 and the other views are judged as before, bar the readings that
+    # leaned on the patch
+    rest = np.ones(depths[3].shape, bool)
+    rest[20:40, 30:60] = False
+    assert np.mean(out_bad[3][rest] == out[3][rest]) > 0.97
+    same = [np.mean(a == b) for i, (a, b) in enumerate(zip(out, out_bad, strict=True)) if i != 3]
+    assert min(same) > 0.95
+
+
+@pytest.mark.parametrize(("scale", "offset"), [(1e-3, 0.0), (1e3, 0.0), (1.0, 1e5)])
+def test_same_verdicts_at_any_scale_and_offset(views, scale, offset):
+    # the tolerance is relative and points are float64: a scene in millimetres, kilometres
+    # or far from the origin is judged alike
+    depths, ks, poses = views
+    ref, _ = consistent_depth(depths, ks, poses, **ARGS)
+    moved = []
+    for p in poses:
+        q = p.copy()
+        q[:3, 3] = q[:3, 3] * scale + offset
+        moved.append(q)
+    out, _ = consistent_depth([d * np.float32(scale) for d in depths], ks, moved, **ARGS)
+    for a, b in zip(ref, out, strict=True):
+        assert np.all(np.isfinite(b))
+        assert np.mean((a > 0) == (b > 0)) > 0.995
+
+
+def test_bad_settings_are_refused(views):
+    depths, ks, poses = views
+    with pytest.raises(BlunfError, match="depth_check_tol"):
+        consistent_depth(depths, ks, poses, **{**ARGS, "tol": 0.0})
+    with pytest.raises(BlunfError, match="depth_check_views"):
+        consistent_depth(depths, ks, poses, **{**ARGS, "neighbours": 0})
