@@ -133,7 +133,7 @@ def build_field(c: BlunfConfig, n_classes: int, cells_across: int) -> nn.Module:
     if c.encoding == "none":
         enc = Identity()
     elif c.encoding == "pe":
-        enc = PositionalEncoding(c.n_freqs or auto_freqs(cells_across))
+        enc = PositionalEncoding(2, c.n_freqs or auto_freqs(cells_across))
     else:
         max_res = c.hash_max_res if c.hash_max_res > 0 else cells_across // 2
         enc = HashGrid2D(

@@ -1,4 +1,5 @@
-"""Coordinate encodings of the BluNF field, on plan coordinates already normalised to [-1, 1].
+"""Coordinate encodings of the BluNF field, on plan coordinates already normalised to [-1, 1]
+(the positional encoding, the table gather and the ReLU MLP serve the NeRF field too).
 
 - "none": the coordinates as they are.
 - "pe": NeRF's positional encoding [u, sin(2^k pi u), cos(2^k pi u)], k < n_freqs.
@@ -29,18 +30,18 @@ class Identity(nn.Module):
 
 
 class PositionalEncoding(nn.Module):
-    """[B, 2] -> [B, 2 + 4 n_freqs]: the input, then sin and cos of 2^k pi u per frequency."""
+    """[N, D] -> [N, D (1 + 2 n_freqs)]: the input, then sin and cos of 2^k pi x."""
 
-    freqs: Tensor  # [n_freqs] 2^k pi
+    freqs: Tensor  # [n_freqs] buffer
 
-    def __init__(self, n_freqs: int) -> None:
+    def __init__(self, dims: int, n_freqs: int) -> None:
         super().__init__()
         self.register_buffer("freqs", math.pi * 2.0 ** torch.arange(n_freqs, dtype=torch.float32))
-        self.out_dim = 2 + 4 * n_freqs
+        self.out_dim = dims * (1 + 2 * n_freqs)
 
-    def forward(self, u: Tensor) -> Tensor:
-        a = (u[:, :, None] * self.freqs).flatten(1)  # [B, 2 n]
-        return torch.cat([u, torch.sin(a), torch.cos(a)], dim=-1)
+    def forward(self, x: Tensor) -> Tensor:
+        a = (x[:, :, None] * self.freqs).flatten(1)  # [N, D n]
+        return torch.cat([x, torch.sin(a), torch.cos(a)], dim=-1)
 
 
 class HashGrid2D(nn.Module):
@@ -91,25 +92,39 @@ class HashGrid2D(nn.Module):
             idx = idx + getattr(self, f"{name}_off")[:, None, None]
             fx, fy = f[..., 0], f[..., 1]  # [Lg, B]
             w = torch.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], -1)
-            feats = _Gather.apply(self.table, idx.flatten()).view(*idx.shape, -1)  # [Lg, B, 4, F]
+            feats = gather_rows(self.table, idx.flatten()).view(*idx.shape, -1)  # [Lg, B, 4, F]
             out.append((w[..., None] * feats).sum(dim=2))  # [Lg, B, F]
         return torch.cat(out).permute(1, 0, 2).flatten(1)  # [B, L F], levels coarse to fine
 
 
 class _Gather(torch.autograd.Function):
-    """table[idx] whose backward is one index_add (embedding's dense backward sorts: slower)."""
+    """rows = table[idx] for a [T, F] float32 table, with faster CPU kernels than index_select
+    on rows: pairs of features are read as one float64 (a 1-D gather) and the backward
+    accumulates one contiguous column at a time (1-D index_add, deterministic on CPU)."""
 
     @staticmethod
-    def forward(ctx, table: Tensor, idx: Tensor) -> Tensor:  # type: ignore[override]
+    def forward(ctx, table: Tensor, idx: Tensor) -> Tensor:
         ctx.save_for_backward(idx)
-        ctx.rows = table.shape[0]
+        ctx.size = table.shape
+        if table.shape[1] == 2 and table.dtype == torch.float32 and table.is_contiguous():
+            pairs = table.view(torch.float64).view(-1).index_select(0, idx)  # [M]
+            return pairs.view(torch.float32).view(-1, 2)
         return table.index_select(0, idx)
 
     @staticmethod
-    def backward(ctx, grad: Tensor) -> tuple[Tensor, None]:  # type: ignore[override]
+    def backward(ctx, g: Tensor) -> tuple[Tensor, None]:
         (idx,) = ctx.saved_tensors
-        g = torch.zeros(ctx.rows, grad.shape[1], dtype=grad.dtype, device=grad.device)
-        return g.index_add_(0, idx, grad), None
+        t, f = ctx.size
+        grad = torch.zeros(f, t, dtype=g.dtype)
+        for j in range(f):
+            grad[j].index_add_(0, idx, g[:, j].contiguous())
+        return grad.t().contiguous(), None
+
+
+def gather_rows(table: Tensor, idx: Tensor) -> Tensor:
+    """table[idx] for a [T, F] table and flat indices [M] -> [M, F] (see _Gather)."""
+    out: Tensor = _Gather.apply(table, idx)
+    return out
 
 
 class SineLayer(nn.Module):

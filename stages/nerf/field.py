@@ -16,7 +16,7 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-from stages.blueprint.encoding import relu_mlp
+from stages.blueprint.encoding import PositionalEncoding, gather_rows, relu_mlp
 from stages.common.errors import BlunfError
 from stages.nerf.config import NerfConfig
 from stages.nerf.occupancy import OccupancyGrid
@@ -40,30 +40,6 @@ class TruncExp(torch.autograd.Function):
     def backward(ctx, g: Tensor) -> Tensor:
         (y,) = ctx.saved_tensors
         return g * y
-
-
-class _Gather(torch.autograd.Function):
-    """rows = table[idx] for a [T, F] float32 table, with faster CPU kernels than index_select
-    on rows: pairs of features are read as one float64 (a 1-D gather) and the backward
-    accumulates one contiguous column at a time (1-D index_add, deterministic on CPU)."""
-
-    @staticmethod
-    def forward(ctx, table: Tensor, idx: Tensor) -> Tensor:
-        ctx.save_for_backward(idx)
-        ctx.size = table.shape
-        if table.shape[1] == 2 and table.dtype == torch.float32 and table.is_contiguous():
-            pairs = table.view(torch.float64).view(-1).index_select(0, idx)  # [M]
-            return pairs.view(torch.float32).view(-1, 2)
-        return table.index_select(0, idx)
-
-    @staticmethod
-    def backward(ctx, g: Tensor) -> tuple[Tensor, None]:
-        (idx,) = ctx.saved_tensors
-        t, f = ctx.size
-        grad = torch.zeros(f, t, dtype=g.dtype)
-        for j in range(f):
-            grad[j].index_add_(0, idx, g[:, j].contiguous())
-        return grad.t().contiguous(), None
 
 
 class HashGrid3D(nn.Module):
@@ -116,23 +92,8 @@ class HashGrid3D(nn.Module):
         w = torch.stack([1.0 - frac, frac], dim=-1)  # [N, L, 3, 2]
         wxy = w[:, :, 0, None, :] * w[:, :, 1, :, None]  # [N, L, 2, 2]
         wt = (wxy[:, :, None] * w[:, :, 2, :, None, None]).view(n, lv, 8, 1)
-        feat = _Gather.apply(self.table, idx.view(-1)).view(n, lv, 8, self.features)
+        feat = gather_rows(self.table, idx.view(-1)).view(n, lv, 8, self.features)
         return (feat * wt).sum(dim=2).view(n, self.out_dim)
-
-
-class PositionalEncoding(nn.Module):
-    """[N, D] -> [N, D (1 + 2 n_freqs)]: the input, then sin and cos of 2^k pi x."""
-
-    freqs: Tensor  # [n_freqs] buffer
-
-    def __init__(self, dims: int, n_freqs: int) -> None:
-        super().__init__()
-        self.register_buffer("freqs", math.pi * 2.0 ** torch.arange(n_freqs, dtype=torch.float32))
-        self.out_dim = dims * (1 + 2 * n_freqs)
-
-    def forward(self, x: Tensor) -> Tensor:
-        a = (x[:, :, None] * self.freqs).flatten(1)  # [N, D n]
-        return torch.cat([x, torch.sin(a), torch.cos(a)], dim=-1)
 
 
 class NerfModel(nn.Module):
