@@ -74,7 +74,7 @@ def test_tiny_bench_end_to_end(tmp_path: Path):
     column, the stage timings and the flattened metrics; bench.md and the figures exist; a
     variant on an absent real capture is skipped with a message."""
     specs = {
-        "tiny": CaptureSpec("tiny", synthetic(8, (64, 48), seed=3), (64, 48)),
+        "tiny": CaptureSpec("tiny", synthetic(8, (64, 48), seed=3)),
         "gone": CaptureSpec("gone", lambda out: tmp_path / "no-such-capture", real=True),
     }
     fast = ("fusion.voxel=0.05", "blueprint.blunf.steps=20", "blueprint.blunf.batch=1024")

@@ -54,7 +54,6 @@ class CaptureSpec:
 
     name: str
     make: Callable[[Path], Path]  # out folder of the bench -> the capture folder
-    size: tuple[int, int] | None = None  # (width, height) of its images, when known
     real: bool = False  # read from SHARED_DATA: skipped with a message when absent
 
 
@@ -83,10 +82,10 @@ def captures(quick: bool) -> dict[str, CaptureSpec]:
     """The bench's captures. `room` is the main synthetic room; `room-WxH` the resolution sweep."""
     main = (160, 120) if quick else (320, 240)
     specs = [
-        CaptureSpec("room", synthetic(45 if quick else 90, main), main),
-        *(CaptureSpec(f"room-{w}x{h}", synthetic(18, (w, h)), (w, h)) for w, h in SIZES),
-        CaptureSpec("7scenes", shared("7scenes-redkitchen"), (640, 480), real=True),
-        CaptureSpec("replica", shared("replica-office0"), (600, 340), real=True),
+        CaptureSpec("room", synthetic(45 if quick else 90, main)),
+        *(CaptureSpec(f"room-{w}x{h}", synthetic(18, (w, h))) for w, h in SIZES),
+        CaptureSpec("7scenes", shared("7scenes-redkitchen"), real=True),
+        CaptureSpec("replica", shared("replica-office0"), real=True),
     ]
     return {c.name: c for c in specs}
 
