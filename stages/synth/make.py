@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from stages.common.errors import BlunfError
-from stages.common.io import read_json, write_depth_png, write_image, write_json, write_label_png
+from stages.common.io import write_depth_png, write_image, write_json, write_label_png
 from stages.synth.render import Tracer, camera_path, intrinsics_for, render, top_down
 from stages.synth.room import CLASSES, IGNORE, build_room, scene_mesh
 
@@ -52,9 +52,7 @@ def make_room(
     tmp = out.parent / f".{out.name}.synth-tmp"
     shutil.rmtree(tmp, ignore_errors=True)
     try:
-        _write(tmp, views, seed, (w, h), ceiling)
-        if photos_only:
-            _photos_only(tmp)
+        _write(tmp, views, seed, (w, h), ceiling, photos_only)
         if out.exists():
             out.rmdir()
         tmp.rename(out)
@@ -63,22 +61,20 @@ def make_room(
     return out
 
 
-def _photos_only(root: Path) -> None:
-    """Drop what a phone capture lacks: depth, labels, poses and gravity."""
-    shutil.rmtree(root / "depth")
-    shutil.rmtree(root / "labels")
-    (root / "labels.json").unlink()
-    cams = read_json(root / "cameras.json")
-    write_json(root / "cameras.json", {"intrinsics": cams["intrinsics"]})
-
-
 def _is_int(x: object) -> bool:
     return isinstance(x, int | np.integer) and not isinstance(x, bool)
 
 
-def _write(root: Path, views: int, seed: int, size: tuple[int, int], ceiling: bool) -> None:
+def _write(
+    root: Path, views: int, seed: int, size: tuple[int, int], ceiling: bool, photos_only: bool
+) -> None:
+    """The capture's files; photos_only: without what a phone capture lacks (depth, labels,
+    poses and gravity), the ground truth in gt/ all the same."""
     t0 = time.perf_counter()
-    for sub in ("images", "depth", "labels", "gt/instances"):
+    subs = (
+        ("images", "gt/instances") if photos_only else ("images", "depth", "labels", "gt/instances")
+    )
+    for sub in subs:
         (root / sub).mkdir(parents=True)
     room = build_room(seed, ceiling)
     tracer = Tracer(room.parts)
@@ -91,8 +87,9 @@ def _write(root: Path, views: int, seed: int, size: tuple[int, int], ceiling: bo
         v = render(tracer, pose, intr)
         t_render += time.perf_counter() - t1
         write_image(root / "images" / f"{stem}.png", v.rgb)
-        write_depth_png(root / "depth" / f"{stem}.png", v.depth)
-        write_label_png(root / "labels" / f"{stem}.png", v.label)
+        if not photos_only:
+            write_depth_png(root / "depth" / f"{stem}.png", v.depth)
+            write_label_png(root / "labels" / f"{stem}.png", v.label)
         write_label_png(root / "gt" / "instances" / f"{stem}.png", v.instance)
     log.info(
         "rendered %d views of %dx%d in %.2f s (%.3f s/view)",
@@ -103,19 +100,22 @@ def _write(root: Path, views: int, seed: int, size: tuple[int, int], ceiling: bo
     )
 
     pose_d = {s: p.tolist() for s, p in zip(stems, poses, strict=True)}
-    write_json(
-        root / "cameras.json",
-        {
-            "intrinsics": intr.to_json(),
-            "frames": {s: {"pose": p} for s, p in pose_d.items()},
-            "gravity": [0.0, 0.0, -1.0],
-            "depth_scale": 1000,
-        },
-    )
-    write_json(
-        root / "labels.json",
-        {"classes": {str(k): v for k, v in CLASSES.items()}, "ignore": list(IGNORE)},
-    )
+    if photos_only:
+        write_json(root / "cameras.json", {"intrinsics": intr.to_json()})
+    else:
+        write_json(
+            root / "cameras.json",
+            {
+                "intrinsics": intr.to_json(),
+                "frames": {s: {"pose": p} for s, p in pose_d.items()},
+                "gravity": [0.0, 0.0, -1.0],
+                "depth_scale": 1000,
+            },
+        )
+        write_json(
+            root / "labels.json",
+            {"classes": {str(k): v for k, v in CLASSES.items()}, "ignore": list(IGNORE)},
+        )
     write_json(root / "gt" / "poses.json", pose_d)
     write_json(
         root / "gt" / "instances.json",

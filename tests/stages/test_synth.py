@@ -87,6 +87,24 @@ def test_same_seed_same_bytes_other_seed_other_room(small: Path, tmp_path: Path)
     ).read_bytes()
 
 
+def test_photos_only_is_the_same_capture_without_what_a_phone_lacks(
+    small: Path, tmp_path: Path
+) -> None:
+    phone = make_room(tmp_path / "phone", **SMALL, photos_only=True)
+    assert sorted(p.name for p in phone.iterdir()) == ["cameras.json", "gt", "images"]
+    assert read_json(phone / "cameras.json") == {
+        "intrinsics": read_json(small / "cameras.json")["intrinsics"]
+    }
+    for sub in ("images", "gt"):  # the same photos and the same ground truth, byte for byte
+        files = sorted(p.relative_to(small) for p in (small / sub).rglob("*") if p.is_file())
+        assert files == sorted(
+            p.relative_to(phone) for p in (phone / sub).rglob("*") if p.is_file()
+        )
+        assert all((small / f).read_bytes() == (phone / f).read_bytes() for f in files)
+    cap = read_layout(phone)
+    assert not cap.has_poses and not cap.has_depth and not cap.has_labels and cap.gravity is None
+
+
 def test_surfaces_lie_where_the_room_says(small: Path) -> None:
     """Floor pixels unproject to z = 0, walls to their planes, furniture into its bbox."""
     room = read_json(small / "gt" / "room.json")
