@@ -48,7 +48,7 @@ typecheck: setup
 
 # Run time against error over the stage variants (pipeline/bench/grid.py), one thread a run:
 # bench.md, bench.csv and the plots in the out folder. Not part of CI.
-bench: setup  ## the full grid, 3 repeats (up to ~1 h): runs/bench/
+bench: setup  ## the full grid, 3 repeats (~1 h idle, 89 min measured on a loaded machine): runs/bench/
 	$(BIN)/blunf bench --out runs/bench
 
 bench-quick: setup  ## a small grid, 1 repeat (< 10 min): runs/bench-quick/
