@@ -45,12 +45,10 @@ def run(cfg: BlueprintConfig, inputs: NerfTopInputs, out: Path) -> BlueprintOutp
         # camera-centre similarity for estimated poses) and class table (coarsened for
         # derived floor / wall / object labels)
         gt = Blueprint.load(inputs.reference)
-        frames = inputs.frames
-        pred_to_gt, _ = (
-            gt_frame(frames, inputs.gt_poses, inputs.poses_estimated, gt.grid)
-            if frames is not None
-            else (None, "")
-        )
+        pred_to_gt = None  # without frames: the plan is taken to be in the GT's frame
+        if inputs.frames is not None:
+            args = (inputs.frames, inputs.gt_poses, inputs.poses_estimated, gt.grid)
+            pred_to_gt, _ = gt_frame(*args)
         scores = {
             h: evaluate_plan(Blueprint(p, grid, classes), gt, pred_to_gt)["fwiou"]
             for h, p in plans.items()
