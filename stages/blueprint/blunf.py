@@ -27,10 +27,11 @@ from stages.blueprint.encoding import (
     relu_mlp,
     siren,
 )
+from stages.blueprint.instances import instance_raster
 from stages.common.blueprint import Blueprint, Grid
 from stages.common.errors import BlunfError
 from stages.common.io import write_json
-from stages.project.points import read_bounds, read_grid, read_points
+from stages.project.points import read_bounds, read_grid, read_instances, read_points
 
 log = logging.getLogger(__name__)
 
@@ -68,8 +69,10 @@ def run(cfg: BlueprintConfig, inputs: BlueprintInputs, out: Path) -> BlueprintOu
         labels = class_ids[predict(model, centers, c.eval_chunk)].reshape(grid.shape)
     finally:
         torch.set_num_threads(old_threads)
+    labels = labels.astype(np.uint8)
+    inst = instance_raster(labels, grid, xyz[:, :2], label, read_instances(inputs.points))
     outs = BlueprintOutputs(blueprint=Path(out) / "blueprint.npz", stats=Path(out) / "train.json")
-    Blueprint(labels.astype(np.uint8), grid, classes).save(outs.blueprint)
+    Blueprint(labels, grid, classes, inst).save(outs.blueprint)
     torch.save(
         {
             "state_dict": model.state_dict(),

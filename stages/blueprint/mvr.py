@@ -13,11 +13,12 @@ from pathlib import Path
 import numpy as np
 
 from stages.blueprint.config import BlueprintConfig, BlueprintInputs, BlueprintOutputs
+from stages.blueprint.instances import instance_raster
 from stages.common.blueprint import Blueprint, Grid
 from stages.common.capture import UNKNOWN
 from stages.common.errors import BlunfError
 from stages.common.io import write_json
-from stages.project.points import read_grid, read_points
+from stages.project.points import read_grid, read_instances, read_points
 
 log = logging.getLogger(__name__)
 
@@ -33,8 +34,9 @@ def run(cfg: BlueprintConfig, inputs: BlueprintInputs, out: Path) -> BlueprintOu
     t1 = time.perf_counter()
     labels, voted = majority_vote(xyz[:, :2], label, grid, cfg.mvr.min_votes)
     seconds = time.perf_counter() - t1
+    inst = instance_raster(labels, grid, xyz[:, :2], label, read_instances(inputs.points))
     outs = BlueprintOutputs(blueprint=Path(out) / "blueprint.npz", stats=Path(out) / "mvr.json")
-    Blueprint(labels, grid, classes).save(outs.blueprint)
+    Blueprint(labels, grid, classes, inst).save(outs.blueprint)
     h, w = grid.shape
     write_json(
         outs.stats,

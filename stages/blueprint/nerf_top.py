@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 from stages.blueprint.config import BlueprintConfig, BlueprintOutputs, NerfTopInputs
+from stages.blueprint.instances import instance_raster
 from stages.blueprint.mvr import majority_vote
 from stages.common.blueprint import Blueprint
 from stages.common.errors import BlunfError
@@ -21,7 +22,7 @@ from stages.common.io import write_json
 from stages.evaluate.gt import gt_frame
 from stages.evaluate.metrics import plan_metrics
 from stages.evaluate.plan import evaluate_plan
-from stages.project.points import read_grid, read_points
+from stages.project.points import read_grid, read_instances, read_points
 
 log = logging.getLogger(__name__)
 
@@ -60,7 +61,8 @@ def run(cfg: BlueprintConfig, inputs: NerfTopInputs, out: Path) -> BlueprintOutp
         against = "projected labels (MVR)"
     best = max(scores, key=lambda h: (scores[h], -h))
     outs = BlueprintOutputs(Path(out) / "blueprint.npz", Path(out) / "nerf_top.json")
-    Blueprint(plans[best], grid, classes).save(outs.blueprint)
+    inst = instance_raster(plans[best], grid, xyz[:, :2], label, read_instances(inputs.points))
+    Blueprint(plans[best], grid, classes, inst).save(outs.blueprint)
     write_json(
         outs.stats,
         {

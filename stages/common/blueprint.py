@@ -1,4 +1,5 @@
-"""The blueprint raster: class ids on square cells, row 0 at the highest y (north up)."""
+"""The blueprint raster: class ids on square cells, row 0 at the highest y (north up), and
+optionally the object instance of every cell."""
 
 from __future__ import annotations
 
@@ -63,11 +64,16 @@ class Grid:
 
 @dataclass(frozen=True)
 class Blueprint:
-    """labels uint8 [H, W] (UNKNOWN = 255 unseen) on `grid`, with the class table."""
+    """labels uint8 [H, W] (UNKNOWN = 255 unseen) on `grid`, with the class table.
+
+    `instances` int32 [H, W], when the plan knows them: the object instance of every cell
+    (0 = none), so that two objects of one class that touch stay two components.
+    """
 
     labels: np.ndarray
     grid: Grid
     classes: dict[int, str] = field(default_factory=dict)
+    instances: np.ndarray | None = None
 
     def sample(self, xy: np.ndarray) -> np.ndarray:
         """Label at world points xy [N, 2] (nearest cell); UNKNOWN outside the raster."""
@@ -82,12 +88,14 @@ class Blueprint:
         return self.sample(c).reshape(grid.shape)
 
     def save(self, path: Path) -> None:
+        extra = {} if self.instances is None else {"instances": self.instances.astype(np.int32)}
         save_npz(
             path,
             labels=self.labels.astype(np.uint8),
             cell=np.float64(self.grid.cell),
             origin=np.asarray(self.grid.origin, np.float64),
             classes=json.dumps({str(k): v for k, v in sorted(self.classes.items())}),
+            **extra,
         )
 
     @staticmethod
@@ -101,6 +109,11 @@ class Blueprint:
                 (labels.shape[0], labels.shape[1]),
             )
             classes = {int(k): v for k, v in json.loads(str(z["classes"])).items()}
+            instances = z["instances"].astype(np.int32) if "instances" in z.files else None
         except (OSError, KeyError, ValueError) as e:
             raise BlunfError(f"{path}: not a blueprint .npz ({e})") from None
-        return Blueprint(labels, grid, classes)
+        if instances is not None and instances.shape != labels.shape:
+            raise BlunfError(
+                f"{path}: instances {instances.shape} do not match labels {labels.shape}"
+            )
+        return Blueprint(labels, grid, classes, instances)

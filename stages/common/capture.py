@@ -32,6 +32,7 @@ class Frame:
     depth: Path | None = None
     label: Path | None = None
     pose: np.ndarray | None = None
+    instance: Path | None = None  # object instance id per pixel (0 = none), beside the label
 
 
 @dataclass(frozen=True)
@@ -87,6 +88,7 @@ class Capture:
                     "image": str(f.image),
                     "depth": str(f.depth) if f.depth else None,
                     "label": str(f.label) if f.label else None,
+                    "instance": str(f.instance) if f.instance else None,
                     "intrinsics": f.intrinsics.to_json(),
                     "pose": np.asarray(f.pose).tolist() if f.pose is not None else None,
                 }
@@ -104,6 +106,7 @@ class Capture:
                 depth=Path(f["depth"]) if f.get("depth") else None,
                 label=Path(f["label"]) if f.get("label") else None,
                 pose=np.asarray(f["pose"], np.float64) if f.get("pose") is not None else None,
+                instance=Path(f["instance"]) if f.get("instance") else None,
             )
             for f in d["frames"]
         )
@@ -133,7 +136,7 @@ class Capture:
 
         d = self.to_json()
         for f in d["frames"]:
-            for k in ("image", "depth", "label"):
+            for k in ("image", "depth", "label", "instance"):
                 f[k] = rel(f[k])
         d["gt"] = rel(d["gt"])
         write_json(path, d)
@@ -148,7 +151,7 @@ class Capture:
             return None if p is None else str(base / p)
 
         for f in d["frames"]:
-            for k in ("image", "depth", "label"):
+            for k in ("image", "depth", "label", "instance"):
                 f[k] = absp(f.get(k))
         d["gt"] = absp(d.get("gt"))
         return Capture.from_json(d)

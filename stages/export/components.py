@@ -1,8 +1,9 @@
 """Blueprint instances: connected components of one class, as cells and as exact polygons.
 
 A component is a maximal 8-connected set of cells of one class (the paper's click selects
-the component under the pointer); unknown cells (255) belong to none. Polygons follow the
-cell edges exactly: cell corner (column c, row r) is world
+the component under the pointer) and, when the plan has an instance layer, of one object
+instance: two chairs that touch are two components. Unknown cells (255) belong to none.
+Polygons follow the cell edges exactly: cell corner (column c, row r) is world
 (origin_x + c * cell, origin_y + (H - r) * cell).
 """
 
@@ -24,7 +25,7 @@ def class_name(bp: Blueprint, class_id: int) -> str:
 
 
 def _labels(bp: Blueprint) -> np.ndarray:
-    """The plan's labels after checking they fit the grid. Returns uint8 [H, W]."""
+    """The plan's labels after checking they (and its instances) fit the grid. uint8 [H, W]"""
     lab = np.asarray(bp.labels)
     if lab.ndim != 2 or lab.dtype != np.uint8:
         raise BlunfError(f"blueprint labels must be uint8 [H, W], got {lab.dtype} {lab.shape}")
@@ -34,14 +35,29 @@ def _labels(bp: Blueprint) -> np.ndarray:
         raise BlunfError(f"blueprint labels {lab.shape} do not match grid {bp.grid.shape}")
     if not bp.grid.cell > 0:
         raise BlunfError(f"blueprint cell must be > 0 metres, got {bp.grid.cell}")
+    if bp.instances is not None and np.shape(bp.instances) != lab.shape:
+        raise BlunfError(
+            f"blueprint instances {np.shape(bp.instances)} do not match labels {lab.shape}"
+        )
     return lab
 
 
+def _instances(bp: Blueprint) -> np.ndarray:
+    """The instance of every cell (0 = none; all 0 when the plan has no instance layer)."""
+    if bp.instances is None:
+        return np.zeros(bp.labels.shape, np.int64)
+    return np.asarray(bp.instances, np.int64)
+
+
 def component_map(bp: Blueprint) -> np.ndarray:
-    """Component id of every cell (0 = unknown), ids 1.. in raster order. Returns int32 [H, W]."""
+    """Component id of every cell (0 = unknown), ids 1.. in raster order. Returns int32 [H, W].
+
+    Cells join when 8-connected with the same class and the same instance.
+    """
     lab = _labels(bp)
-    # Equal neighbouring values join; background=UNKNOWN so class 0 is a class like any other.
-    return measure.label(lab, background=UNKNOWN, connectivity=2).astype(np.int32)
+    # One key per (class, instance); 0 = unknown, so class 0 is a class like any other.
+    key = np.where(lab == UNKNOWN, 0, _instances(bp) * 256 + lab.astype(np.int64) + 1)
+    return measure.label(key, background=0, connectivity=2).astype(np.int32)
 
 
 def _r(v: float) -> float:
@@ -50,7 +66,7 @@ def _r(v: float) -> float:
 
 
 def _components(bp: Blueprint, cmap: np.ndarray, min_area_m2: float) -> list[dict]:
-    lab = bp.labels
+    lab, inst = bp.labels, _instances(bp)
     (ox, oy), cell, h = bp.grid.origin, bp.grid.cell, bp.grid.shape[0]
     out = []
     for reg in measure.regionprops(cmap):
@@ -60,12 +76,14 @@ def _components(bp: Blueprint, cmap: np.ndarray, min_area_m2: float) -> list[dic
             continue
         r0, c0, r1, c1 = reg.bbox  # rows / cols, end exclusive
         rc, cc = reg.centroid  # mean (row, col) of the cells' indices
-        cls = int(lab[tuple(reg.coords[0])])
+        first = tuple(reg.coords[0])
+        cls = int(lab[first])
         out.append(
             {
                 "id": int(reg.label),
                 "class_id": cls,
                 "class": class_name(bp, cls),
+                "instance": int(inst[first]),
                 "cells": cells,
                 "area_m2": _r(area),
                 "centroid": [_r(ox + (cc + 0.5) * cell), _r(oy + (h - rc - 0.5) * cell)],
@@ -83,8 +101,9 @@ def _components(bp: Blueprint, cmap: np.ndarray, min_area_m2: float) -> list[dic
 def components(bp: Blueprint, min_area_m2: float = 0.0) -> list[dict]:
     """The plan's components, by id (ids are those of `component_map`).
 
-    Each: id, class_id, class, cells, area_m2, centroid [x, y] and bbox [xmin, ymin, xmax, ymax]
-    in world metres. Components smaller than `min_area_m2` are left out (their ids too).
+    Each: id, class_id, class, instance (0 = none), cells, area_m2, centroid [x, y] and bbox
+    [xmin, ymin, xmax, ymax] in world metres. Components smaller than `min_area_m2` are left
+    out (their ids too).
     """
     return _components(bp, component_map(bp), float(min_area_m2))
 

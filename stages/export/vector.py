@@ -177,7 +177,8 @@ def write_svg(
             id=f"c{p['id']}",
         )
         el.set("class", f"k{p['class_id']}")
-        _sub(el, "title", f"{p['class']} #{p['id']}: {p['area_m2']:.3f} m²")
+        inst = f" (instance {p['instance']})" if p.get("instance") else ""
+        _sub(el, "title", f"{p['class']} #{p['id']}{inst}: {p['area_m2']:.3f} m²")
     _sub(
         svg,
         "rect",
@@ -239,7 +240,7 @@ def write_geojson(
 
     One feature per component: a Polygon, or a MultiPolygon when its cells touch only at
     corners; exteriors counter-clockwise, holes clockwise (RFC 7946 winding). Properties:
-    id, class, class_id, area_m2, cells.
+    id, class, class_id, instance (0 = none), area_m2, cells.
     """
     features = []
     for p in polygons(bp, tolerance_m) if polys is None else polys:
@@ -256,7 +257,9 @@ def write_geojson(
                 "type": "Feature",
                 "id": p["id"],
                 "geometry": geom,
-                "properties": {k: p[k] for k in ("id", "class", "class_id", "area_m2", "cells")},
+                "properties": {
+                    k: p[k] for k in ("id", "class", "class_id", "instance", "area_m2", "cells")
+                },
             }
         )
     data = {

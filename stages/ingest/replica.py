@@ -5,7 +5,8 @@
     instance/NNNN.png       instance id per pixel, 0 = unlabelled
     info_semantic.json      classes (id, name), objects (instance id -> class, oriented box)
 
-Images, depth and instance maps are read in place. Derived files go to `work`:
+Images, depth and instance maps are read in place (the frames name their instance map, so
+the plan keeps objects of one class apart). Derived files go to `work`:
     labels/<stem>.png       CLASS ids (instance -> class through `objects`; 255 = unknown)
     gt/instances/<stem>.png the instance maps, for editing and evaluation
     gt/objects.json         {instance id: {class_id, class_name, oriented_bbox}}
@@ -134,6 +135,7 @@ def read(src: Path, work: Path) -> Capture:
                 intrinsics=intr,
                 depth=depth if depth.exists() else None,
                 label=label,
+                instance=inst_path if label is not None else None,  # objects kept apart
             )
         )
     write_json(work / "gt" / "objects.json", {str(k): v for k, v in sorted(objects.items())})

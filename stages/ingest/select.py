@@ -3,7 +3,7 @@
 out/frames.json          the chosen frames (Capture.save), what later stages read
 out/ingest.json          facts for the report: layout, counts, chosen indices, timings
 out/import/              files a reader derived (label maps, ground truth), if any
-out/resized/             downscaled images / depth / labels, when max_side asks for it
+out/resized/             downscaled images / depth / labels / instances, when max_side asks
 """
 
 from __future__ import annotations
@@ -92,7 +92,7 @@ def check_structure(cap: Capture, allowed: tuple[Path, ...]) -> None:
     plain = [Path(os.path.abspath(a)) for a in allowed]
     real = [a.resolve() for a in allowed]
     for f in cap.frames:
-        for p in (f.image, f.depth, f.label):
+        for p in (f.image, f.depth, f.label, f.instance):
             if p is None or not any(Path(os.path.abspath(p)).is_relative_to(r) for r in plain):
                 continue
             if not any(Path(p).resolve().is_relative_to(r) for r in real):
@@ -119,13 +119,14 @@ def _size(p: Path, full: bool, kind: str, cap: Capture) -> tuple[int, int]:
 
 
 def check_frames(cap: Capture, full: bool) -> None:
-    """Each image readable and of its intrinsics' size; depth and labels of the image's size."""
+    """Each image readable and of its intrinsics' size; depth, labels and instance maps of the
+    image's size."""
     for f in cap.frames:
         w, h = _size(f.image, full, "image", cap)
         iw, ih = f.intrinsics.width, f.intrinsics.height
         if (w, h) != (iw, ih):
             raise BlunfError(f"{f.image}: image is {w}x{h} but its intrinsics say {iw}x{ih}")
-        for p, kind in ((f.depth, "depth"), (f.label, "label")):
+        for p, kind in ((f.depth, "depth"), (f.label, "label"), (f.instance, "instance map")):
             if p is None:
                 continue
             pw, ph = _size(Path(p), full, kind, cap)
@@ -151,7 +152,7 @@ def _raw_depth(p: Path) -> np.ndarray:
 
 
 def resize_frame(f: Frame, max_side: int, dst: Path) -> Frame:
-    """Downscale a frame so its longer side is max_side; depth and labels by nearest."""
+    """Downscale a frame so its longer side is max_side; depth, labels, instances by nearest."""
     W, H = f.intrinsics.width, f.intrinsics.height
     s = max_side / max(W, H)
     if s >= 1.0:
@@ -167,7 +168,7 @@ def resize_frame(f: Frame, max_side: int, dst: Path) -> Frame:
         small.save(image, quality=95)
     else:
         small.save(image)
-    depth = label = None
+    depth = label = instance = None
     if f.depth is not None:
         (dst / "depth").mkdir(exist_ok=True)
         depth = dst / "depth" / f"{f.stem}{f.depth.suffix.lower()}"
@@ -179,7 +180,12 @@ def resize_frame(f: Frame, max_side: int, dst: Path) -> Frame:
         (dst / "labels").mkdir(exist_ok=True)
         label = dst / "labels" / f"{f.stem}.png"
         write_label_png(label, _nearest(read_label(f.label), w, h))
-    return replace(f, image=image, depth=depth, label=label, intrinsics=f.intrinsics.scaled(w, h))
+    if f.instance is not None:
+        (dst / "instances").mkdir(exist_ok=True)
+        instance = dst / "instances" / f"{f.stem}.png"
+        write_label_png(instance, _nearest(read_label(f.instance), w, h))
+    intr = f.intrinsics.scaled(w, h)
+    return replace(f, image=image, depth=depth, label=label, instance=instance, intrinsics=intr)
 
 
 def run(cfg: IngestConfig, inputs: IngestInputs, out: Path) -> IngestOutputs:

@@ -40,7 +40,8 @@ class ProjectInputs:
 @dataclass(frozen=True)
 class ProjectOutputs:
     # points.npz: xyz float32 [N, 3] offsets from origin float64 [3] (read_points adds them),
-    # label uint8 [N], view int32 [N], classes
+    # label uint8 [N], view int32 [N], instance int32 [N] (object instance, 0 = none; absent
+    # from files written before it: read_instances gives zeros), classes
     points: Path
     grid: Path  # grid.json: the plan Grid (Grid.to_json) + "bounds" [xmin, ymin, xmax, ymax]
     # of the points it was padded from

@@ -1,7 +1,8 @@
 """Π: labelled pixels with depth to world points, and the plan grid that covers them.
 
 Every `stride`-th pixel of every frame with a valid depth reading and a label that is neither
-unknown (255) nor in the capture's ignore list becomes a point (x, y, z, label, view). Without
+unknown (255) nor in the capture's ignore list becomes a point (x, y, z, label, view, instance:
+the object instance id of the pixel when the frame has an instance map, else 0). Without
 labels, points are labelled by height (floor / occupied) so a plan exists before semantics.
 With occlusion "top" (the default), points a top view would not see are then dropped
 (topview.py: floor between a table's legs, under a chair's seat); "none" is the paper's Π.
@@ -48,22 +49,24 @@ def run(cfg: ProjectConfig, inputs: ProjectInputs, out: Path) -> ProjectOutputs:
     labelling = _labelling(cfg, cap)
     ignore = np.asarray([*cap.ignore, UNKNOWN], np.int64)  # label ids never projected
     origin = _local_origin(cap)  # [3] float64; points are kept as float32 offsets from it
-    xyz_l, lab_l, view_l = [], [], []
+    xyz_l, lab_l, view_l, inst_l = [], [], [], []
     counts = {"sampled": 0, "no_depth": 0, "dropped_label": 0, "dropped_height": 0}
     held_out = labelling == "labels" and inputs.holdout
     held = heldout_views(len(cap.frames), cfg.holdout_every) if held_out else []
     for i, f in enumerate(cap.frames):
         if i in held:
             continue
-        xyz, lab = _frame_points(cap, f, cfg, labelling == "labels", ignore, counts)
+        xyz, lab, inst = _frame_points(cap, f, cfg, labelling == "labels", ignore, counts)
         if labelling == "height":
-            xyz, lab = _height_labels(xyz, cfg, counts)
+            xyz, lab, inst = _height_labels(xyz, inst, cfg, counts)
         xyz_l.append((xyz - origin).astype(np.float32))
         lab_l.append(lab)
         view_l.append(np.full(len(lab), i, np.int32))
+        inst_l.append(inst)
     xyz = np.concatenate(xyz_l)  # [N, 3] float32 offsets from origin
     label = np.concatenate(lab_l).astype(np.uint8)  # [N]
     view = np.concatenate(view_l)  # [N]
+    instance = np.concatenate(inst_l).astype(np.int32)  # [N], 0 = none
     if len(label) == 0:
         raise BlunfError(f"no labelled pixel with depth in {cap.root}")
     classes = HEIGHT_CLASSES if labelling == "height" else _label_classes(cap, label)
@@ -81,7 +84,7 @@ def run(cfg: ProjectConfig, inputs: ProjectInputs, out: Path) -> ProjectOutputs:
             cfg.occlusion_shifts,
         )
         counts["dropped_occluded"] = int((~keep).sum())
-        xyz, label, view = xyz[keep], label[keep], view[keep]
+        xyz, label, view, instance = xyz[keep], label[keep], view[keep], instance[keep]
     if grid.shape[0] * grid.shape[1] > cfg.max_cells:
         raise BlunfError(
             f"{inputs.frames}: the plan would be {grid.shape[1]}x{grid.shape[0]} cells of "
@@ -94,6 +97,7 @@ def run(cfg: ProjectConfig, inputs: ProjectInputs, out: Path) -> ProjectOutputs:
         origin=origin,
         label=label,
         view=view,
+        instance=instance,
         classes=_classes_json(classes),
     )
     write_json(outs.grid, {**grid.to_json(), "bounds": [*lo.tolist(), *hi.tolist()]})
@@ -104,6 +108,7 @@ def run(cfg: ProjectConfig, inputs: ProjectInputs, out: Path) -> ProjectOutputs:
         "frames": len(cap.frames),
         "points": int(len(label)),
         "labelling": labelling,
+        "instances": int(len(np.unique(instance[instance > 0]))),
         "heldout_views": len(held),
         **counts,
         "grid_shape": list(grid.shape),
@@ -145,6 +150,20 @@ def read_points(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[in
     return xyz.astype(np.float64) + origin, label, view, classes
 
 
+def read_instances(path: Path) -> np.ndarray:
+    """The object instance of every point of points.npz (0 = none): int32 [N], all 0 for a
+    file written before points carried instances."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            n = len(z["label"])
+            inst = z["instance"] if "instance" in z.files else np.zeros(n, np.int32)
+    except (OSError, KeyError, ValueError) as e:
+        raise BlunfError(f"{path}: not a points .npz ({e})") from None
+    if inst.shape != (n,):
+        raise BlunfError(f"{path}: instance and label disagree in length")
+    return inst.astype(np.int32)
+
+
 def read_grid(path: Path) -> Grid:
     """Read grid.json."""
     d = read_json(path)
@@ -170,8 +189,9 @@ def read_bounds(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
 
 def _frame_points(
     cap: Capture, f: Frame, cfg: ProjectConfig, use_labels: bool, ignore: np.ndarray, counts: dict
-) -> tuple[np.ndarray, np.ndarray]:
-    """World points [N, 3] and labels [N] (int64; zeros without labels) of one frame."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World points [N, 3], labels [N] (int64; zeros without labels) and instances [N] (int64;
+    zeros without an instance map) of one frame."""
     if f.pose is None:
         raise BlunfError(f"{f.image}: frame {f.stem!r} has no pose")
     if f.depth is None:
@@ -209,11 +229,23 @@ def _frame_points(
         lab = lab[keep]
     else:
         lab = np.zeros(int(keep.sum()), np.int64)
+    if f.instance is not None:
+        inst_img = read_label(f.instance)
+        if inst_img.shape != (h, w):
+            raise BlunfError(
+                f"{f.instance}: instance map is {inst_img.shape[1]}x{inst_img.shape[0]} but "
+                f"the image {f.image.name} is {w}x{h}"
+            )
+        inst = inst_img[s // 2 :: s, s // 2 :: s].reshape(-1)[keep].astype(np.int64)  # [N]
+        if inst.size and inst.min() < 0:
+            raise BlunfError(f"{f.instance}: negative instance ids")
+    else:
+        inst = np.zeros(len(lab), np.int64)
     intr = f.intrinsics
     if (intr.width, intr.height) != (w, h):
         intr = intr.scaled(w, h)
     uvk = _undistort(uv[keep], intr) if any(intr.dist) else uv[keep]
-    return unproject(uvk, d[keep], intr.K, np.asarray(f.pose, np.float64)), lab
+    return unproject(uvk, d[keep], intr.K, np.asarray(f.pose, np.float64)), lab, inst
 
 
 def _local_origin(cap: Capture) -> np.ndarray:
@@ -224,14 +256,15 @@ def _local_origin(cap: Capture) -> np.ndarray:
 
 
 def _height_labels(
-    xyz: np.ndarray, cfg: ProjectConfig, counts: dict
-) -> tuple[np.ndarray, np.ndarray]:
-    """Floor (0) below floor_band, occupied (1) up to ceiling_cut, higher points dropped."""
+    xyz: np.ndarray, inst: np.ndarray, cfg: ProjectConfig, counts: dict
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Floor (0) below floor_band, occupied (1) up to ceiling_cut, higher points dropped.
+    Returns the points kept [N, 3], their labels [N] and their instances inst [N]."""
     z = xyz[:, 2]
     keep = z < cfg.ceiling_cut
     counts["dropped_height"] += int((~keep).sum())
     lab = np.where(z[keep] < cfg.floor_band, 0, 1).astype(np.int64)
-    return xyz[keep], lab
+    return xyz[keep], lab, inst[keep]
 
 
 def _undistort(uv: np.ndarray, intr: Intrinsics, iters: int = 20) -> np.ndarray:

@@ -73,7 +73,8 @@ class SemanticsInputs:
 
 @dataclass(frozen=True)
 class SemanticsOutputs:
-    frames: Path  # frames.json: the input frames with `label` at labels/<stem>.png, classes
+    frames: Path  # frames.json: the input frames with `label` at labels/<stem>.png and
+    #               `instance` at instances/<stem>.png, classes
     #               {0: floor, 1: wall, 2: ceiling, 3: object}, ignore [2]
     labels: Path  # labels/<stem>.png: uint8 class per pixel (255 = unknown or no surface)
     instances: Path  # instances/<stem>.png: object instance id per pixel (0 = none; uint8,

@@ -114,8 +114,8 @@ def _read_mesh(path: Path) -> o3d.t.geometry.TriangleMesh:
 def _render(
     mesh: o3d.t.geometry.TriangleMesh, seg: Segmentation, cap: Capture, outs: SemanticsOutputs
 ) -> tuple[list[Frame], dict[str, float]]:
-    """Class and instance maps of every view; returns the frames pointing at the class maps
-    and the fraction of pixels per class over all views."""
+    """Class and instance maps of every view; returns the frames pointing at them and the
+    fraction of pixels per class over all views."""
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(mesh)
     cls = np.append(seg.cls, np.uint8(UNKNOWN))  # [T + 1]: the last entry is "no hit"
@@ -133,8 +133,9 @@ def _render(
         path = outs.labels / f"{f.stem}.png"
         write_label_png(path, label)
         ids = inst[prim].astype(np.uint16 if wide else np.uint8)  # [H, W]
-        write_label_png(outs.instances / f"{f.stem}.png", ids)
-        frames.append(replace(f, label=path))
+        ipath = outs.instances / f"{f.stem}.png"
+        write_label_png(ipath, ids)
+        frames.append(replace(f, label=path, instance=ipath))
     total = max(int(counts.sum()), 1)
     names = {**CLASSES, UNKNOWN: "unknown"}
     return frames, {name: round(int(counts[k]) / total, 4) for k, name in names.items()}

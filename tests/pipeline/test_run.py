@@ -6,10 +6,15 @@ import json
 import shutil
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
+
+import numpy as np
 
 from pipeline.cli import main
 from stages.common.blueprint import Blueprint
+from stages.export.components import component_map
+from stages.semantics.config import OBJECT
 
 FAST = ["--set", "blueprint.blunf.steps=300", "--set", "fusion.voxel=0.04"]
 
@@ -176,3 +181,34 @@ def test_semantics_from_geometry_when_labels_are_hidden(tiny_room, tmp_path):
     assert m["heldout_views"] == 2 and m["heldout_pacc"] > 60
     ev = next(s for s in g["stages"] if s["name"] == "evaluate")
     assert ev["reason"] == "ground truth: poses; held-out views"
+
+
+def test_objects_of_a_label_free_capture_stay_apart_in_the_blunf_plan(tiny_room, tmp_path):
+    """Without labels the semantics stage finds object instances, and the BluNF plan keeps
+    them apart although it fills the unseen cells between them with "object": in this room
+    (16 views of 96x72) chair_1 and chair_2 stand side by side, chair_4 beside cabinet_1, and
+    each pair is one object region of the class raster (checked below: one component without
+    the instance layer). With it, each object is its own component, named by its instance."""
+    capture = tmp_path / "nolabels"
+    shutil.copytree(tiny_room, capture, ignore=shutil.ignore_patterns("labels", "labels.json"))
+    out = tmp_path / "run"
+    r = _run(capture, out)
+    key = next(s["key"] for s in r["stages"] if s["impl"] == "blunf")
+    bp = Blueprint.load(out / "blueprint" / key / "blueprint.npz")
+    assert bp.instances is not None
+    gt = {
+        v["name"]: v["bbox"]
+        for v in json.loads((capture / "gt/instances.json").read_text()).values()
+    }
+    names = ["chair_1", "chair_2", "chair_4", "cabinet_1"]
+    xy = np.array([[(gt[n][0] + gt[n][3]) / 2, (gt[n][1] + gt[n][4]) / 2] for n in names])
+    row, col, inside = bp.grid.cell_of(xy)  # the GT centre of each object on the plan
+    assert inside.all() and (bp.labels[row, col] == OBJECT).all()
+    flat = component_map(replace(bp, instances=None))[row, col]  # class only: as before
+    assert flat[0] == flat[1] and flat[2] == flat[3]
+    cmap = component_map(bp)[row, col]
+    assert len(set(cmap.tolist())) == 4, dict(zip(names, cmap.tolist(), strict=True))
+    inst = bp.instances[row, col]
+    assert (inst > 0).all() and len(set(inst.tolist())) == 4
+    comps = {c["id"]: c for c in r["plan"]["components"]}  # the product's plan is BluNF's
+    assert [comps[k]["instance"] for k in cmap.tolist()] == inst.tolist()

@@ -203,6 +203,27 @@ def test_model_without_semantics_is_refused(tmp_path):
         _run(tmp_path, ins)
 
 
+def test_plan_takes_the_instances_of_the_projected_points(tmp_path):
+    # Two points of the rug carry an instance (1 in cell (2, 3), 2 in cell (7, 16)); the
+    # rug cells of the chosen plan (rows 0-9) take the nearer one, the floor none: the
+    # shared rule of every blueprint method (test_blueprint_instances.py checks the rule).
+    ins = _inputs(tmp_path, None)
+    with np.load(ins.points) as z:
+        pts = dict(z)
+    xy = pts["xyz"][:, :2].astype(np.float64)
+    row, col, _ = GRID.cell_of(xy)
+    inst = np.zeros(len(xy), np.int32)
+    inst[(row == 2) & (col == 3)] = 1
+    inst[(row == 7) & (col == 16)] = 2
+    np.savez(ins.points, **pts, instance=inst)
+    plan, _ = _run(tmp_path, ins)
+    rr, cc = np.mgrid[0:20, 0:20]
+    nearer_1 = (rr - 2) ** 2 + (cc - 3) ** 2 < (rr - 7) ** 2 + (cc - 16) ** 2  # ties: off the rug
+    assert plan.instances is not None
+    want = np.where(_plan_floor_and_rug() == RUG, np.where(nearer_1, 1, 2), 0)
+    np.testing.assert_array_equal(plan.instances, want)
+
+
 # ---- on a trained NeRF (slow) -------------------------------------------------------------
 
 # 600 steps with the semantic loss weighted up (at 0.04, 100 steps of the tiny run label

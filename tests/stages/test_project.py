@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +14,13 @@ from stages.common.capture import Capture, Frame
 from stages.common.errors import BlunfError
 from stages.common.io import write_depth_png, write_image, write_label_png
 from stages.project import IMPLS, ProjectConfig, ProjectInputs
-from stages.project.points import _undistort, read_bounds, read_grid, read_points
+from stages.project.points import (
+    _undistort,
+    read_bounds,
+    read_grid,
+    read_instances,
+    read_points,
+)
 
 # An 8x6 camera with fx = fy = 4, cx = 3.5, cy = 2.5 (principal point between the central
 # pixels), 2 m above the floor at world (1, 2, 2), looking straight down. Its axes in the world:
@@ -91,6 +98,47 @@ def test_camera_looking_down_lands_every_pixel_on_the_floor_footprint(tmp_path):
     assert table == {"classes": {"1": "floor", "2": "rug"}, "labelling": "labels"}
     stats = json.loads((out / "project.json").read_text())
     assert (stats["no_depth"], stats["dropped_label"], stats["points"]) == (2, 4, 90)
+
+
+def test_points_carry_the_instance_of_their_pixel(tmp_path):
+    depth = np.full((6, 8), 2.0)
+    depth[0, 0] = 0.0  # missing depth: dropped with its instance
+    label = np.ones((6, 8), np.uint8)
+    label[5, 7] = 255  # unknown: dropped with its instance
+    inst = (np.arange(48).reshape(6, 8) % 5).astype(np.uint16) * 300  # ids beyond uint8
+    frames = _capture(tmp_path, depth, label, n=2, classes={1: "object"})
+    cap = Capture.load(frames)
+    (tmp_path / "cap" / "instances").mkdir()
+    with_inst = []
+    for f in cap.frames:
+        path = tmp_path / "cap" / "instances" / f"{f.stem}.png"
+        write_label_png(path, inst)
+        with_inst.append(replace(f, instance=path))
+    cap.with_frames(with_inst).save(frames)
+    outs, out = _run(tmp_path, frames, stride=1, cell=0.25, occlusion="none")
+    xyz, lab, view, _ = read_points(outs.points)
+    got = read_instances(outs.points)
+    keep = np.ones((6, 8), bool)
+    keep[0, 0] = keep[5, 7] = False
+    assert got.dtype == np.int32 and len(got) == len(lab) == 2 * 46
+    np.testing.assert_array_equal(got, np.tile(inst[keep], 2))  # row-major per view
+    assert json.loads((out / "project.json").read_text())["instances"] == 4  # 300 .. 1200
+    # points written before points carried instances read as "no instance"
+    with np.load(outs.points) as z:
+        old = {k: z[k] for k in z.files if k != "instance"}
+    np.savez(tmp_path / "old.npz", **old)
+    np.testing.assert_array_equal(read_instances(tmp_path / "old.npz"), np.zeros(92, np.int32))
+    assert len(read_points(tmp_path / "old.npz")[0]) == 92
+
+
+def test_instance_map_size_mismatch_is_named(tmp_path):
+    frames = _capture(tmp_path, np.full((6, 8), 2.0), np.ones((6, 8), np.uint8))
+    cap = Capture.load(frames)
+    bad = tmp_path / "cap" / "0-instances.png"
+    write_label_png(bad, np.ones((6, 7), np.uint8))
+    cap.with_frames([replace(cap.frames[0], instance=bad)]).save(frames)
+    with pytest.raises(BlunfError, match=r"0-instances\.png: instance map is 7x6"):
+        _run(tmp_path, frames, stride=1)
 
 
 def test_stride_keeps_every_other_pixel_from_stride_half(tmp_path):

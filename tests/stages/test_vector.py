@@ -45,6 +45,7 @@ PLAN = np.array(
     np.uint8,
 )
 ORIGIN, CELL = (-3.2, 10.0), 0.05
+SVG = "http://www.w3.org/2000/svg"
 CLASSES = {F: "floor", C: "chair", T: "table"}
 # Ids in raster order of each component's first cell: floor (1,0), chair A (2,1), table (2,7),
 # chair B (4,5).
@@ -105,6 +106,58 @@ def test_components_areas_centroids_bboxes(bp):
     assert comps[FLOOR]["bbox"] == pytest.approx([-3.2, 10.0, -2.7, 10.35])  # rows 1..7
     # min_area drops chair B (0.0075 m2) and keeps the others' ids.
     assert [c["id"] for c in components(bp, min_area_m2=0.008)] == [1, 2, 3]
+
+
+# Instances of the hand plan: chair A's corner cell (4,2) is another object (2) than the rest
+# of chair A (1); chair B is object 2 as well, the table 3, the floor none.
+INSTANCES = np.zeros(PLAN.shape, np.int32)
+INSTANCES[2, 1] = INSTANCES[2, 2] = INSTANCES[3, 1] = 1
+INSTANCES[4, 2] = INSTANCES[4, 5] = INSTANCES[5, 5] = INSTANCES[5, 6] = 2
+INSTANCES[2:4, 7:9] = 3
+
+
+def test_component_map_keeps_instances_of_one_class_apart(bp):
+    inst = Blueprint(bp.labels, bp.grid, bp.classes, INSTANCES.copy())
+    cmap = component_map(inst)
+    # raster order of first cells: floor (1,0), chair A without its corner (2,1), table (2,7),
+    # the corner cell (4,2) now its own (same class, other instance), chair B (4,5): chair B
+    # shares instance 2 with the corner cell but does not touch it
+    assert cmap[2, 1] == cmap[2, 2] == cmap[3, 1] == 2
+    assert cmap[4, 2] == 4 and cmap[4, 5] == cmap[5, 6] == 5 and cmap[2, 7] == 3
+    assert set(np.unique(cmap).tolist()) == {0, 1, 2, 3, 4, 5}
+    comps = {c["id"]: c for c in components(inst)}
+    got = {i: (c["class"], c["instance"], c["cells"]) for i, c in comps.items()}
+    assert got == {
+        1: ("floor", 0, 56),
+        2: ("chair", 1, 3),
+        3: ("table", 3, 4),
+        4: ("chair", 2, 1),
+        5: ("chair", 2, 3),
+    }
+    assert plan_summary(inst)["classes"]["chair"]["components"] == 3
+    # an instance layer of zeros changes nothing: same ids as the class-only map
+    zero = Blueprint(bp.labels, bp.grid, bp.classes, np.zeros(PLAN.shape, np.int32))
+    np.testing.assert_array_equal(component_map(zero), component_map(bp))
+    assert {c["instance"] for c in components(bp)} == {0}
+
+
+def test_instances_reach_geojson_and_svg(bp, tmp_path):
+    inst = Blueprint(bp.labels, bp.grid, bp.classes, INSTANCES.copy())
+    write_geojson(inst, tmp_path / "plan.geojson")
+    feats = json.loads((tmp_path / "plan.geojson").read_text())["features"]
+    assert {f["properties"]["id"]: f["properties"]["instance"] for f in feats} == {
+        1: 0,
+        2: 1,
+        3: 3,
+        4: 2,
+        5: 2,
+    }
+    write_svg(inst, tmp_path / "plan.svg")
+    titles = [t.text for t in ET.parse(tmp_path / "plan.svg").getroot().iter(f"{{{SVG}}}title")]
+    assert "chair #4 (instance 2): 0.003 m²" in titles and "floor #1: 0.140 m²" in titles
+    write_dxf(inst, tmp_path / "plan.dxf")  # one polyline per component ring, as before
+    layers = [e.dxf.layer for e in ezdxf.readfile(tmp_path / "plan.dxf").modelspace()]
+    assert layers.count("chair") == 3
 
 
 def test_polygons_exact_at_zero_tolerance(bp):
