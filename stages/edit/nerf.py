@@ -330,9 +330,10 @@ def _gif(
 def _edited_plan(
     cfg: EditConfig, bp: Blueprint, spec: EditSpec, cells: list[np.ndarray]
 ) -> tuple[Blueprint, int]:
-    """The plan with removed selections relabelled (floor or unknown). Returns it and the
-    number of cells changed."""
+    """The plan with removed selections relabelled (floor or unknown; no instance). Returns
+    it and the number of cells changed."""
     lab = bp.labels.copy()
+    inst = None if bp.instances is None else bp.instances.copy()
     floor_ids = [k for k, n in bp.classes.items() if n == cfg.floor_class]
     for e, sel in zip(spec.edits, cells, strict=True):
         if e.op != "remove":
@@ -343,4 +344,6 @@ def _edited_plan(
             lab[sel & is_floor] = UNKNOWN
         else:
             lab[sel] = UNKNOWN
-    return Blueprint(lab, bp.grid, dict(bp.classes)), int((lab != bp.labels).sum())
+        if inst is not None:
+            inst[sel] = 0
+    return Blueprint(lab, bp.grid, dict(bp.classes), inst), int((lab != bp.labels).sum())

@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from stages.common.errors import BlunfError
+
 
 @dataclass(frozen=True)
 class NerfConfig:
@@ -46,6 +48,11 @@ class NerfConfig:
     # empty in front of the depth reading, opaque just behind it (two field queries each)
     geo_weight: float = 1.0  # weight of that loss (binary cross-entropy on one step's opacity)
     geo_front: float = 0.3  # metres in front of the reading where the free-space point is drawn
+    edge_rays: int = 4096  # dense depth: pixels per step beside a nearer reading (a silhouette)
+    # whose ray is fitted empty where it passes that reading (one field query each); 0 = off
+    edge_radius: int = 2  # pixels: how far from a pixel the nearer reading is looked for
+    edge_gap: float = 0.1  # metres: ... and how much nearer than the pixel's own it must be
+    edge_batch: float = 0.5  # fraction of the marched rays drawn among those pixels (dense depth)
     dense_depth: float = 0.5  # depth on at least this fraction of pixels counts as dense
     occ_seeded_only: bool = True  # with depth: the grid keeps exactly the seeded cells (no updates)
     lr: float = 1e-2  # Adam learning rate, decayed exponentially to lr * lr_final
@@ -77,6 +84,15 @@ class NerfConfig:
     aabb_pad: float = 0.05  # scene box = bounds of cameras and depth points, + this fraction
     no_depth_margin: float = 3.0  # metres around the cameras when there are no depth points
     depth_stride: int = 4  # pixel stride of the depth points bounding the scene box
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.edge_batch <= 1.0:
+            raise BlunfError(f"nerf.edge_batch: must be in [0, 1], got {self.edge_batch}")
+        for name in ("edge_rays", "edge_radius"):
+            if getattr(self, name) < 0:
+                raise BlunfError(f"nerf.{name}: must be >= 0, got {getattr(self, name)}")
+        if not 0.0 <= self.edge_gap < float("inf"):
+            raise BlunfError(f"nerf.edge_gap: must be a finite number >= 0, got {self.edge_gap}")
 
 
 @dataclass(frozen=True)

@@ -67,7 +67,8 @@ def run(cfg: NerfConfig, inputs: NerfInputs, out: Path) -> NerfOutputs:
         pts = depth_points(cap, views, tr, cfg.depth_stride if dense else 1)
         lo, hi = scene_box(cap.poses()[:, :3, 3], pts, cfg)
         model = build_model(cfg, lo, hi, views.class_ids, seed_points(cap, views, tr), dense=dense)
-        rays = gather_rays(cap, views, tr)
+        edge = cfg.edge_radius if dense and (cfg.edge_rays > 0 or cfg.edge_batch > 0) else 0
+        rays = gather_rays(cap, views, tr, edge, cfg.edge_gap)
         held_rays = gather_rays(cap, views, held) if held else None
         stats = train(cfg, model, rays, held_rays, dense=dense)
         t_render = time.perf_counter()

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 import torch.nn.functional as F
+from scipy import ndimage
 from torch import Tensor
 
 from stages.common.camera import depth_to_points
@@ -170,21 +171,46 @@ class Rays:
     rgb: Tensor  # [N, 3]
     t_depth: Tensor | None  # [N] ray distance of the depth reading, 0 = missing
     label: Tensor | None  # [N] class index, -1 = ignored
+    # [N] ray distance at which the ray passes a nearer reading of a neighbouring pixel (a
+    # silhouette beside it), 0 = none; see `nearer_neighbour`
+    t_edge: Tensor | None = None
     with_depth: Tensor = field(init=False)  # [M] indices of the rays with a depth reading
+    edges: Tensor = field(init=False)  # [K] indices of the rays with t_edge > 0
 
     def __post_init__(self) -> None:
         # found once: SfM tracks cover ~2 % of the pixels, so the depth losses draw from
         # these indices rather than from all pixels (98 % of those draws would be wasted)
+        none = torch.empty(0, dtype=torch.long)
         t = self.t_depth
-        self.with_depth = torch.empty(0, dtype=torch.long) if t is None else (t > 0).nonzero()[:, 0]
+        self.with_depth = none if t is None else (t > 0).nonzero()[:, 0]
+        self.edges = none if self.t_edge is None else (self.t_edge > 0).nonzero()[:, 0]
 
 
-def gather_rays(cap: Capture, views: Views, idx: list[int]) -> Rays:
-    """All pixels of views `idx` as rays; depth only when every one of them has depth."""
+def nearer_neighbour(depth: np.ndarray, radius: int, gap: float) -> np.ndarray:
+    """Per pixel, the nearest z-depth within `radius` pixels when it is more than `gap` metres
+    nearer than the pixel's own reading, else 0. depth [H, W] metres (0 = missing) -> [H, W].
+
+    Such a pixel lies beside a silhouette: its ray passes the nearer surface at about that
+    depth and, the reading says, misses it. A grey erosion (scipy's minimum filter over a
+    square window) finds the neighbour; missing readings never count as nearer.
+    """
+    z = np.where(depth > 0, depth, np.inf).astype(np.float32)
+    near = ndimage.minimum_filter(z, size=2 * radius + 1, mode="nearest")
+    edge = (depth > 0) & np.isfinite(near) & (near < depth - gap)
+    return np.where(edge, near, 0.0).astype(np.float32)
+
+
+def gather_rays(
+    cap: Capture, views: Views, idx: list[int], edge_radius: int = 0, edge_gap: float = 0.1
+) -> Rays:
+    """All pixels of views `idx` as rays; depth only when every one of them has depth.
+    With `edge_radius` > 0 (dense depth), the rays beside a nearer reading get `t_edge`
+    (`nearer_neighbour` with that radius and gap)."""
     o: list[Tensor] = []
     d: list[Tensor] = []
     c: list[Tensor] = []
     t: list[Tensor] = []
+    te: list[Tensor] = []
     lab: list[Tensor] = []
     with_depth = all(views.depth[i] is not None for i in idx)
     with_label = all(views.label[i] is not None for i in idx) and bool(views.class_ids)
@@ -198,6 +224,10 @@ def gather_rays(cap: Capture, views: Views, idx: list[int]) -> Rays:
         if with_depth:
             assert depth_i is not None  # with_depth: every view of idx has depth
             t.append(depth_i / zs)
+            if edge_radius > 0:
+                h, w = f.intrinsics.height, f.intrinsics.width
+                near = nearer_neighbour(depth_i.numpy().reshape(h, w), edge_radius, edge_gap)
+                te.append(torch.from_numpy(near.reshape(-1)) / zs)
         if with_label:
             assert label_i is not None  # with_label: every view of idx has labels
             lab.append(label_i)
@@ -207,6 +237,7 @@ def gather_rays(cap: Capture, views: Views, idx: list[int]) -> Rays:
         torch.cat(c),
         torch.cat(t) if with_depth else None,
         torch.cat(lab) if with_label else None,
+        torch.cat(te) if te else None,
     )
 
 
@@ -244,7 +275,6 @@ def train(
         pick = torch.randperm(len(held.rgb), generator=torch.Generator().manual_seed(cfg.seed))
         pick = pick[: cfg.eval_rays]
         held = Rays(held.origins[pick], held.dirs[pick], held.rgb[pick], None, None)
-    n = len(rays.rgb)
     curve: list[tuple[float, float]] = []  # (training seconds, held-out PSNR)
     curve_cpu: list[tuple[float, float]] = []  # (training CPU seconds, held-out PSNR)
     best, stale, step, stop = -math.inf, 0, 0, "steps"
@@ -262,7 +292,7 @@ def train(
             stop = "time"
             break
         t0, c0 = time.perf_counter(), time.process_time()
-        idx = torch.randint(0, n, (cfg.batch_rays,), generator=gen)
+        idx = _batch(cfg, rays, gen)
         far, prune = None, True
         if rays.t_depth is not None and cfg.trunc_steps > 0:
             t_d = rays.t_depth[idx]
@@ -286,6 +316,8 @@ def train(
             loss = loss + cfg.surface_rgb_weight * _surface_loss(cfg, model, rays, gen)
         if rays.t_depth is not None and cfg.geo_rays > 0 and cfg.geo_weight > 0:
             loss = loss + cfg.geo_weight * _geometry_loss(cfg, model, rays, gen, dense)
+        if len(rays.edges) > 0 and cfg.edge_rays > 0 and cfg.geo_weight > 0:
+            loss = loss + cfg.geo_weight * _edge_loss(cfg, model, rays, gen)
         opt.zero_grad(set_to_none=True)
         if loss.requires_grad:
             loss.backward()
@@ -352,6 +384,17 @@ def _progress(cfg: NerfConfig, step: int, seconds: float) -> float:
     return min(1.0, max(fr) if fr else step / max(1, cfg.lr_decay_steps))
 
 
+def _batch(cfg: NerfConfig, rays: Rays, gen: torch.Generator) -> Tensor:
+    """The marched rays of one step: batch_rays pixels, edge_batch of them (rounded) drawn
+    among the rays beside a silhouette when there are such rays, the rest among all."""
+    k = round(cfg.edge_batch * cfg.batch_rays) if len(rays.edges) > 0 else 0
+    idx = torch.randint(0, len(rays.rgb), (cfg.batch_rays - k,), generator=gen)
+    if k == 0:
+        return idx
+    pick = rays.edges[torch.randint(0, len(rays.edges), (k,), generator=gen)]
+    return torch.cat([idx, pick])
+
+
 def _depth_pixels(rays: Rays, n: int, gen: torch.Generator) -> tuple[Tensor, Tensor]:
     """Up to n random training pixels among those with a depth reading (never more than
     there are: SfM tracks may give fewer readings than n): (index [M], ray distance of the
@@ -408,6 +451,28 @@ def _geometry_loss(
     # clamp there would zero the gradient that revives a region the field emptied
     full = -torch.log(-torch.expm1(-sd[m:].clamp(min=1e-30))).mean()
     return free + full
+
+
+def _edge_loss(cfg: NerfConfig, model: NerfModel, rays: Rays, gen: torch.Generator) -> Tensor:
+    """Silhouettes: a ray beside a nearer surface is empty where it passes that surface.
+
+    Up to edge_rays rays with `t_edge` are drawn; each gets a free point within a step of
+    t_edge (never within edge_gap / 2 of its own reading) whose one-step optical depth is
+    pushed to 0, as `_geometry_loss` does for its free points. The density that blurs an
+    object's outline over the pixels beside it (it stands where those rays pass) is what
+    this removes; random draws along the whole ray would land there about 1 % of the time.
+    """
+    assert rays.t_edge is not None and rays.t_depth is not None
+    pool = rays.edges
+    idx = pool[torch.randint(0, len(pool), (min(cfg.edge_rays, len(pool)),), generator=gen)]
+    s = model.step
+    u = torch.rand(len(idx), generator=gen) * 2.0 - 1.0
+    t = (rays.t_edge[idx] + u * s).clamp(min=0.0)
+    t = torch.minimum(t, rays.t_depth[idx] - 0.5 * cfg.edge_gap)
+    model.clear_cache()
+    sd = model.density(rays.origins[idx] + t[:, None] * rays.dirs[idx]) * s  # [K]
+    model.clear_cache()
+    return sd.mean()
 
 
 def _losses(cfg: NerfConfig, out: RenderOut, rays: Rays, idx: Tensor, margin: float) -> Tensor:

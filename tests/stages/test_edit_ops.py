@@ -461,3 +461,20 @@ def test_edited_plan_relabels_removed_cells():
         EditConfig(), bp, EditSpec(Path("e.yaml"), tuple(rm_floor), (0,)), [floor]
     )
     assert n == 400 - 32 and np.all(new.labels[floor] == 255)
+
+
+def test_edited_plan_keeps_instances_but_the_removed_ones():
+    from dataclasses import replace
+
+    from stages.edit.nerf import _edited_plan
+
+    bp = _plan()
+    inst = np.zeros(bp.labels.shape, np.int32)
+    inst[bp.labels != 0] = 7  # both chairs one instance here: only the clicked cells lose it
+    bp = replace(bp, instances=inst)
+    a = _select("click", (0.6, 0.6))
+    edits = (Edit(0, "remove", Selector("click", (0.6, 0.6))),)
+    new, _ = _edited_plan(EditConfig(), bp, EditSpec(Path("e.yaml"), edits, (0,)), [a])
+    assert new.instances is not None
+    assert np.all(new.instances[a] == 0) and np.all(new.instances[~a] == inst[~a])
+    assert (inst[~a] == 7).any()
