@@ -27,7 +27,7 @@ demo: setup  ## the default room from photos alone, then edited through its NeRF
 	$(BIN)/blunf run $(DEMO)/phone --out $(DEMO)/phone-run --config configs/phone.yaml
 	# 2. the full capture (poses, depth, labels): plan, then the example edits rendered
 	test -d $(DEMO)/capture || $(BIN)/blunf synth $(DEMO)/capture --views 60 --seed 0
-	$(BIN)/blunf run $(DEMO)/capture --out $(DEMO)/run --edits configs/edits/demo.yaml
+	$(BIN)/blunf run $(DEMO)/capture --out $(DEMO)/run --config configs/edit.yaml --edits configs/edits/demo.yaml
 	@echo "from photos alone: $(DEMO)/phone-run/blueprint.png  report: $(DEMO)/phone-run/report.json"
 	@echo "edited: $(DEMO)/run/edits/  blueprint: $(DEMO)/run/blueprint.png  report: $(DEMO)/run/report.json"
 

@@ -126,3 +126,15 @@ def test_other_methods_settings_do_not_change_a_methods_key():
     assert stage_key("blueprint", "blunf", stage_view(changed, "blunf"), {}) != stage_key(
         "blueprint", "blunf", stage_view(cfg, "blunf"), {}
     )
+
+
+@pytest.mark.parametrize("name", ["default.yaml", "fast.yaml", "phone.yaml", "edit.yaml"])
+def test_shipped_configs_load(name):
+    # make demo and the README use these: each is valid, and says something
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "configs" / name
+    assert path.is_file()
+    cfg = load_config(path)
+    if name == "edit.yaml":
+        assert cfg["nerf"].edge_batch == 0.5 and default_config()["nerf"].edge_batch == 0.0

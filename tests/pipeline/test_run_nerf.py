@@ -80,3 +80,32 @@ def test_photos_only_capture_reaches_a_plan(tmp_path):
     # machines (CI scored 40.7 where this machine scored 53.7 with the old tolerances): the
     # bar leaves that margin and catches a broken path (garbage depth or a wrong frame: < 30).
     assert m["frame"] == "aligned to gt poses" and m["fwiou"] > 40, m
+
+
+@pytest.mark.slow
+def test_replica_edits_from_the_shipped_spec(tmp_path):
+    """Replica office_0 (SfM poses, sensor depth, instance labels) with
+    configs/edits/replica-office0.yaml: the long sofa recoloured and one chair removed, each
+    picked by a click on the plan and matched to the right Replica instance, the pictures
+    written to the run's edits/ folder, and scored against Replica's instance masks."""
+    from tests.conftest import shared_capture
+
+    src = shared_capture("replica-office0")
+    spec = ROOT / "configs" / "edits" / "replica-office0.yaml"
+    out = tmp_path / "run"
+    r = _run(src, out, "--edits", str(spec))
+    assert _status(r)["edit:nerf"] == "ran"
+    recolor, remove = r["metrics"]["edit"]
+    assert (recolor["op"], remove["op"]) == ("recolor", "remove")
+    edit = next(s for s in r["stages"] if s["name"] == "edit")["facts"]["edits"]
+    assert [c["class"] for c in edit[0]["components"]] == ["sofa"]
+    assert [c["class"] for c in edit[1]["components"]] == ["chair"]
+    # the clicks took Replica's long sofa (instance 9) and the western chair (instance 4)
+    assert [g["id"] for g in edit[0]["metrics"]["gt_instances"]] == [9]
+    assert [g["id"] for g in edit[1]["metrics"]["gt_instances"]] == [4]
+    for m in (recolor, remove):
+        assert m["changed_iou"] > 0.6 and m["psnr_outside"] > 35, m
+    for f in ("orbit.gif", "blueprint_edited.png", "mesh_edited.ply"):
+        assert (out / "edits" / f).is_file(), f
+    for stem in ("0000", "0005", "0079"):
+        assert (out / "edits" / f"{stem}.png").is_file(), stem
