@@ -92,8 +92,8 @@ class NerfConfig:
         for name in ("edge_rays", "edge_radius"):
             if getattr(self, name) < 0:
                 raise BlunfError(f"nerf.{name}: must be >= 0, got {getattr(self, name)}")
-        if not 0.0 <= self.edge_gap < float("inf"):
-            raise BlunfError(f"nerf.edge_gap: must be a finite number >= 0, got {self.edge_gap}")
+        if not 0.0 < self.edge_gap < float("inf"):
+            raise BlunfError(f"nerf.edge_gap: must be a finite number > 0, got {self.edge_gap}")
 
 
 @dataclass(frozen=True)

@@ -348,7 +348,14 @@ def test_batch_draws_half_its_rays_beside_silhouettes():
 
 
 @pytest.mark.parametrize(
-    "bad", [{"edge_batch": 1.5}, {"edge_batch": -0.1}, {"edge_rays": -1}, {"edge_gap": math.nan}]
+    "bad",
+    [
+        {"edge_batch": 1.5},
+        {"edge_batch": -0.1},
+        {"edge_rays": -1},
+        {"edge_gap": math.nan},
+        {"edge_gap": 0.0},
+    ],
 )
 def test_edge_settings_checked(bad):
     with pytest.raises(BlunfError, match="nerf.edge_"):
