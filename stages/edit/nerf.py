@@ -22,6 +22,7 @@ import numpy as np
 import torch
 import trimesh
 from PIL import Image
+from scipy import ndimage
 
 from stages.common.blueprint import Blueprint
 from stages.common.camera import Intrinsics
@@ -38,6 +39,7 @@ from stages.edit.metrics import EditScore, gt_instance_names, gt_instances
 from stages.edit.ops import (
     FieldEdit,
     edit_mesh,
+    field_color,
     field_luminance,
     reference_luminance,
     vertex_colors,
@@ -55,6 +57,7 @@ MASK_TINT = np.array([1.0, 0.0, 1.0])  # mask edits: selected pixels blended hal
 ORBIT_TARGET_Z = 0.5  # default orbit: cameras look at this height above the camera centroid
 SEPARATOR = 4  # white pixels between before and after
 REF_POINTS = 20000  # surface points at most whose field colour sets a selection's reference
+FILL_RING = 0.2  # metres round a removed footprint whose floor's field colour fills under it
 
 
 @dataclass(frozen=True)
@@ -91,7 +94,8 @@ def run(cfg: EditConfig, inputs: EditInputs, out: Path) -> EditOutputs:
             ref_field = field_luminance(model.density, model.color, inside, REF_POINTS)
             model.clear_cache()
             ref_mesh = None if colors is None else reference_luminance(ext, verts, colors)
-            edits.append(_field_edit(e, ext, ref_field))
+            fill = _fill(cfg, e, ext, comps, verts, colors, model)
+            edits.append(replace(_field_edit(e, ext, ref_field), fill=fill))
             mesh_edits.append(replace(edits[-1], ref_lum=ref_mesh))
             records.append(
                 {
@@ -102,6 +106,7 @@ def run(cfg: EditConfig, inputs: EditInputs, out: Path) -> EditOutputs:
                     "footprint_cells": int(ext.footprint.sum()),
                     "components": comps,
                     "ref_luminance": {"field": _round(ref_field), "mesh": _round(ref_mesh)},
+                    "fill": None if fill is None else [round(float(v), 4) for v in fill],
                 }
             )
         views = _views(spec, cap, cfg)
@@ -201,6 +206,35 @@ def _load_mesh(path: Path) -> trimesh.Trimesh:
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.vertices) == 0:
         raise BlunfError(f"{path}: the mesh has no vertices")
     return mesh
+
+
+def _fill(
+    cfg: EditConfig,
+    e: Edit,
+    ext: Extent,
+    comps: list[dict],
+    verts: np.ndarray,
+    colors: np.ndarray | None,
+    model,
+) -> torch.Tensor | None:
+    """A removal's ground fill: the median colour of the fused floor (|z| <= floor_band) in a
+    FILL_RING band round the footprint, from the mesh's vertex colours (what the photos showed
+    there), or from the field when the mesh has none. None for other ops, for a removal of
+    floor itself, and when no floor surrounds the footprint."""
+    if e.op != "remove" or any(c["class"] == cfg.floor_class for c in comps):
+        return None
+    grow = max(1, round(FILL_RING / ext.grid.cell))
+    ring = ndimage.binary_dilation(ext.footprint, iterations=grow) & ~ext.footprint  # [H, W]
+    ring_ext = Extent(ext.grid, np.where(ring, -cfg.floor_band, np.inf).astype(np.float32),
+                      np.where(ring, cfg.floor_band, -np.inf).astype(np.float32))  # fmt: skip
+    on = ring_ext.contains(verts)  # [V] fused floor round the footprint
+    if not on.any():
+        return None
+    if colors is not None:
+        return torch.from_numpy(np.median(colors[on], axis=0).astype(np.float32))
+    fill = field_color(model.density, model.color, verts[on], REF_POINTS)
+    model.clear_cache()
+    return fill
 
 
 def _field_edit(e: Edit, ext: Extent, ref: float | None) -> FieldEdit:

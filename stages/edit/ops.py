@@ -1,14 +1,15 @@
 """Edit operations on a field given as functions, and on the fused mesh.
 
 The field is wrapped, never retrained: `remove` zeroes the density of the samples inside the
-extent (what was behind or under shows through); the colour ops replace the colour of the
-samples inside. `recolor` and `retexture` keep the shading: the new colour is scaled by the
-sample's luminance over the selection's reference luminance (the median luminance of the
-selection's own colour: the field's at the fused surface inside the extent, or the mesh's
-vertex colours there when editing the mesh), so a shadow stays a shadow. `sketch` paints
-its colour flat. Each op blends with weight `strength`. `mask` changes nothing in the field:
-its output is the per-view mask (see `stages.edit.render`). The same colour functions edit
-the mesh's vertices.
+extent (what was behind or under shows through; ground that no view saw under the object is
+filled with the colour of the fused floor round it, `fill`); the colour ops replace the
+colour of the samples inside. `recolor` and `retexture` keep the shading: the new colour is
+scaled by the sample's luminance over the selection's reference luminance (the median
+luminance of the selection's own colour: the field's at the fused surface inside the extent,
+or the mesh's vertex colours there when editing the mesh), so a shadow stays a shadow.
+`sketch` paints its colour flat. Each op blends with weight `strength`. `mask` changes
+nothing in the field: its output is the per-view mask (see `stages.edit.render`). The same
+colour functions edit the mesh's vertices.
 """
 
 from __future__ import annotations
@@ -41,6 +42,8 @@ class FieldEdit:
     strength: float = 1.0  # blend weight in [0, 1]
     texture: Tensor | None = None  # [Ht, Wt, 3] RGB in [0, 1], row 0 = highest y (retexture)
     ref_lum: float | None = None  # luminance of the selection's own colour; None = no shading
+    fill: Tensor | None = None  # [3] remove: colour of the ground under the footprint where
+    #                             the field has none (no view saw it); None = left empty
 
 
 def luminance(c: Tensor) -> Tensor:
@@ -72,6 +75,41 @@ def field_luminance(
     density_fn(x)  # a NeRF model's colour reuses the features of this call
     c = color_fn(x, torch.tensor([0.0, 0.0, -1.0]).expand(len(x), 3))  # [M, 3]
     return float(luminance(c).median())
+
+
+@torch.no_grad()
+def field_color(
+    density_fn: DensityFn, color_fn: ColorFn, points: np.ndarray, most: int = 20000
+) -> Tensor | None:
+    """Median RGB [3] of the field's colour at surface points [N, 3] (at most `most`, evenly
+    picked), seen from above; None without points."""
+    if len(points) == 0:
+        return None
+    idx = np.linspace(0, len(points) - 1, min(len(points), most)).round().astype(int)
+    x = torch.from_numpy(np.asarray(points)[idx].astype(np.float32))  # [M, 3]
+    density_fn(x)  # a NeRF model's colour reuses the features of this call
+    c = color_fn(x, torch.tensor([0.0, 0.0, -1.0]).expand(len(x), 3))  # [M, 3]
+    return c.median(dim=0).values.clamp(0.0, 1.0)
+
+
+def fill_ground(
+    edits: Sequence[FieldEdit], origins: Tensor, dirs: Tensor, rgb: Tensor, acc: Tensor
+) -> tuple[Tensor, Tensor]:
+    """Rays [R] that reach the floor (z = 0) under a removed footprint with opacity to spare
+    take the edit's fill colour for it: rgb + (1 - acc) * fill, acc -> 1. Under an object no
+    view saw the ground, and the field has nothing there: without this the render shows
+    the void below the floor (black). Returns the new rgb [R, 3] and acc [R]."""
+    for e in edits:
+        if e.op != "remove" or e.fill is None:
+            continue
+        down = dirs[:, 2] < 0
+        t = torch.where(down, -origins[:, 2] / torch.where(down, dirs[:, 2], -1.0), -1.0)
+        hit = origins + t.clamp(min=0.0)[:, None] * dirs  # [R, 3] the floor point
+        under = down & (t > 0) & torch.as_tensor(e.extent.over(hit[:, :2]))
+        rest = torch.where(under, 1.0 - acc, 0.0).clamp(min=0.0)  # [R]
+        rgb = rgb + rest[:, None] * e.fill.to(rgb.dtype)
+        acc = acc + rest
+    return rgb, acc
 
 
 def edit_colors(edits: Sequence[FieldEdit], x: Tensor, c: Tensor) -> Tensor:

@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from stages.common.camera import Intrinsics
-from stages.edit.ops import ColorFn, DensityFn, FieldEdit, wrap_field
+from stages.edit.ops import ColorFn, DensityFn, FieldEdit, fill_ground, wrap_field
 from stages.edit.select import Extent
 from stages.nerf.field import NerfModel
 from stages.nerf.render import RenderOut, camera_rays, render_model, render_rays
@@ -62,7 +62,9 @@ def render_rays_edited(
         return_samples=bool(masks),
         surface_color=surface_color,
     )
-    return _with_masks(out, origins, dirs, masks)
+    res = _with_masks(out, origins, dirs, masks)
+    res["rgb"], res["acc"] = fill_ground(edits, origins, dirs, res["rgb"], res["acc"])
+    return res
 
 
 def _with_masks(
@@ -113,6 +115,7 @@ def render_view_edited(
             color_fn=col,
         )
         out = _with_masks(rendered, oc, dc, masks)
+        out["rgb"], out["acc"] = fill_ground(edits, oc, dc, out["rgb"], out["acc"])
         parts["rgb"].append(out["rgb"])
         parts["depth"].append(out["depth"] * zs[i : i + chunk])
         parts["acc"].append(out["acc"])

@@ -62,6 +62,18 @@ class Extent:
         res = inside & (z >= zlo) & (z <= zhi)
         return res.numpy() if isinstance(x, np.ndarray) else res
 
+    def over(self, xy: np.ndarray | Tensor) -> np.ndarray | Tensor:
+        """Which world points xy [N, 2] lie over the footprint (any height); bool [N]."""
+        xt = torch.as_tensor(xy)
+        (ox, oy), cell = self.grid.origin, self.grid.cell
+        h, w = self.grid.shape
+        col = torch.floor((xt[:, 0] - ox) / cell).long()  # [N]
+        row = h - 1 - torch.floor((xt[:, 1] - oy) / cell).long()  # [N]
+        inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        flat = row.clamp(0, h - 1) * w + col.clamp(0, w - 1)
+        res = inside & torch.from_numpy(self.footprint).view(-1)[flat]
+        return res.numpy() if isinstance(xy, np.ndarray) else res
+
     def bbox(self) -> tuple[float, float, float, float]:
         """(x_min, y_min, x_max, y_max) in metres of the footprint's cells."""
         rows, cols = np.nonzero(self.footprint)

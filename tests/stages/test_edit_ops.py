@@ -18,6 +18,7 @@ rows 4..7).
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +30,13 @@ from stages.common.blueprint import Blueprint, Grid
 from stages.common.camera import Intrinsics
 from stages.edit.config import EditConfig
 from stages.edit.metrics import PSNR_CAP, EditScore, changed, match_instances, pooled_iou
-from stages.edit.ops import FieldEdit, edit_colors, edit_mesh, reference_luminance
+from stages.edit.ops import (
+    FieldEdit,
+    edit_colors,
+    edit_mesh,
+    fill_ground,
+    reference_luminance,
+)
 from stages.edit.render import look_at, orbit_poses, render_rays_edited, render_view_edited
 from stages.edit.select import _top, extent_of, select_cells
 from stages.edit.spec import Edit, EditSpec, Selector
@@ -253,6 +260,85 @@ def test_remove_reveals_the_floor_and_leaves_the_rest(before):
     np.testing.assert_allclose(both, np.full((20, 20, 3), 0.5), atol=1e-6)
 
 
+def test_remove_fills_ground_no_view_saw(before):
+    # the floor slab has a hole under A (no view saw the ground there): removed without a
+    # fill, A's pixels see through to nothing (black); with one, exactly they take the fill,
+    # and a floor that is there (B's, with B removed) is rendered, never filled over
+    def holed(x: torch.Tensor) -> torch.Tensor:
+        under_a = (x[:, 0] >= 0.4) & (x[:, 0] < 0.8) & (x[:, 1] >= 0.4) & (x[:, 1] < 0.8)
+        return torch.where(_floor(x) & under_a & (x[:, 2] < 0), 0.0, density(x))
+
+    o, d, _ = camera_rays(POSE, INTR)
+    inst = _gt_instances()
+    green = torch.tensor([0.0, 1.0, 0.0])
+
+    def render(edits) -> np.ndarray:
+        out = render_rays_edited(o, d, holed, color, edits, near=19.0, far=20.2, step=0.01)
+        return out["rgb"].view(20, 20, 3).numpy()
+
+    a = _edit("remove", _select("click", (0.6, 0.6)))
+    b = _edit("remove", _select("pixel", (13, 5)), fill=green)
+    plain = render([a, b])
+    np.testing.assert_allclose(plain[inst == 1], 0.0, atol=1e-6)
+    filled = render([replace(a, fill=green), b])
+    np.testing.assert_allclose(filled[inst == 1], np.tile([0.0, 1.0, 0.0], (16, 1)), atol=1e-6)
+    np.testing.assert_allclose(filled[inst == 2], np.tile(GREY, (16, 1)), atol=1e-6)
+    assert np.array_equal(filled[inst == 0], before["rgb"][inst == 0])
+    # the same through the view renderer (the NeRF path): over A's footprint only
+    e = replace(a, fill=green)
+    rgb, acc = fill_ground([e], o, d, torch.zeros(400, 3), torch.zeros(400))
+    assert np.array_equal((acc.view(20, 20) > 0).numpy(), inst == 1)
+    half = fill_ground([e], o, d, torch.zeros(400, 3), torch.full((400,), 0.5))[0]
+    np.testing.assert_allclose(half.view(20, 20, 3).numpy()[inst == 1], [[0, 0.5, 0]] * 16)
+
+
+def test_fill_is_the_floor_colour_round_the_footprint():
+    # A removed: its fill is the median colour of the floor vertices within 0.2 m of its
+    # footprint (green here), not of the floor further out (red), nor of the box (blue);
+    # the field is asked only when the mesh has no colours; no fill for a recolour, for a
+    # removal of floor, or without floor round the footprint
+    from stages.edit.nerf import _fill
+
+    bp = _plan()
+    cells = _select("click", (0.6, 0.6))
+    ext, comps = extent_of(cells, bp, component_map(bp), _vertices()[0], CFG)
+    g = np.arange(0.025, 2.0, 0.05)
+    xx, yy = np.meshgrid(g, g)
+    floor = np.stack([xx.ravel(), yy.ravel(), np.zeros(xx.size)], 1)
+    box = np.array([[0.6, 0.6, 0.3], [0.5, 0.7, 0.5]])
+    verts = np.concatenate([floor, box])
+    d = np.maximum(np.abs(floor[:, 0] - 0.6), np.abs(floor[:, 1] - 0.6))  # square distance
+    cols = np.where((d > 0.2) & (d < 0.35), 1, 0)[:, None] * [0.0, 1.0, 0.0]
+    cols = np.where((d >= 0.45)[:, None], [1.0, 0.0, 0.0], cols)
+    cols = np.concatenate([cols, [[0.0, 0.0, 1.0]] * 2])
+    ring = (d > 0.2) & (d < 0.4)  # the band's vertices: most green, the outer row black
+    assert ring.sum() > 40
+
+    class NoField:
+        def density(self, x):
+            raise AssertionError("the mesh has colours: the field is not asked")
+
+    e = Edit(0, "remove", Selector("click", (0.6, 0.6)))
+    fill = _fill(CFG, e, ext, comps, verts, cols, NoField())
+    assert fill is not None and torch.equal(fill, torch.tensor([0.0, 1.0, 0.0]))
+    grey = _fill(CFG, e, ext, comps, verts, None, _FieldOf(density, color))
+    assert grey is not None and torch.allclose(grey, torch.tensor(GREY))
+    assert _fill(CFG, replace(e, op="recolor"), ext, comps, verts, cols, NoField()) is None
+    floor_comp = [{**comps[0], "class": "floor"}]
+    assert _fill(CFG, e, ext, floor_comp, verts, cols, NoField()) is None
+    assert _fill(CFG, e, ext, comps, box, cols[-2:], NoField()) is None
+
+
+class _FieldOf:
+    """A model-like object over the analytic field (density, color, clear_cache)."""
+
+    def __init__(self, density_fn, color_fn) -> None:
+        self.density, self.color = density_fn, color_fn
+
+    def clear_cache(self) -> None:
+        pass
+
+
 def test_recolor_keeps_shading_and_touches_only_the_selection(before):
     # B is flat blue, its vertices too: shading = lum(sample) / median lum = 1, so the new
     # colour is 0.5 blue + 0.5 green = (0, 0.5, 0.5) on B's pixels
@@ -464,8 +550,6 @@ def test_edited_plan_relabels_removed_cells():
 
 
 def test_edited_plan_keeps_instances_but_the_removed_ones():
-    from dataclasses import replace
-
     from stages.edit.nerf import _edited_plan
 
     bp = _plan()
