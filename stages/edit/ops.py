@@ -63,33 +63,33 @@ def reference_luminance(extent: Extent, vertices: np.ndarray, colors: np.ndarray
 
 
 @torch.no_grad()
+def _field_colors(
+    density_fn: DensityFn, color_fn: ColorFn, points: np.ndarray, most: int
+) -> Tensor | None:
+    """The field's colour [M, 3] at surface points [N, 3] (at most `most`, evenly picked),
+    seen from above; None without points."""
+    if len(points) == 0:
+        return None
+    idx = np.linspace(0, len(points) - 1, min(len(points), most)).round().astype(int)
+    x = torch.from_numpy(np.asarray(points)[idx].astype(np.float32))  # [M, 3]
+    density_fn(x)  # a NeRF model's colour reuses the features of this call
+    return color_fn(x, torch.tensor([0.0, 0.0, -1.0]).expand(len(x), 3))
+
+
 def field_luminance(
     density_fn: DensityFn, color_fn: ColorFn, points: np.ndarray, most: int = 20000
 ) -> float | None:
-    """Median luminance of the field's colour at surface points [N, 3] (at most `most` of
-    them, evenly picked), seen from above; None without points."""
-    if len(points) == 0:
-        return None
-    idx = np.linspace(0, len(points) - 1, min(len(points), most)).round().astype(int)
-    x = torch.from_numpy(np.asarray(points)[idx].astype(np.float32))  # [M, 3]
-    density_fn(x)  # a NeRF model's colour reuses the features of this call
-    c = color_fn(x, torch.tensor([0.0, 0.0, -1.0]).expand(len(x), 3))  # [M, 3]
-    return float(luminance(c).median())
+    """Median luminance of the field's colour at surface points [N, 3]; None without."""
+    c = _field_colors(density_fn, color_fn, points, most)
+    return None if c is None else float(luminance(c).median())
 
 
-@torch.no_grad()
 def field_color(
     density_fn: DensityFn, color_fn: ColorFn, points: np.ndarray, most: int = 20000
 ) -> Tensor | None:
-    """Median RGB [3] of the field's colour at surface points [N, 3] (at most `most`, evenly
-    picked), seen from above; None without points."""
-    if len(points) == 0:
-        return None
-    idx = np.linspace(0, len(points) - 1, min(len(points), most)).round().astype(int)
-    x = torch.from_numpy(np.asarray(points)[idx].astype(np.float32))  # [M, 3]
-    density_fn(x)  # a NeRF model's colour reuses the features of this call
-    c = color_fn(x, torch.tensor([0.0, 0.0, -1.0]).expand(len(x), 3))  # [M, 3]
-    return c.median(dim=0).values.clamp(0.0, 1.0)
+    """Median RGB [3] of the field's colour at surface points [N, 3]; None without."""
+    c = _field_colors(density_fn, color_fn, points, most)
+    return None if c is None else c.median(dim=0).values.clamp(0.0, 1.0)
 
 
 def fill_ground(

@@ -47,15 +47,19 @@ class Extent:
         """Cells of the selection. Returns bool [H, W]."""
         return self.zlo <= self.zhi
 
+    def _cells(self, xy: Tensor) -> tuple[Tensor, Tensor]:
+        """Flat cell index [N] (clipped) and inside-the-grid [N] of world points xy [N, >= 2]."""
+        (ox, oy), cell = self.grid.origin, self.grid.cell
+        h, w = self.grid.shape
+        col = torch.floor((xy[:, 0] - ox) / cell).long()  # [N]
+        row = h - 1 - torch.floor((xy[:, 1] - oy) / cell).long()  # [N]
+        inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        return row.clamp(0, h - 1) * w + col.clamp(0, w - 1), inside
+
     def contains(self, x: np.ndarray | Tensor) -> np.ndarray | Tensor:
         """Which world points x [N, 3] lie inside; bool [N], numpy or torch as x."""
         xt = torch.as_tensor(x)
-        (ox, oy), cell = self.grid.origin, self.grid.cell
-        h, w = self.grid.shape
-        col = torch.floor((xt[:, 0] - ox) / cell).long()  # [N]
-        row = h - 1 - torch.floor((xt[:, 1] - oy) / cell).long()  # [N]
-        inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
-        flat = row.clamp(0, h - 1) * w + col.clamp(0, w - 1)
+        flat, inside = self._cells(xt)
         zlo = torch.from_numpy(self.zlo).view(-1)[flat]
         zhi = torch.from_numpy(self.zhi).view(-1)[flat]
         z = xt[:, 2]
@@ -64,13 +68,7 @@ class Extent:
 
     def over(self, xy: np.ndarray | Tensor) -> np.ndarray | Tensor:
         """Which world points xy [N, 2] lie over the footprint (any height); bool [N]."""
-        xt = torch.as_tensor(xy)
-        (ox, oy), cell = self.grid.origin, self.grid.cell
-        h, w = self.grid.shape
-        col = torch.floor((xt[:, 0] - ox) / cell).long()  # [N]
-        row = h - 1 - torch.floor((xt[:, 1] - oy) / cell).long()  # [N]
-        inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
-        flat = row.clamp(0, h - 1) * w + col.clamp(0, w - 1)
+        flat, inside = self._cells(torch.as_tensor(xy))
         res = inside & torch.from_numpy(self.footprint).view(-1)[flat]
         return res.numpy() if isinstance(xy, np.ndarray) else res
 
