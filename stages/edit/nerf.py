@@ -57,7 +57,7 @@ MASK_TINT = np.array([1.0, 0.0, 1.0])  # mask edits: selected pixels blended hal
 ORBIT_TARGET_Z = 0.5  # default orbit: cameras look at this height above the camera centroid
 SEPARATOR = 4  # white pixels between before and after
 REF_POINTS = 20000  # surface points at most whose field colour sets a selection's reference
-FILL_RING = 0.2  # metres round a removed footprint whose floor's field colour fills under it
+FILL_RING = 0.2  # metres round a removed footprint whose fused floor's colour fills under it
 
 
 @dataclass(frozen=True)
@@ -95,7 +95,7 @@ def run(cfg: EditConfig, inputs: EditInputs, out: Path) -> EditOutputs:
             model.clear_cache()
             ref_mesh = None if colors is None else reference_luminance(ext, verts, colors)
             fill = _fill(cfg, e, ext, comps, verts, colors, model)
-            edits.append(replace(_field_edit(e, ext, ref_field), fill=fill))
+            edits.append(_field_edit(e, ext, ref_field, fill))
             mesh_edits.append(replace(edits[-1], ref_lum=ref_mesh))
             records.append(
                 {
@@ -237,12 +237,14 @@ def _fill(
     return fill
 
 
-def _field_edit(e: Edit, ext: Extent, ref: float | None) -> FieldEdit:
+def _field_edit(
+    e: Edit, ext: Extent, ref: float | None, fill: torch.Tensor | None = None
+) -> FieldEdit:
     color = None if e.color is None else torch.tensor(e.color, dtype=torch.float32) / 255.0
     tex = None
     if e.texture is not None:
         tex = torch.from_numpy(read_image(e.texture).astype(np.float32) / 255.0)  # [Ht, Wt, 3]
-    return FieldEdit(e.op, ext, color, e.strength, tex, ref)
+    return FieldEdit(e.op, ext, color, e.strength, tex, ref, fill)
 
 
 # ---- rendering ----------------------------------------------------------------------------

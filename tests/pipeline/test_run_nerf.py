@@ -6,9 +6,12 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from pipeline.cli import main
+from stages.common.blueprint import Blueprint
+from stages.export.components import component_map
 
 ROOT = Path(__file__).resolve().parents[2]
 FAST = ["--set", "blueprint.blunf.steps=300", "--set", "fusion.voxel=0.04"]
@@ -85,11 +88,6 @@ def test_photos_only_capture_reaches_a_plan(tmp_path):
 def _click_on(run: Path, cls: str, rank: int = 0) -> tuple[float, float]:
     """World (x, y) of a cell of the rank-th largest component of class `cls` in the run's
     plan: the component's cell nearest its centroid (a centroid may fall outside an L)."""
-    import numpy as np
-
-    from stages.common.blueprint import Blueprint
-    from stages.export.components import component_map
-
     bp = Blueprint.load(run / "blueprint.npz")
     comps = json.loads((run / "components.json").read_text())["components"]
     comps = sorted((c for c in comps if c["class"] == cls), key=lambda c: -c["area_m2"])
