@@ -2,7 +2,8 @@
 
 - changed_iou: the pixels whose render changed by more than a threshold (any channel), against
   the ground-truth mask of the selected object(s), pooled over the views that have one:
-  sum of intersections / sum of unions.
+  sum of intersections / sum of unions. changed_iou_views gives it view by view (the bar
+  "in every rendered view" is read there), None for a view where both masks are empty.
 - psnr_outside: PSNR of the edited render against the unedited one over the pixels outside
   the selection's mask, pooled over the views; capped at PSNR_CAP when nothing changed.
 
@@ -84,17 +85,21 @@ class EditScore:
         self.inst.append(inst)
 
     def result(self, names: dict[int, str]) -> dict:
-        """changed_iou (None without GT for every view or without a matched instance),
-        psnr_outside, the matched GT instances, pixel counts and a note."""
+        """changed_iou pooled and per view (None without GT for every view or without a
+        matched instance), psnr_outside, the matched GT instances, pixel counts and a note."""
         psnr = PSNR_CAP if self.n == 0 or self.se == 0 else -10 * math.log10(self.se / self.n)
         m: dict = {"psnr_outside": round(min(PSNR_CAP, psnr), 3), "changed_iou": None}
+        m["changed_iou_views"] = None
         m["gt_instances"], m["note"] = [], ""
         inst = [i for i in self.inst if i is not None]
         if not inst or len(inst) < len(self.inst):
             m["note"] = "no ground-truth instance masks for these views"
         elif ids := match_instances(self.sel, inst):
-            iou = pooled_iou(self.changed, [np.isin(i, ids) for i in inst])
-            m["changed_iou"] = None if iou is None else round(iou, 4)
+            gts = [np.isin(i, ids) for i in inst]
+            ious = [pooled_iou(self.changed, gts)]
+            ious += [pooled_iou([c], [g]) for c, g in zip(self.changed, gts, strict=True)]
+            r = [None if v is None else round(v, 4) for v in ious]
+            m["changed_iou"], m["changed_iou_views"] = r[0], r[1:]
             m["gt_instances"] = [{"id": i, "name": names.get(i, "")} for i in ids]
         else:
             m["note"] = "the selection's masks overlap no ground-truth instance"

@@ -124,7 +124,7 @@ def run(cfg: EditConfig, inputs: EditInputs, out: Path) -> EditOutputs:
     mesh_new.export(outs.mesh)
 
     metrics = [
-        {"index": r["index"], "op": r["op"], **{k: r["metrics"][k] for k in METRIC_KEYS}}
+        {"index": r["index"], "op": r["op"], **{k: r["metrics"].get(k) for k in METRIC_KEYS}}
         for r in records
     ]  # the report's metrics.edit
     write_json(
@@ -153,7 +153,7 @@ def run(cfg: EditConfig, inputs: EditInputs, out: Path) -> EditOutputs:
     return outs
 
 
-METRIC_KEYS = ("changed_iou", "psnr_outside")
+METRIC_KEYS = ("changed_iou", "changed_iou_views", "psnr_outside")
 
 
 # ---- checks: all before any work ---------------------------------------------------------

@@ -439,6 +439,12 @@ def test_metrics_by_hand():
     # the same view twice: the same pooled figures; a view without GT: no IoU, a note
     score.add(b, a, sel, np.where(gt, 4, 0))
     assert score.result({})["changed_iou"] == res["changed_iou"]
+    assert score.result({})["changed_iou_views"] == [0.3333, 0.3333]
+    # a third view where nothing changed over the same GT pixels: IoU 0 there, pooled
+    # 2 / (3 + 3 + 2) = 0.25
+    score.add(b, b, sel, np.where(gt, 4, 0))
+    assert score.result({})["changed_iou_views"] == [0.3333, 0.3333, 0.0]
+    assert score.result({})["changed_iou"] == 0.25
     score.add(b, a, sel, None)
     assert score.result({})["changed_iou"] is None and score.result({})["note"]
     # instance 3 is the most overlapped (2 px), instance 5 is half inside (1 of 2 px), 7 not
