@@ -82,6 +82,18 @@ class NerfConfig:
     depth_check_agree: int = 1  # a reading is kept when at least this many views agree ...
     depth_check_through: int = 0  # ... and at most this many see through it (a floater)
     depth_check_views: int = 10  # each view is checked against the views overlapping it most
+    stereo: bool = True  # sparse depth (photos only): plane-sweep stereo (stereo.py) gives the
+    #                     training views dense depth first, and the field trains as with a sensor
+    stereo_planes: int = 64  # depth planes of the sweep, even in inverse depth
+    stereo_views: int = 4  # views each view is matched against (those overlapping it most)
+    stereo_window: int = 7  # pixels: side of the correlation window (odd)
+    stereo_max_cost: float = 0.4  # a reading needs 1 - ZNCC below this
+    stereo_min_std: float = 0.02  # ... and this grey-level spread (0-1) in its window
+    stereo_tol: float = 0.02  # relative depth within which other views confirm a reading
+    stereo_agree: int = 2  # ... and this many of them must
+    stereo_fuse: bool = True  # depth for fusion: the stereo reading where there is one (whole
+    #                           blocks of agreeing readings at depth_render_scale), the field's
+    #                           render elsewhere (held-out views: the render only)
     aabb_pad: float = 0.05  # scene box = bounds of cameras and depth points, + this fraction
     no_depth_margin: float = 3.0  # metres around the cameras when there are no depth points
     depth_stride: int = 4  # pixel stride of the depth points bounding the scene box

@@ -53,7 +53,7 @@ def consistent_depth(
             f"depth_check_views >= 1, got {min_agree}, {max_through}, {neighbours}"
         )
     n = len(depths)
-    order = _overlap_order(depths, Ks, poses)
+    order = overlap_order(depths, Ks, poses)
     out: list[np.ndarray] = []
     total = kept = 0
     for i in range(n):
@@ -91,7 +91,7 @@ def _depth_at(
     return d, z
 
 
-def _overlap_order(
+def overlap_order(
     depths: list[np.ndarray], Ks: list[np.ndarray], poses: list[np.ndarray], stride: int = 8
 ) -> list[list[int]]:
     """Per view, the other views by decreasing overlap: how many of its readings (on a

@@ -1,7 +1,8 @@
 """NeRF stage, occupancy-grid implementation: train the field, score it, render depth.
 
 Outputs model.pt (load_model), nerf.json (stats), heldout/<stem>.png renders and frames.json.
-With sparse depth (photos only: SfM tracks) every view's depth is rendered into
+With sparse depth (photos only: SfM tracks) plane-sweep stereo first gives the training views
+dense depth (stereo/<stem>.npy; stereo.py), then every view's depth is rendered into
 depth/<stem>.npy (z-depth, float32 metres, 0 where the opacity is below acc_threshold) and
 frames.json points at those renders: the photos-only depth path. With dense depth frames.json
 is the input capture unchanged.
@@ -24,7 +25,9 @@ from stages.nerf.config import NerfConfig, NerfInputs, NerfOutputs
 from stages.nerf.consistency import consistent_depth
 from stages.nerf.field import NerfModel, save_model
 from stages.nerf.render import render_view
+from stages.nerf.stereo import SweepConfig, sweep_depths
 from stages.nerf.train import (
+    Views,
     build_model,
     depth_coverage,
     depth_points,
@@ -58,12 +61,17 @@ def run(cfg: NerfConfig, inputs: NerfInputs, out: Path) -> NerfOutputs:
         views = load_views(cap, cfg.semantics)
         tr, held = split(len(cap.frames), cfg.holdout_every)
         coverage = depth_coverage(views, tr)
-        dense = coverage >= cfg.dense_depth
+        photos_only = coverage < cfg.dense_depth  # the capture's depth is SfM tracks at most
         log.info(
             "nerf: depth on %.1f %% of training pixels (%s)",
             100 * coverage,
-            "dense" if dense else "sparse",
+            "sparse" if photos_only else "dense",
         )
+        stereo: dict | None = None
+        swept: dict[int, np.ndarray] = {}  # view index -> checked stereo depth [H, W]
+        if photos_only and cfg.stereo and views.depth[tr[0]] is not None:
+            stereo, swept = _stereo_depth(cap, views, tr, cfg)
+        dense = depth_coverage(views, tr) >= cfg.dense_depth  # trains as with dense depth
         pts = depth_points(cap, views, tr, cfg.depth_stride if dense else 1)
         lo, hi = scene_box(cap.poses()[:, :3, 3], pts, cfg)
         model = build_model(cfg, lo, hi, views.class_ids, seed_points(cap, views, tr), dense=dense)
@@ -78,8 +86,13 @@ def run(cfg: NerfConfig, inputs: NerfInputs, out: Path) -> NerfOutputs:
         # depth is rendered for every view only when the input depth is sparse (photos only:
         # fusion needs it); with dense depth only the held-out views are rendered, for scores
         frames, psnrs, absrels = list(cap.frames), [], []
-        if not dense:  # depth for fusion, at 1 / depth_render_scale of the resolution
-            frames, stats["depth_check_kept"] = _write_depths(model, frames, cfg, outs.depth)
+        if swept:  # kept for inspection: stereo/<stem>.npy, z-depth metres, 0 = none
+            (out / "stereo").mkdir()
+            for i, d in swept.items():
+                write_depth_npy(out / "stereo" / f"{frames[i].stem}.npy", d)
+        if photos_only:  # depth for fusion, at 1 / depth_render_scale of the resolution
+            prior = swept if cfg.stereo_fuse else {}
+            frames, stats["depth_check_kept"] = _write_depths(model, frames, cfg, outs.depth, prior)
         for i in held:
             f = frames[i]
             v = render_view(model, np.asarray(f.pose), f.intrinsics, cfg.chunk)
@@ -88,12 +101,12 @@ def run(cfg: NerfConfig, inputs: NerfInputs, out: Path) -> NerfOutputs:
             psnrs.append(psnr(float(np.mean((v["rgb"] - gt) ** 2))))
             write_image(out / "heldout" / f"{f.stem}.png", np.round(v["rgb"] * 255))
             d_gt = views.depth[i]
-            if d_gt is not None and dense:  # sensor / fused depth is the reference
+            if d_gt is not None and not photos_only:  # sensor / fused depth is the reference
                 absrels.append(depth_absrel(depth, d_gt.view(depth.shape).numpy()))
     finally:
         torch.set_num_threads(old_threads)
     save_model(model, outs.model)
-    if dense:
+    if not photos_only:
         cap.with_frames(frames).save(outs.frames)  # the input depth stays the depth
     else:
         replace(cap.with_frames(frames), depth_scale=1.0, depth_invalid=()).save(outs.frames)
@@ -107,7 +120,8 @@ def run(cfg: NerfConfig, inputs: NerfInputs, out: Path) -> NerfOutputs:
             "depth_absrel": round(float(np.mean(absrels)), 4) if absrels else None,
             "depth_supervised": rays.t_depth is not None,
             "depth_coverage": round(coverage, 4),
-            "depth_dense": dense,
+            "depth_dense": not photos_only,
+            "stereo": stereo,
             "semantics": bool(views.class_ids) and rays.label is not None,
             "box": [lo.tolist(), hi.tolist()],
             "occupancy_shape": list(model.occupancy.shape),
@@ -128,13 +142,60 @@ def run(cfg: NerfConfig, inputs: NerfInputs, out: Path) -> NerfOutputs:
     return outs
 
 
+def _stereo_depth(
+    cap: Capture, views: Views, idx: list[int], cfg: NerfConfig
+) -> tuple[dict, dict[int, np.ndarray]]:
+    """Plane-sweep stereo among the training views `idx` (held-out views stay unseen): each
+    gets the sweep's checked depth, its SfM track depth where the sweep has none. Changes
+    views.depth in place; returns the sweep's facts and {view index: its stereo depth}."""
+    t0 = time.perf_counter()
+    frames = [cap.frames[i] for i in idx]
+    hw = [(f.intrinsics.height, f.intrinsics.width) for f in frames]
+    sparse = [views.depth[i].view(s).numpy() for i, s in zip(idx, hw, strict=True)]  # type: ignore[union-attr]
+    images = [views.rgb[i].view(*s, 3).numpy() for i, s in zip(idx, hw, strict=True)]
+    sweep = SweepConfig(
+        cfg.stereo_planes,
+        cfg.stereo_views,
+        cfg.stereo_window,
+        cfg.stereo_max_cost,
+        cfg.stereo_min_std,
+        cfg.stereo_tol,
+        cfg.stereo_agree,
+    )
+    depths, facts = sweep_depths(
+        images,
+        [f.intrinsics.K for f in frames],
+        [np.asarray(f.pose) for f in frames],
+        sparse,
+        sweep,
+    )
+    for i, d, sp in zip(idx, depths, sparse, strict=True):
+        views.depth[i] = torch.from_numpy(np.where(d > 0, d, sp).astype(np.float32).reshape(-1))
+    facts["seconds"] = round(time.perf_counter() - t0, 3)
+    log.info(
+        "nerf: stereo depth on %.1f %% of training pixels (%.1f %% matched) in %.1f s",
+        100 * facts["kept"],
+        100 * facts["matched"],
+        facts["seconds"],
+    )
+    return facts, dict(zip(idx, depths, strict=True))
+
+
 def _write_depths(
-    model: NerfModel, frames: list[Frame], cfg: NerfConfig, folder: Path
+    model: NerfModel,
+    frames: list[Frame],
+    cfg: NerfConfig,
+    folder: Path,
+    prior: dict[int, np.ndarray] | None = None,
 ) -> tuple[list[Frame], float | None]:
-    """Render every frame's depth, drop the readings other views do not confirm (when
-    depth_check), write folder/<stem>.npy. Returns (the frames pointing at those files, the
-    fraction of readings kept or None without the check)."""
+    """Render every frame's depth, take view i's `prior` reading (full resolution, 0 = none)
+    where it has one, drop the readings other views do not confirm (when depth_check), write
+    folder/<stem>.npy. Returns (the frames pointing at those files, the fraction of readings
+    kept or None without the check)."""
     depths = [render_depth(model, f, cfg) for f in frames]
+    for i, p in (prior or {}).items():
+        s = block_depth(p, depths[i].shape, cfg.stereo_tol)
+        depths[i] = np.where(s > 0, s, depths[i]).astype(np.float32)
     kept = None
     if cfg.depth_check:
         ks = [
@@ -160,13 +221,27 @@ def _write_depths(
     return out, None if kept is None else round(kept, 4)
 
 
+def block_depth(depth: np.ndarray, shape: tuple[int, ...], tol: float) -> np.ndarray:
+    """depth [H, W] (0 = none) at the smaller `shape` = (H // k, W // k): each k x k block's
+    mean where all its readings exist and agree within `tol` (relative), else 0. A block's
+    centre is the small pixel's centre (Intrinsics.scaled), so nothing shifts."""
+    h, w = shape
+    k = depth.shape[0] // h
+    if k < 1 or depth.shape[1] // w != k:
+        raise BlunfError(f"depth of {depth.shape} does not reduce to {shape} by whole blocks")
+    b = depth[: h * k, : w * k].reshape(h, k, w, k).astype(np.float64)
+    lo, hi, mean = b.min(axis=(1, 3)), b.max(axis=(1, 3)), b.mean(axis=(1, 3))
+    ok = (lo > 0) & (hi - lo <= tol * np.where(lo > 0, lo, 1.0))
+    return np.where(ok, mean, 0.0).astype(np.float32)
+
+
 def render_depth(model: NerfModel, f: Frame, cfg: NerfConfig) -> np.ndarray:
     """z-depth (metres, float32) of frame f at 1 / depth_render_scale of its resolution; 0
     where the opacity is below acc_threshold (fusion rescales the intrinsics to fit)."""
     k = max(1, cfg.depth_render_scale)
     w, h = f.intrinsics.width, f.intrinsics.height
     intr = f.intrinsics.scaled(max(1, w // k), max(1, h // k))
-    v = render_view(model, np.asarray(f.pose), intr, cfg.chunk)
+    v = render_view(model, np.asarray(f.pose), intr, cfg.chunk, color=False)
     return np.where(v["acc"] >= cfg.acc_threshold, v["depth"], 0.0).astype(np.float32)
 
 

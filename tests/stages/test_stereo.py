@@ -1,0 +1,110 @@
+"""Plane-sweep stereo (stages/nerf/stereo.py) against the procedural room's exact depth: the
+photos-only path's dense depth. Sparse 'tracks' are 2 % of the true readings, as SfM gives."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from stages.common.capture import read_layout
+from stages.common.errors import BlunfError
+from stages.common.io import read_depth, read_image
+from stages.nerf.stereo import SweepConfig, _box, sweep_depths
+
+
+@pytest.fixture(scope="module")
+def room(tiny_room):
+    cap = read_layout(tiny_room)
+    gt = [read_depth(f.depth).astype(np.float32) for f in cap.frames]
+    rng = np.random.default_rng(0)
+    tracks = [np.where(rng.random(g.shape) < 0.02, g, 0).astype(np.float32) for g in gt]
+    images = [read_image(f.image).astype(np.float32) / 255 for f in cap.frames]
+    ks = [f.intrinsics.K for f in cap.frames]
+    poses = [np.asarray(f.pose, np.float64) for f in cap.frames]
+    return images, ks, poses, tracks, gt
+
+
+@pytest.fixture(scope="module")
+def swept(room):
+    images, ks, poses, tracks, _ = room
+    return sweep_depths(images, ks, poses, tracks, SweepConfig())
+
+
+def _errors(depths: list[np.ndarray], gt: list[np.ndarray]) -> np.ndarray:
+    pairs = zip(depths, gt, strict=True)
+    return np.concatenate([np.abs(d[d > 0] - g[d > 0]) / g[d > 0] for d, g in pairs])
+
+
+def test_depth_matches_the_exact_depth(room, swept):
+    images, _, _, _, gt = room
+    depths, facts = swept
+    assert len(depths) == len(images)
+    for d, g in zip(depths, gt, strict=True):
+        assert d.dtype == np.float32 and d.shape == g.shape
+        assert np.isfinite(d).all() and (d >= 0).all()
+    # Measured on this 16-view 96x72 room: a quarter of the pixels kept (the low resolution
+    # leaves few windows with texture and overlap), median error 0.8 %, 2.5 % of the
+    # readings off by more than 5 %. Readings the sweep made up would be off by tens of %.
+    cover = np.mean([(d > 0).mean() for d in depths])
+    e = _errors(depths, gt)
+    assert cover > 0.15, cover
+    assert np.median(e) < 0.015 and (e > 0.05).mean() < 0.06, (np.median(e), (e > 0.05).mean())
+    assert facts["kept"] == pytest.approx(cover, abs=1e-3) and facts["matched"] >= facts["kept"]
+
+
+def test_wrong_poses_give_no_depth(room, swept):
+    # every camera moved 0.3 m: windows no longer match along the true epipolar lines, so
+    # few readings pass the cost and cross-view checks
+    images, ks, poses, tracks, _ = room
+    moved = [p.copy() for p in poses]
+    for i, p in enumerate(moved):
+        p[:3, 3] += 0.3 * np.array([np.cos(i), np.sin(i), 0.0])
+    _, facts = sweep_depths(images, ks, moved, tracks, SweepConfig())
+    assert facts["kept"] < 0.25 * swept[1]["kept"], (facts, swept[1])
+
+
+def test_flat_images_give_no_depth(room):
+    # no texture, nothing to match: every reading is refused rather than guessed
+    images, ks, poses, tracks, _ = room
+    flat = [np.full_like(im, 0.5) for im in images]
+    depths, facts = sweep_depths(flat, ks, poses, tracks, SweepConfig())
+    assert facts["matched"] == 0 and all(not d.any() for d in depths)
+
+
+@pytest.mark.parametrize(("scale", "offset"), [(1e-3, 0.0), (1e3, 0.0), (1.0, 1e5)])
+def test_same_depth_at_any_scale_and_offset(room, swept, scale, offset):
+    # a scene in millimetres, in kilometres or far from the origin: the same readings, scaled
+    images, ks, poses, tracks, _ = room
+    ref, _ = swept
+    moved = []
+    for p in poses:
+        q = p.copy()
+        q[:3, 3] = q[:3, 3] * scale + offset
+        moved.append(q)
+    scaled = [t * np.float32(scale) for t in tracks]
+    out, _ = sweep_depths(images, ks, moved, scaled, SweepConfig())
+    for a, b in zip(ref, out, strict=True):
+        assert np.isfinite(b).all()
+        both = (a > 0) & (b > 0)
+        assert both.sum() >= 0.97 * max((a > 0).sum(), (b > 0).sum())
+        np.testing.assert_allclose(b[both], a[both] * scale, rtol=2e-3)
+
+
+def test_box_mean_matches_a_direct_sum():
+    # the windowed mean at a corner, an edge and inside, by hand
+    x = torch.arange(30, dtype=torch.float32).view(1, 1, 5, 6)
+    m = _box(x, 3)[0, 0]
+    v = x[0, 0]
+    assert float(m[0, 0]) == pytest.approx(float(v[:2, :2].mean()))
+    assert float(m[0, 3]) == pytest.approx(float(v[:2, 2:5].mean()))
+    assert float(m[2, 2]) == pytest.approx(float(v[1:4, 1:4].mean()))
+
+
+@pytest.mark.parametrize(
+    "kw",
+    [{"planes": 2}, {"neighbours": 0}, {"window": 4}, {"window": 1}, {"max_cost": 0.0}],
+)
+def test_bad_settings_are_refused(kw):
+    with pytest.raises(BlunfError, match="nerf.stereo_"):
+        SweepConfig(**kw)
