@@ -71,7 +71,8 @@ def _recipe(
         frames = r.stage("poses", step.impl, PosesInputs(frames=frames), step.reason).frames
     else:
         r.skip("poses", step.impl, step.reason)
-    frames = r.stage("align", cfg["align"].impl, AlignInputs(frames=frames)).frames
+    # SfM's world has an arbitrary turn about z: the first camera fixes the plan's frame then
+    frames = r.stage("align", cfg["align"].impl, AlignInputs(frames, free_yaw=step.run)).frames
     step = plan.get("depth")
     nerf = None
     if step.run:  # photos only: the NeRF's rendered depth is what fusion integrates

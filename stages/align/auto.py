@@ -23,4 +23,4 @@ def run(cfg: AlignConfig, inputs: AlignInputs, out: Path) -> AlignOutputs:
         R, floor_z, info = floor.solve(cap, cfg, inputs.frames)
         why = "auto: no gravity in the capture, floor plane used"
     info["notes"] = "; ".join(n for n in (why, info["notes"]) if n)
-    return finish(cap, out, R, floor_z, info)
+    return finish(cap, out, R, floor_z, info, inputs.free_yaw)

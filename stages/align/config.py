@@ -58,6 +58,9 @@ class AlignConfig:
 @dataclass(frozen=True)
 class AlignInputs:
     frames: Path  # frames.json (a `Capture`) with a camera-to-world pose on every frame
+    free_yaw: bool = False  # the input world's turn about z means nothing (SfM's world): the
+    #                         first camera sets it (manhattan.heading_turn), so runs of one
+    #                         capture give plans in one frame
 
 
 @dataclass(frozen=True)

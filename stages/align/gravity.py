@@ -55,4 +55,4 @@ def run(cfg: AlignConfig, inputs: AlignInputs, out: Path) -> AlignOutputs:
     log.info("align gravity: %s", cfg)
     cap = load(inputs)
     R, floor_z, info = solve(cap, cfg, inputs.frames)
-    return finish(cap, out, R, floor_z, info)
+    return finish(cap, out, R, floor_z, info, inputs.free_yaw)

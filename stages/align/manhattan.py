@@ -4,6 +4,10 @@ Walls, cabinet fronts and furniture sides have near-horizontal normals. Their az
 folded modulo 90 degrees (ψ = 4θ on the circle; the sign of a normal drops out too), pile up
 at the room's dominant direction θ0. Turning the world by -θ0 + k 90 degrees puts the walls
 on the axes; of those four turns the smallest is taken, so an already square world is kept.
+
+When the input world's yaw is arbitrary (SfM's world, which differs from run to run), the
+smallest turn is not the same on every run: `heading_turn` then picks the turn from the
+first camera instead, so the plan of one capture always comes out in one frame.
 """
 
 from __future__ import annotations
@@ -86,14 +90,30 @@ def square_up(R: np.ndarray, normals: np.ndarray, cfg: AlignConfig) -> tuple[np.
     """(Rz @ R, facts for align.json, note) with Rz the Manhattan yaw of the normals [N, 3]
     seen through R (input world -> z up). Rz = I when `cfg.manhattan` is off or no walls."""
     if not cfg.manhattan:
-        return R, {"yaw_deg": 0.0, "manhattan_confidence": None, "wall_normals": None}, ""
+        facts = {"yaw_deg": 0.0, "manhattan_confidence": None, "wall_normals": None}
+        return R, {**facts, "squared": False}, ""
     y = find_yaw(normals @ R.T, cfg)
     facts = {
         "yaw_deg": 0.0 if y.yaw_deg is None else y.yaw_deg,
         "manhattan_confidence": y.confidence,
         "wall_normals": y.normals,
+        "squared": y.yaw_deg is not None,  # the walls now lie on x and y
     }
     if y.yaw_deg is None:
         log.info("align: %s", y.note)
         return R, facts, y.note
     return rot_z(y.yaw_deg) @ R, facts, ""
+
+
+def heading_turn(R: np.ndarray, first_pose: np.ndarray, squared: bool) -> float | None:
+    """Turn about +z (degrees) after R that fixes the plan's frame by the first camera: its
+    viewing direction (on the floor) ends up within 45 degrees of +y ("the first photo looks
+    north") by a quarter turn when the world was squared to the walls, exactly on +y when it
+    was not. None when that camera looks straight up or down (no heading)."""
+    f = R @ np.asarray(first_pose, np.float64)[:3, 2]  # optical axis, z up
+    if np.hypot(f[0], f[1]) < 1e-3:
+        return None
+    az = float(np.degrees(np.arctan2(f[1], f[0])))  # (-180, 180]
+    if not squared:
+        return 90.0 - az
+    return 90.0 * float(np.round((90.0 - az) / 90.0)) % 360.0

@@ -15,6 +15,7 @@ import numpy as np
 import open3d as o3d
 
 from stages.align.config import AlignConfig, AlignInputs, AlignOutputs
+from stages.align.manhattan import heading_turn, rot_z
 from stages.common.camera import check_pose, depth_to_points
 from stages.common.capture import Capture
 from stages.common.errors import BlunfError
@@ -206,9 +207,15 @@ def _plane_normal(p: np.ndarray, spread: float) -> np.ndarray | None:
 
 
 def finish(
-    cap: Capture, out: Path, R: np.ndarray, floor_z: float | None, info: dict
+    cap: Capture,
+    out: Path,
+    R: np.ndarray,
+    floor_z: float | None,
+    info: dict,
+    free_yaw: bool = False,
 ) -> AlignOutputs:
-    """Apply T to every pose; write frames.json and align.json.
+    """Apply T to every pose; write frames.json and align.json. With `free_yaw` the turn
+    about z is then set by the first camera (manhattan.heading_turn).
 
     T turns the world by R about the vertical through the mean camera centre c, then shifts
     the floor to z = 0: T x = R (x - c) + c, with z lowered by floor_z (the floor height after
@@ -220,6 +227,11 @@ def finish(
             f"align: no floor found in {cap.root} (no usable depth points); check the depth "
             "maps or set align.impl=none"
         )
+    if free_yaw:
+        turn = heading_turn(R, np.asarray(cap.frames[0].pose), bool(info.get("squared")))
+        info = {**info, "heading_turn_deg": turn}
+        if turn is not None:
+            R = rot_z(turn) @ R
     c = cap.poses()[:, :3, 3].mean(axis=0)  # [3] mean camera centre
     T = np.eye(4)
     T[:3, :3] = R

@@ -8,10 +8,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from pipeline.cli import main
 from stages.common.blueprint import Blueprint
-from stages.export.components import component_map
+from stages.export.components import class_name, component_map
 
 ROOT = Path(__file__).resolve().parents[2]
 FAST = ["--set", "blueprint.blunf.steps=300", "--set", "fusion.voxel=0.04"]
@@ -103,10 +104,10 @@ def test_replica_edits(tmp_path):
     """Replica office_0 (SfM poses, sensor depth, instance labels): the largest sofa
     recoloured and a chair removed, each picked by a click on the plan, matched to a Replica
     sofa / chair instance, the pictures written to the run's edits/ folder, and scored
-    against Replica's instance masks. The clicks come from this run's plan (SfM's world origin
-    is the first camera of its initial pair, so configs/edits/replica-office0.yaml's
-    coordinates hold for the frame its runs have given; this test does not depend on it), in
-    the spec's format, with the shipped spec's views."""
+    against Replica's instance masks. The clicks come from this run's plan, in the spec's
+    format, with the shipped spec's views; the shipped spec's own clicks must land on a sofa
+    and a chair of this run's plan (the align stage fixes SfM's turn about z by the first
+    photo, so every run gives the plan in one frame)."""
     from tests.conftest import shared_capture
 
     src = shared_capture("replica-office0")
@@ -114,6 +115,10 @@ def test_replica_edits(tmp_path):
     _run(src, out)
     sofa, chair = _click_on(out, "sofa"), _click_on(out, "chair")
     shipped = (ROOT / "configs" / "edits" / "replica-office0.yaml").read_text()
+    bp = Blueprint.load(out / "blueprint.npz")
+    for entry, cls in zip(yaml.safe_load(shipped)["edits"], ("sofa", "chair"), strict=True):
+        row, col, inside = bp.grid.cell_of(np.asarray([entry["select"]["click"]], np.float64))
+        assert inside[0] and class_name(bp, int(bp.labels[row[0], col[0]])) == cls, entry
     views = next(line for line in shipped.splitlines() if line.startswith("views:"))
     spec = tmp_path / "edits.yaml"
     spec.write_text(

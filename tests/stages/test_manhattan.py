@@ -4,13 +4,15 @@ is kept; a floor without walls keeps its yaw and says why."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import open3d as o3d
 import open3d.core as o3c
 import pytest
 
-from stages.align import AlignConfig
-from stages.align.manhattan import MIN_NORMALS, find_yaw, rot_z
+from stages.align import IMPLS, AlignConfig, AlignInputs
+from stages.align.manhattan import MIN_NORMALS, find_yaw, heading_turn, rot_z
 from stages.common.capture import Capture, Frame
 from stages.common.errors import BlunfError
 from stages.common.io import write_depth_png
@@ -105,6 +107,49 @@ def test_floor_without_walls_keeps_the_yaw(tmp_path):
     assert info["yaw_deg"] == 0.0 and info["wall_normals"] < MIN_NORMALS
     assert "no walls seen; yaw kept" in info["notes"]
     np.testing.assert_allclose((np.array([[0.0, 0, 0, 1], [5, 5, 0, 1]]) @ A.T)[:, 2], 0, atol=0.01)
+
+
+@pytest.mark.parametrize("impl", ["floor", "gravity"])
+def test_free_yaw_gives_one_frame_whatever_the_input_turn(tmp_path, impl):
+    # SfM's world differs by a turn about z from run to run: with free_yaw every input turn
+    # comes out in the same frame (the first camera looks within 45 deg of +y), where the
+    # smallest turn to the walls alone leaves some a quarter turn apart
+    plain, free = [], []
+    for deg in (17.0, 60.0, -50.0, 170.0):
+        M = turned(deg)
+        g = tuple(M[:3, :3] @ [0.0, 0.0, -1.0]) if impl == "gravity" else None
+        frames = room_capture(tmp_path / f"cap{deg}", ceiling=True, gravity=g, transform=M)
+        for flag, got in ((False, plain), (True, free)):
+            out = tmp_path / f"out{deg}{flag}"
+            out.mkdir()
+            outs = IMPLS[impl](AlignConfig(stride=2), AlignInputs(frames, free_yaw=flag), out)
+            info = json.loads(outs.align.read_text())
+            got.append((np.array(info["T"]) @ M)[:3, :3])  # true world -> aligned world
+            if flag:
+                assert info["squared"] and info["heading_turn_deg"] in (0.0, 90.0, 180.0, 270.0)
+    assert max(rot_err_deg(a, plain[0]) for a in plain) > 89.0  # quarter turns apart
+    for a in free:
+        assert rot_err_deg(a, free[0]) < 0.05
+        # still square: the turn from the true world is a multiple of 90 degrees
+        k = round(float(np.degrees(np.arctan2(a[1, 0], a[0, 0]))) / 90.0)
+        assert rot_err_deg(a, rot_z(90.0 * k)) < 0.05
+
+
+def test_heading_turn_by_hand():
+    # a camera looking along +x (optical axis = pose column 2): a quarter turn puts it on +y
+    pose = np.eye(4)
+    pose[:3, :3] = np.array([[0.0, 0, 1], [-1, 0, 0], [0, -1, 0]])  # x right = -y, z fwd = +x
+    assert heading_turn(np.eye(3), pose, squared=True) == 90.0
+    assert heading_turn(np.eye(3), pose, squared=False) == pytest.approx(90.0)
+    # looking 30 deg off +y: squared keeps it (within 45 deg), not squared turns it exactly
+    pose2 = np.eye(4)
+    pose2[:3, :3] = rot_z(120.0) @ pose[:3, :3]  # optical axis at azimuth 120 deg
+    assert heading_turn(np.eye(3), pose2, squared=True) == 0.0
+    assert heading_turn(np.eye(3), pose2, squared=False) == pytest.approx(-30.0)
+    # looking straight down: no heading
+    down = np.eye(4)
+    down[:3, :3] = np.array([[1.0, 0, 0], [0, -1, 0], [0, 0, -1]])
+    assert heading_turn(np.eye(3), down, squared=True) is None
 
 
 def azimuths(deg: np.ndarray) -> np.ndarray:
