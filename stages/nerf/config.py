@@ -85,6 +85,7 @@ class NerfConfig:
     stereo: bool = True  # sparse depth (photos only): plane-sweep stereo (stereo.py) gives the
     #                     training views dense depth first, and the field trains as with a sensor
     stereo_planes: int = 64  # depth planes of the sweep, even in inverse depth
+    stereo_refine: int = 16  # then per pixel this many across a plane step either side (0 = no)
     stereo_views: int = 4  # views each view is matched against (those overlapping it most)
     stereo_window: int = 7  # pixels: side of the correlation window (odd)
     stereo_max_cost: float = 0.4  # a reading needs 1 - ZNCC below this

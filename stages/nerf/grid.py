@@ -154,13 +154,14 @@ def _stereo_depth(
     sparse = [views.depth[i].view(s).numpy() for i, s in zip(idx, hw, strict=True)]  # type: ignore[union-attr]
     images = [views.rgb[i].view(*s, 3).numpy() for i, s in zip(idx, hw, strict=True)]
     sweep = SweepConfig(
-        cfg.stereo_planes,
-        cfg.stereo_views,
-        cfg.stereo_window,
-        cfg.stereo_max_cost,
-        cfg.stereo_min_std,
-        cfg.stereo_tol,
-        cfg.stereo_agree,
+        planes=cfg.stereo_planes,
+        refine=cfg.stereo_refine,
+        neighbours=cfg.stereo_views,
+        window=cfg.stereo_window,
+        max_cost=cfg.stereo_max_cost,
+        min_std=cfg.stereo_min_std,
+        tol=cfg.stereo_tol,
+        agree=cfg.stereo_agree,
     )
     depths, facts = sweep_depths(
         images,

@@ -6,9 +6,10 @@ steps. This module gives the photos-only path that dense depth, as Roessle et al
 Depth Priors for NeRF", 2022) and depth-supervised NeRFs do: each view is matched against
 the views that overlap it most, over fronto-parallel planes spaced evenly in inverse depth
 (Collins 1996; Gallup et al. 2007), with zero-mean normalised cross-correlation on a
-window. The best planes of the best half of the neighbours are averaged (occlusion: a
-surface hidden in one neighbour is seen in another), the cheapest plane wins, and a
-parabola through its neighbours refines it. Readings with a weak match, on flat texture or
+window. The costs of the best half of the neighbours are averaged (occlusion: a surface
+hidden in one neighbour is seen in another), the cheapest plane wins, a second sweep of
+finer per-pixel hypotheses round it and a parabola through the best one's neighbours refine
+it. Readings with a weak match, on flat texture or
 at the ends of the sweep are dropped; `consistency.consistent_depth` then keeps only those
 other views confirm.
 
@@ -40,6 +41,8 @@ class SweepConfig:
     """Plane sweep settings (NerfConfig's stereo_* fields)."""
 
     planes: int = 64  # depth planes, even in inverse depth between the view's track bounds
+    refine: int = 16  # then per pixel this many planes across one coarse step either side
+    #                   (0 or 1 = no refinement): a plane step is ~10 cm at 3 m here
     neighbours: int = 4  # views matched against each view (those overlapping it most)
     window: int = 7  # pixels: side of the correlation window
     max_cost: float = 0.4  # a reading needs 1 - ZNCC below this (ZNCC above 0.6)
@@ -48,10 +51,11 @@ class SweepConfig:
     agree: int = 2  # views that must confirm a reading
 
     def __post_init__(self) -> None:
-        if self.planes < 3 or self.neighbours < 1:
+        if self.planes < 3 or self.neighbours < 1 or self.refine == 2 or self.refine < 0:
             raise BlunfError(
-                f"nerf.stereo_planes must be >= 3 and nerf.stereo_views >= 1, got "
-                f"{self.planes}, {self.neighbours}"
+                "nerf.stereo_planes must be >= 3, nerf.stereo_views >= 1 and "
+                "nerf.stereo_refine 0, 1 or >= 3, got "
+                f"{self.planes}, {self.neighbours}, {self.refine}"
             )
         if self.window < 3 or self.window % 2 == 0:
             raise BlunfError(f"nerf.stereo_window must be odd and >= 3, got {self.window}")
@@ -127,8 +131,6 @@ def _sweep(
     """One view's depth [H, W] (0 = no reading) from its neighbours `nbrs`."""
     ref = grays[i]
     h, w = ref.shape
-    inv = torch.linspace(1.0 / lo, 1.0 / hi, cfg.planes)  # [D] near to far
-    depth = 1.0 / inv  # [D]
     v, u = torch.meshgrid(
         torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij"
     )
@@ -138,37 +140,54 @@ def _sweep(
     )
     rays = rays.reshape(-1, 3)  # [HW, 3], z = 1: a point at depth d is d * ray
     r_mean, r_std = _window_stats(ref[None, None], cfg.window)  # [1, 1, H, W] each
-    costs = []
+    warps = []
     for j in nbrs:
         w2c = np.linalg.inv(np.asarray(poses[j], np.float64))
         rel = torch.from_numpy(w2c @ np.asarray(poses[i], np.float64))  # ref cam -> nbr cam
-        Kj = torch.from_numpy(np.asarray(Ks[j], np.float32))
         a = (rays @ rel[:3, :3].T).float()  # [HW, 3] nbr-camera direction of each ref ray
-        b = rel[:3, 3].float()  # [3]
-        c = costs_for(grays[j], Kj, a, b, depth, ref, r_mean, r_std, cfg.window)
-        costs.append(c)
-    cost = torch.stack(costs)  # [N, D, H, W]
+        warps.append((grays[j], torch.from_numpy(np.asarray(Ks[j], np.float32)), a, rel[:3, 3]))
     k = max(1, math.ceil(len(nbrs) / 2))
-    cost = torch.topk(cost, k, dim=0, largest=False).values.mean(0)  # [D, H, W]
-    best, arg = cost.min(0)  # [H, W]
-    # parabola through the cheapest plane and its two neighbours, in plane index
-    ai = arg.clamp(1, cfg.planes - 2)
+
+    def cost_of(depth: Tensor) -> Tensor:
+        """Matching cost [D, H, W] of depth hypotheses [D] (every pixel) or [D, HW]: the
+        mean of the best k neighbours' costs (a surface one neighbour cannot see)."""
+        c = [
+            costs_for(g, kj, a, b.float(), depth, ref, r_mean, r_std, cfg.window)
+            for g, kj, a, b in warps
+        ]
+        return torch.topk(torch.stack(c), k, dim=0, largest=False).values.mean(0)
+
+    # coarse: planes even in inverse depth over the whole range
+    step = (1.0 / hi - 1.0 / lo) / (cfg.planes - 1)  # < 0: near to far
+    inv = 1.0 / lo + step * torch.arange(cfg.planes, dtype=torch.float32)  # [D]
+    best, pos, arg = _cheapest(cost_of(1.0 / inv))
+    inv_c = (1.0 / lo + pos * step).reshape(-1)  # [HW]
+    ok = (r_std[0, 0] >= cfg.min_std) & (arg > 0) & (arg < cfg.planes - 1)
+    if cfg.refine > 1:
+        # fine: refine planes per pixel across one coarse step either side of its estimate
+        off = torch.linspace(-1.0, 1.0, cfg.refine) * abs(step)  # [F]
+        inv_f = (inv_c[None] + off[:, None]).clamp(min=0.5 / hi)  # [F, HW]
+        best, pos, _ = _cheapest(cost_of(1.0 / inv_f))
+        inv_c = inv_c - abs(step) + pos.reshape(-1) * (2.0 * abs(step) / (cfg.refine - 1))
+    z = (1.0 / inv_c.clamp(min=0.5 / hi)).view(h, w)
+    ok &= (best < cfg.max_cost) & torch.isfinite(z)
+    return torch.where(ok, z, torch.zeros_like(z)).numpy().astype(np.float32)
+
+
+def _cheapest(cost: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Per pixel of cost [D, H, W]: (lowest cost, its sub-plane position from a parabola
+    through it and its two neighbours, its plane index), each [H, W]."""
+    d = cost.shape[0]
+    best, arg = cost.min(0)
+    ai = arg.clamp(1, d - 2)
     c0 = cost.gather(0, (ai - 1)[None])[0]
     c1 = cost.gather(0, ai[None])[0]
     c2 = cost.gather(0, (ai + 1)[None])[0]
     den = c0 - 2 * c1 + c2
     off = torch.where(den > 1e-6, 0.5 * (c0 - c2) / den.clamp(min=1e-6), torch.zeros_like(den))
-    pos = ai.to(torch.float32) + off.clamp(-0.5, 0.5)
-    inv_d = 1.0 / lo + pos * (1.0 / hi - 1.0 / lo) / (cfg.planes - 1)
-    z = 1.0 / inv_d.clamp(min=1.0 / (2 * hi))
-    ok = (
-        (best < cfg.max_cost)
-        & (r_std[0, 0] >= cfg.min_std)
-        & (arg > 0)
-        & (arg < cfg.planes - 1)
-        & torch.isfinite(z)
-    )
-    return torch.where(ok, z, torch.zeros_like(z)).numpy().astype(np.float32)
+    # a minimum at either end stays there (no parabola beyond the range)
+    pos = torch.where((arg > 0) & (arg < d - 1), ai + off.clamp(-0.5, 0.5), arg.float())
+    return best, pos.float(), arg
 
 
 def _window_stats(x: Tensor, window: int) -> tuple[Tensor, Tensor]:
@@ -203,13 +222,14 @@ def costs_for(
     window: int,
 ) -> Tensor:
     """1 - ZNCC of the reference window against the neighbour `gray` [H', W'] warped by
-    every plane: the ref pixel at plane depth d lies at d * a + b in the neighbour's camera
-    (a [HW, 3], b [3]; K the neighbour's intrinsics). Where the warp leaves the neighbour,
+    every depth hypothesis (depth [D]: the same planes for every pixel; [D, HW]: per pixel):
+    the ref pixel at depth d lies at d * a + b in the neighbour's camera (a [HW, 3], b [3];
+    K the neighbour's intrinsics). Where the warp leaves the neighbour,
     the cost is 2 (no match). Returns [D, H, W]."""
     h, w = ref.shape
     hn, wn = gray.shape
     ka, kb = a @ K.T, K @ b  # [HW, 3], [3]: pixel = (d ka + kb)[:2] / (d ka + kb)[2]
-    d = depth[:, None]  # [D, 1]
+    d = depth if depth.dim() == 2 else depth[:, None]  # [D, HW] or [D, 1]
     zc = d * ka[None, :, 2] + kb[2]  # [D, HW]
     front = zc > 1e-6
     zs = torch.where(front, zc, torch.ones_like(zc))

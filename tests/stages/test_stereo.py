@@ -43,9 +43,10 @@ def test_depth_matches_the_exact_depth(room, swept):
     for d, g in zip(depths, gt, strict=True):
         assert d.dtype == np.float32 and d.shape == g.shape
         assert np.isfinite(d).all() and (d >= 0).all()
-    # Measured on this 16-view 96x72 room: a quarter of the pixels kept (the low resolution
-    # leaves few windows with texture and overlap), median error 0.8 %, 2.5 % of the
-    # readings off by more than 5 %. Readings the sweep made up would be off by tens of %.
+    # Measured on this 16-view 96x72 room: a fifth of the pixels kept (the low resolution
+    # leaves few windows with texture and overlap), median error 0.75 % (0.83 % without the
+    # per-pixel refinement), 2 % of the readings off by more than 5 %. Readings the sweep
+    # made up would be off by tens of %.
     cover = np.mean([(d > 0).mean() for d in depths])
     e = _errors(depths, gt)
     assert cover > 0.15, cover
@@ -103,8 +104,27 @@ def test_box_mean_matches_a_direct_sum():
 
 @pytest.mark.parametrize(
     "kw",
-    [{"planes": 2}, {"neighbours": 0}, {"window": 4}, {"window": 1}, {"max_cost": 0.0}],
+    [
+        {"planes": 2},
+        {"neighbours": 0},
+        {"refine": 2},
+        {"refine": -1},
+        {"window": 4},
+        {"window": 1},
+        {"max_cost": 0.0},
+    ],
 )
 def test_bad_settings_are_refused(kw):
     with pytest.raises(BlunfError, match="nerf.stereo_"):
         SweepConfig(**kw)
+
+
+def test_refinement_sharpens_the_coarse_planes(room):
+    # 16 coarse planes alone leave the depth between planes to the parabola; the per-pixel
+    # refinement across a plane step either side lowers the error and confirms more readings
+    # (measured: median 1.43 % -> 1.09 %, 6.1 % -> 9.0 % of the pixels kept)
+    images, ks, poses, tracks, gt = room
+    coarse, fc = sweep_depths(images, ks, poses, tracks, SweepConfig(planes=16, refine=0))
+    fine, ff = sweep_depths(images, ks, poses, tracks, SweepConfig(planes=16, refine=16))
+    e_coarse, e_fine = np.median(_errors(coarse, gt)), np.median(_errors(fine, gt))
+    assert e_fine < 0.85 * e_coarse and ff["kept"] > fc["kept"], (e_fine, e_coarse, ff, fc)
