@@ -138,3 +138,4 @@ def test_shipped_configs_load(name):
     cfg = load_config(path)
     if name == "edit.yaml":
         assert cfg["nerf"].edge_batch == 0.5 and default_config()["nerf"].edge_batch == 0.0
+        assert cfg["nerf"].max_steps == 1000 and cfg["nerf"].time_budget == 0
