@@ -63,8 +63,10 @@ def test_edits_and_nerf_top(tiny_room, tmp_path):
 @pytest.mark.slow
 def test_demo_edits_change_only_their_objects(tmp_path):
     # make demo's edit run as it is (60-view room, configs/edit.yaml, configs/edits/demo.yaml),
-    # on one thread: issue 6's bar, in every rendered view. Measured here: remove chair_2
-    # 0.905 / 0.903 / 0.916, psnr_outside 51.7 dB (1000 steps, 29.1 dB held out).
+    # on one thread: issue 6's bar, in every rendered view that shows the object (None: the
+    # view shows neither it nor a change). Measured here: remove chair_2 0.905 / 0.903 /
+    # 0.916, recolor sofa_1 - / 0.976 / 0.967, retexture table_1 0.918 / - / 0.987;
+    # psnr_outside 51.7 / 54.2 / 51.9 dB (1000 steps, 29.1 dB held out).
     from stages.synth import make_room
 
     cap = make_room(tmp_path / "capture", views=60, seed=0)
@@ -76,9 +78,10 @@ def test_demo_edits_change_only_their_objects(tmp_path):
     assert r["metrics"]["nerf"]["steps"] == 1000
     ms = r["metrics"]["edit"]
     assert [m["op"] for m in ms] == ["remove", "recolor", "retexture"]
-    for m in ms:
-        assert len(m["changed_iou_views"]) == 3 and min(m["changed_iou_views"]) >= 0.9, m
-        assert m["psnr_outside"] >= 40, m
+    for m, shown in zip(ms, (3, 2, 2), strict=True):
+        seen = [v for v in m["changed_iou_views"] if v is not None]
+        assert len(m["changed_iou_views"]) == 3 and len(seen) == shown, m
+        assert min(seen) >= 0.9 and m["psnr_outside"] >= 40, m
     stats = json.loads(next((out / "edit").glob("*/edit.json")).read_text())
     got = [[g["name"] for g in e["metrics"]["gt_instances"]] for e in stats["edits"]]
     assert got == [["chair_2"], ["sofa_1"], ["table_1"]]  # one chair, not the class
