@@ -124,7 +124,7 @@ def run(cfg: EditConfig, inputs: EditInputs, out: Path) -> EditOutputs:
     mesh_new.export(outs.mesh)
 
     metrics = [
-        {"index": r["index"], "op": r["op"], **{k: r["metrics"].get(k) for k in METRIC_KEYS}}
+        {"index": r["index"], "op": r["op"], **{k: r["metrics"][k] for k in METRIC_KEYS}}
         for r in records
     ]  # the report's metrics.edit
     write_json(

@@ -99,12 +99,14 @@ def fill_ground(
     take the edit's fill colour for it: rgb + (1 - acc) * fill, acc -> 1. Under an object no
     view saw the ground, and the field has nothing there: without this the render shows
     the void below the floor (black). Returns the new rgb [R, 3] and acc [R]."""
-    for e in edits:
-        if e.op != "remove" or e.fill is None:
-            continue
-        down = dirs[:, 2] < 0
-        t = torch.where(down, -origins[:, 2] / torch.where(down, dirs[:, 2], -1.0), -1.0)
-        hit = origins + t.clamp(min=0.0)[:, None] * dirs  # [R, 3] the floor point
+    fills = [e for e in edits if e.op == "remove" and e.fill is not None]
+    if not fills:
+        return rgb, acc
+    down = dirs[:, 2] < 0
+    t = torch.where(down, -origins[:, 2] / torch.where(down, dirs[:, 2], -1.0), -1.0)
+    hit = origins + t.clamp(min=0.0)[:, None] * dirs  # [R, 3] the floor point
+    for e in fills:
+        assert e.fill is not None
         under = down & (t > 0) & torch.as_tensor(e.extent.over(hit[:, :2]))
         rest = torch.where(under, 1.0 - acc, 0.0).clamp(min=0.0)  # [R]
         rgb = rgb + rest[:, None] * e.fill.to(rgb.dtype)

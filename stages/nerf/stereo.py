@@ -9,9 +9,8 @@ the views that overlap it most, over fronto-parallel planes spaced evenly in inv
 window. The costs of the best half of the neighbours are averaged (occlusion: a surface
 hidden in one neighbour is seen in another), the cheapest plane wins, a second sweep of
 finer per-pixel hypotheses round it and a parabola through the best one's neighbours refine
-it. Readings with a weak match, on flat texture or
-at the ends of the sweep are dropped; `consistency.consistent_depth` then keeps only those
-other views confirm.
+it. Readings with a weak match, on flat texture or at the ends of the sweep are dropped;
+`consistency.consistent_depth` then keeps only those other views confirm.
 
 Written in torch because nothing in the stack gives it on a CPU: pycolmap's patch-match
 stereo needs CUDA, Open3D and kornia have no multi-view stereo.
@@ -28,6 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from stages.common.camera import pixel_grid, unproject
 from stages.common.errors import BlunfError
 from stages.nerf.consistency import consistent_depth, overlap_order
 
@@ -101,7 +101,9 @@ def sweep_depths(
         matched += int((d > 0).sum())
         raw.append(d)
     total = sum(s.size for s in sparse)
-    checked, kept = consistent_depth(raw, Ks, poses, cfg.tol, cfg.agree, 10**6, 2 * cfg.neighbours)
+    # agreement only: a stereo reading seen through by a neighbour is that neighbour's
+    # occlusion as often as a floater, so the see-through count is not limited
+    checked, _ = consistent_depth(raw, Ks, poses, cfg.tol, cfg.agree, 10**6, 2 * cfg.neighbours)
     facts = {
         "matched": round(matched / max(1, total), 4),
         "kept": round(sum(int((c > 0).sum()) for c in checked) / max(1, total), 4),
@@ -131,30 +133,24 @@ def _sweep(
     """One view's depth [H, W] (0 = no reading) from its neighbours `nbrs`."""
     ref = grays[i]
     h, w = ref.shape
-    v, u = torch.meshgrid(
-        torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij"
-    )
-    Ki = torch.from_numpy(np.asarray(Ks[i], np.float64))
-    rays = torch.stack(
-        [(u - Ki[0, 2]) / Ki[0, 0], (v - Ki[1, 2]) / Ki[1, 1], torch.ones_like(u)], -1
-    )
-    rays = rays.reshape(-1, 3)  # [HW, 3], z = 1: a point at depth d is d * ray
+    uv = pixel_grid(w, h).reshape(-1, 2)
+    # [HW, 3] camera-frame rays with z = 1: a point at depth d is d * ray
+    rays = torch.from_numpy(unproject(uv, np.ones(len(uv)), np.asarray(Ks[i]), np.eye(4)))
     r_mean, r_std = _window_stats(ref[None, None], cfg.window)  # [1, 1, H, W] each
     warps = []
     for j in nbrs:
         w2c = np.linalg.inv(np.asarray(poses[j], np.float64))
         rel = torch.from_numpy(w2c @ np.asarray(poses[i], np.float64))  # ref cam -> nbr cam
         a = (rays @ rel[:3, :3].T).float()  # [HW, 3] nbr-camera direction of each ref ray
-        warps.append((grays[j], torch.from_numpy(np.asarray(Ks[j], np.float32)), a, rel[:3, 3]))
+        kj = torch.from_numpy(np.asarray(Ks[j], np.float32))
+        # the ref pixel at depth d lands at pixel (d ka + kb)[:2] / (d ka + kb)[2] in view j
+        warps.append((grays[j], a @ kj.T, kj @ rel[:3, 3].float()))
     k = max(1, math.ceil(len(nbrs) / 2))
 
     def cost_of(depth: Tensor) -> Tensor:
         """Matching cost [D, H, W] of depth hypotheses [D] (every pixel) or [D, HW]: the
         mean of the best k neighbours' costs (a surface one neighbour cannot see)."""
-        c = [
-            costs_for(g, kj, a, b.float(), depth, ref, r_mean, r_std, cfg.window)
-            for g, kj, a, b in warps
-        ]
+        c = [costs_for(g, ka, kb, depth, ref, r_mean, r_std, cfg.window) for g, ka, kb in warps]
         return torch.topk(torch.stack(c), k, dim=0, largest=False).values.mean(0)
 
     # coarse: planes even in inverse depth over the whole range
@@ -212,9 +208,8 @@ def _box(x: Tensor, window: int) -> Tensor:
 
 def costs_for(
     gray: Tensor,
-    K: Tensor,
-    a: Tensor,
-    b: Tensor,
+    ka: Tensor,
+    kb: Tensor,
     depth: Tensor,
     ref: Tensor,
     r_mean: Tensor,
@@ -223,12 +218,11 @@ def costs_for(
 ) -> Tensor:
     """1 - ZNCC of the reference window against the neighbour `gray` [H', W'] warped by
     every depth hypothesis (depth [D]: the same planes for every pixel; [D, HW]: per pixel):
-    the ref pixel at depth d lies at d * a + b in the neighbour's camera (a [HW, 3], b [3];
-    K the neighbour's intrinsics). Where the warp leaves the neighbour,
-    the cost is 2 (no match). Returns [D, H, W]."""
+    the ref pixel at depth d lands at pixel (d ka + kb)[:2] / (d ka + kb)[2] of the neighbour
+    (ka [HW, 3], kb [3]). Where the warp leaves the neighbour, the cost is 2 (no match).
+    Returns [D, H, W]."""
     h, w = ref.shape
     hn, wn = gray.shape
-    ka, kb = a @ K.T, K @ b  # [HW, 3], [3]: pixel = (d ka + kb)[:2] / (d ka + kb)[2]
     d = depth if depth.dim() == 2 else depth[:, None]  # [D, HW] or [D, 1]
     zc = d * ka[None, :, 2] + kb[2]  # [D, HW]
     front = zc > 1e-6
