@@ -30,6 +30,7 @@ def consistent_depth(
     min_agree: int,
     max_through: int,
     neighbours: int,
+    refs: tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]] | None = None,
 ) -> tuple[list[np.ndarray], float]:
     """Depth maps with the readings the other views do not confirm set to 0.
 
@@ -42,6 +43,8 @@ def consistent_depth(
         max_through: at most this many neighbours may see through a kept reading.
         neighbours: each view is checked against this many others: those into which the
             most of its (strided) readings project, i.e. the views that overlap it most.
+        refs: (depth maps, intrinsics, poses) the readings are checked against instead of
+            the other maps of `depths` (e.g. rendered depth against stereo); None = depths.
     Returns:
         (filtered depth maps, float32, same shapes; fraction of the readings kept).
     """
@@ -53,7 +56,8 @@ def consistent_depth(
             f"depth_check_views >= 1, got {min_agree}, {max_through}, {neighbours}"
         )
     n = len(depths)
-    order = overlap_order(depths, Ks, poses)
+    r_depths, r_Ks, r_poses = refs if refs is not None else (depths, Ks, poses)
+    order = overlap_order(depths, Ks, poses, refs=refs)
     out: list[np.ndarray] = []
     total = kept = 0
     for i in range(n):
@@ -61,7 +65,7 @@ def consistent_depth(
         agree = np.zeros(len(pts), np.int32)
         through = np.zeros(len(pts), np.int32)
         for j in order[i][:neighbours]:
-            dj, z = _depth_at(pts, depths[j], Ks[j], poses[j])
+            dj, z = _depth_at(pts, r_depths[j], r_Ks[j], r_poses[j])
             seen = dj > 0
             # relative to the neighbour's reading (guarded: seen implies dj > 0)
             rel = (z - dj) / np.where(seen, dj, 1.0)
@@ -92,20 +96,26 @@ def _depth_at(
 
 
 def overlap_order(
-    depths: list[np.ndarray], Ks: list[np.ndarray], poses: list[np.ndarray], stride: int = 8
+    depths: list[np.ndarray],
+    Ks: list[np.ndarray],
+    poses: list[np.ndarray],
+    stride: int = 8,
+    refs: tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]] | None = None,
 ) -> list[list[int]]:
-    """Per view, the other views by decreasing overlap: how many of its readings (on a
-    strided pixel grid) project inside them with a reading there."""
-    n = len(depths)
+    """Per view, the other views (or the maps of `refs`) by decreasing overlap: how many of
+    its readings (on a strided pixel grid) project inside them with a reading there."""
+    r_depths, r_Ks, r_poses = refs if refs is not None else (depths, Ks, poses)
+    m = len(r_depths)
     order = []
-    for i in range(n):
+    for i in range(len(depths)):
         h, w = depths[i].shape
         s = max(1, min(stride, min(h, w) // 8))
         pts, _ = depth_to_points(depths[i], Ks[i], poses[i], s)
-        counts = np.zeros(n, np.int64)
-        for j in range(n):
-            if j != i and len(pts):
-                counts[j] = int((_depth_at(pts, depths[j], Ks[j], poses[j])[0] > 0).sum())
-        counts[i] = -1
+        counts = np.zeros(m, np.int64)
+        for j in range(m):
+            if (refs is not None or j != i) and len(pts):
+                counts[j] = int((_depth_at(pts, r_depths[j], r_Ks[j], r_poses[j])[0] > 0).sum())
+        if refs is None:
+            counts[i] = -1
         order.append([int(j) for j in np.argsort(-counts, kind="stable") if counts[j] > 0])
     return order

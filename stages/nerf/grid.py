@@ -92,7 +92,11 @@ def run(cfg: NerfConfig, inputs: NerfInputs, out: Path) -> NerfOutputs:
                 write_depth_npy(out / "stereo" / f"{frames[i].stem}.npy", d)
         if photos_only:  # depth for fusion, at 1 / depth_render_scale of the resolution
             prior = swept if cfg.stereo_fuse else {}
-            frames, stats["depth_check_kept"] = _write_depths(model, frames, cfg, outs.depth, prior)
+            # too few stereo readings to train as with dense depth are too few to confirm the
+            # render by: it is then fused unchecked
+            check = cfg.stereo_check if dense else 0
+            frames, checks = _write_depths(model, frames, cfg, outs.depth, prior, check)
+            stats.update(checks)
         for i in held:
             f = frames[i]
             v = render_view(model, np.asarray(f.pose), f.intrinsics, cfg.chunk)
@@ -188,52 +192,84 @@ def _write_depths(
     cfg: NerfConfig,
     folder: Path,
     prior: dict[int, np.ndarray] | None = None,
-) -> tuple[list[Frame], float | None]:
-    """Render every frame's depth, take view i's `prior` reading (full resolution, 0 = none)
-    where it has one, drop the readings other views do not confirm (when depth_check), write
-    folder/<stem>.npy. Returns (the frames pointing at those files, the fraction of readings
-    kept or None without the check)."""
+    stereo_check: int = 0,
+) -> tuple[list[Frame], dict]:
+    """Render every frame's depth and write folder/<stem>.npy for fusion.
+
+    View i's `prior` (its stereo readings, full resolution, 0 = none) is taken where it has
+    a reading, at full resolution, the render (upsampled) elsewhere. With stereo_check > 0
+    the rendered readings are kept only where at least that many other views' stereo
+    readings agree with them (within stereo_tol) and none sees through them: the field's
+    depth fills the stereo's holes where the photos confirm it (held-out views, which are
+    never swept, get the checked render alone). With depth_check every reading is then
+    checked against the other views' depth. Returns (the frames pointing at those files,
+    facts: fractions of the rendered readings kept by each check, None when it did not run).
+    """
     depths = [render_depth(model, f, cfg) for f in frames]
-    for i, p in (prior or {}).items():
-        s = block_depth(p, depths[i].shape, cfg.stereo_tol)
-        depths[i] = np.where(s > 0, s, depths[i]).astype(np.float32)
-    kept = None
+    prior = prior or {}
+    facts: dict = {"depth_check_kept": None, "stereo_check_kept": None}
+    full = {i: upsample_depth(depths[i], p.shape) for i, p in prior.items()}
+    cands = [
+        np.where(prior[i] > 0, 0.0, full[i]) if i in prior else d for i, d in enumerate(depths)
+    ]
+    if prior and stereo_check > 0:
+        idx = sorted(prior)
+        refs = (
+            [prior[i] for i in idx],
+            [_k_at(frames[i], prior[i]) for i in idx],
+            [np.asarray(frames[i].pose, np.float64) for i in idx],
+        )
+        cands, kept = consistent_depth(
+            cands,
+            [_k_at(f, d) for f, d in zip(frames, cands, strict=True)],
+            [np.asarray(f.pose, np.float64) for f in frames],
+            cfg.stereo_tol,
+            stereo_check,
+            0,
+            cfg.depth_check_views,
+            refs=refs,
+        )
+        facts["stereo_check_kept"] = round(kept, 4)
+        log.info("nerf: %.1f %% of the rendered depth readings confirmed by stereo", 100 * kept)
+    depths = [
+        np.where(prior[i] > 0, prior[i], c).astype(np.float32) if i in prior else c
+        for i, c in enumerate(cands)
+    ]
     if cfg.depth_check:
-        ks = [
-            f.intrinsics.scaled(d.shape[1], d.shape[0]).K
-            for f, d in zip(frames, depths, strict=True)
-        ]
-        poses = [np.asarray(f.pose, np.float64) for f in frames]
         depths, kept = consistent_depth(
             depths,
-            ks,
-            poses,
+            [_k_at(f, d) for f, d in zip(frames, depths, strict=True)],
+            [np.asarray(f.pose, np.float64) for f in frames],
             cfg.depth_check_tol,
             cfg.depth_check_agree,
             cfg.depth_check_through,
             cfg.depth_check_views,
         )
+        facts["depth_check_kept"] = round(kept, 4)
         log.info("nerf: %.1f %% of the rendered depth readings confirmed by others", 100 * kept)
     out = []
     for f, d in zip(frames, depths, strict=True):
         path = folder / f"{f.stem}.npy"
         write_depth_npy(path, d)
         out.append(replace(f, depth=path))
-    return out, None if kept is None else round(kept, 4)
+    return out, facts
 
 
-def block_depth(depth: np.ndarray, shape: tuple[int, ...], tol: float) -> np.ndarray:
-    """depth [H, W] (0 = none) at the smaller `shape` = (H // k, W // k): each k x k block's
-    mean where all its readings exist and agree within `tol` (relative), else 0. A block's
-    centre is the small pixel's centre (Intrinsics.scaled), so nothing shifts."""
+def _k_at(f: Frame, depth: np.ndarray) -> np.ndarray:
+    """Frame f's [3, 3] intrinsics at the resolution of `depth`."""
+    return f.intrinsics.scaled(depth.shape[1], depth.shape[0]).K
+
+
+def upsample_depth(depth: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """depth [H // k, W // k] rendered at 1/k (Intrinsics.scaled: a small pixel's centre is
+    its k x k block's centre) to `shape` = (H, W): each block takes its small pixel's value;
+    rows and columns beyond the whole blocks repeat the last ones."""
     h, w = shape
-    k = depth.shape[0] // h
-    if k < 1 or depth.shape[1] // w != k:
-        raise BlunfError(f"depth of {depth.shape} does not reduce to {shape} by whole blocks")
-    b = depth[: h * k, : w * k].reshape(h, k, w, k).astype(np.float64)
-    lo, hi, mean = b.min(axis=(1, 3)), b.max(axis=(1, 3)), b.mean(axis=(1, 3))
-    ok = (lo > 0) & (hi - lo <= tol * np.where(lo > 0, lo, 1.0))
-    return np.where(ok, mean, 0.0).astype(np.float32)
+    k = h // depth.shape[0]
+    if k < 1 or w // depth.shape[1] != k:
+        raise BlunfError(f"depth of {depth.shape} does not scale to {shape} by whole blocks")
+    up = np.repeat(np.repeat(depth, k, axis=0), k, axis=1)
+    return np.pad(up, ((0, h - up.shape[0]), (0, w - up.shape[1])), mode="edge")
 
 
 def render_depth(model: NerfModel, f: Frame, cfg: NerfConfig) -> np.ndarray:

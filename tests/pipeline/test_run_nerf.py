@@ -111,6 +111,8 @@ def test_photos_only_capture_reaches_a_plan(tmp_path):
     # machine scored 53.7): the bar leaves that margin and catches a broken path (garbage
     # depth or a wrong frame: < 30; the NeRF without stereo: ~60).
     assert depth_nerf["facts"]["stereo"]["kept"] > 0.3
+    # the render fills the stereo's holes where other views' stereo confirms it
+    assert 0 < depth_nerf["facts"]["stereo_check_kept"] < 1
     assert m["frame"] == "aligned to gt poses" and m["fwiou"] > 50, m
 
 

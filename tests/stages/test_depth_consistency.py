@@ -45,6 +45,31 @@ def test_true_depth_is_kept_and_floaters_dropped(views):
     assert min(same) > 0.95
 
 
+def test_readings_checked_against_reference_maps(views):
+    # candidates (e.g. rendered depth) judged by other maps (e.g. stereo) alone: view 0's
+    # exact depth against the other views' exact depth, with a floater pasted into view 0
+    # and the references blanked over one half of the room
+    depths, ks, poses = views
+    cand = depths[0].copy()
+    cand[20:40, 30:60] *= 0.6
+    refs = (depths[1:], ks[1:], poses[1:])
+    (out,), kept = consistent_depth([cand], ks[:1], poses[:1], **ARGS, refs=refs)
+    alone, _ = consistent_depth(depths, ks, poses, **ARGS)
+    assert 0 < kept < 1
+    patch = out[20:40, 30:60]
+    assert np.count_nonzero(patch) <= 0.02 * patch.size  # the references see through it
+    rest = np.ones(cand.shape, bool)
+    rest[20:40, 30:60] = False
+    # elsewhere the same verdicts as checking all maps together, whose neighbours of view 0
+    # are these same references
+    assert np.mean(out[rest] == alone[0][rest]) > 0.97
+    # a reading no reference sees is not confirmed (min_agree 1): nothing is kept when the
+    # references hold no readings at all
+    empty = ([np.zeros_like(d) for d in depths[1:]], ks[1:], poses[1:])
+    (none,), kept0 = consistent_depth([cand], ks[:1], poses[:1], **ARGS, refs=empty)
+    assert kept0 == 0 and not none.any()
+
+
 @pytest.mark.parametrize(("scale", "offset"), [(1e-3, 0.0), (1e3, 0.0), (1.0, 1e5)])
 def test_same_verdicts_at_any_scale_and_offset(views, scale, offset):
     # the tolerance is relative and points are float64: a scene in millimetres, kilometres

@@ -23,7 +23,7 @@ from stages.common.errors import BlunfError
 from stages.common.io import read_depth, read_image, read_json, read_label
 from stages.nerf import IMPLS, NerfConfig, NerfInputs, NerfOutputs, load_model, top_view_labels
 from stages.nerf.field import EXP_CLAMP, NerfModel
-from stages.nerf.grid import block_depth, depth_absrel
+from stages.nerf.grid import depth_absrel, upsample_depth
 from stages.nerf.occupancy import OccupancyGrid
 from stages.nerf.render import render_model, render_view
 from stages.nerf.train import (
@@ -187,10 +187,12 @@ def test_sparse_depth_renders_every_view(tmp_path):
     assert got.depth_scale == 1.0
     k = cfg.depth_render_scale  # depth for fusion is rendered at 1/k of the resolution
     for f in got.frames:
-        # every view, held-out one included, points at its rendered depth inside out/
+        # every view, held-out one included, points at its rendered depth inside out/; the
+        # views stereo swept at full resolution (their stereo readings in it)
         assert f.depth == outs.depth / f"{f.stem}.npy" and f.depth.is_file()
         raw = np.load(f.depth)
-        assert raw.dtype == np.float32 and raw.shape == (36 // k, 48 // k)
+        swept = (outs.depth.parent / "stereo" / f"{f.stem}.npy").is_file()
+        assert raw.dtype == np.float32 and raw.shape == ((36, 48) if swept else (36 // k, 48 // k))
         assert np.isfinite(raw).all() and (raw >= 0).all()
         # metres, inside the scene box (diagonal < 8 m for this 5 m x 5 m room)
         assert raw.max() < 8.0
@@ -202,7 +204,7 @@ def test_sparse_depth_renders_every_view(tmp_path):
     for check in (False, True):
         folder = tmp_path / f"check_{check}"
         folder.mkdir()
-        c = replace(cfg, depth_check=check, acc_threshold=0.0)
+        c = replace(cfg, depth_check=check, acc_threshold=0.0, stereo_check=0)
         runs[check] = IMPLS["grid"](c, NerfInputs(_frames(cap, tmp_path)), folder)
     kept = read_json(runs[True].stats)["depth_check_kept"]
     assert read_json(runs[False].stats)["depth_check_kept"] is None and 0 <= kept < 1
@@ -644,7 +646,8 @@ def test_stereo_gives_the_sparse_path_dense_depth(tiny_room, tmp_path):
     for stereo in (True, False):
         folder = tmp_path / f"stereo_{stereo}"
         folder.mkdir()
-        c = replace(cfg, stereo=stereo)
+        # the field's own render is scored: no stereo check of the rendered readings
+        c = replace(cfg, stereo=stereo, stereo_check=0)
         outs = IMPLS["grid"](c, NerfInputs(_frames(sparse, tmp_path)), folder)
         stats[stereo] = read_json(outs.stats)
         got = Capture.load(outs.frames)
@@ -662,35 +665,30 @@ def test_stereo_gives_the_sparse_path_dense_depth(tiny_room, tmp_path):
     # at 96x72 the sweep keeps 14 % of the pixels, too few for the dense-depth training that
     # the 60-view 320x240 room gets at 81 %)
     assert np.mean(rels[True]) < 0.8 * np.mean(rels[False]), rels
-    # fusion's depth takes the stereo readings where whole blocks agree; held-out views have
-    # none (they are never swept)
+    # fusion's depth: a swept view's stereo readings at full resolution, the render
+    # elsewhere; held-out views (never swept) the render alone
     got = Capture.load(folder.parent / "stereo_True" / "frames.json")
     held = [i for i in range(len(cap.frames)) if i % 8 == 4]
+    assert stats[True]["stereo_check_kept"] is None  # stereo_check 0
     taken = 0
     for i, f in enumerate(got.frames):
         sw = folder.parent / "stereo_True" / "stereo" / f"{f.stem}.npy"
         assert sw.is_file() != (i in held)
+        d = np.load(f.depth)
+        assert d.shape == (72, 96)  # full resolution (and depth_render_scale 1 here)
         if sw.is_file():
-            d = np.load(f.depth)
-            b = block_depth(np.load(sw), d.shape, FAST.stereo_tol)
-            assert np.array_equal(d[b > 0], b[b > 0])
-            taken += int((b > 0).sum())
+            s = np.load(sw)
+            assert np.array_equal(d[s > 0], s[s > 0])
+            taken += int((s > 0).sum())
     assert taken > 0
 
 
-def test_block_depth_keeps_whole_agreeing_blocks():
-    d = np.array(
-        [
-            [2.0, 2.02, 3.0, 3.0, 5.0, 5.0],
-            [2.0, 2.02, 0.0, 3.0, 5.0, 6.0],
-            [1.0, 1.0, 4.0, 4.0, 7.0, 7.0],
-            [1.0, 1.0, 4.0, 4.0, 7.0, 7.0],
-        ],
-        np.float32,
-    )
-    got = block_depth(d, (2, 3), tol=0.02)
-    # block 1: spread 0.02 / 2 = 1 % -> mean; block 2: a missing reading; block 3: 20 % apart
-    np.testing.assert_allclose(got, [[2.01, 0.0, 0.0], [1.0, 4.0, 7.0]], rtol=1e-6)
+def testupsample_depth_repeats_blocks_and_edges():
+    d = np.array([[1.0, 2.0], [3.0, 0.0]], np.float32)
+    got = upsample_depth(d, (5, 5))  # 2 x 2 blocks, the fifth row and column repeat the fourth
+    np.testing.assert_array_equal(got[:4, :4], np.kron(d, np.ones((2, 2), np.float32)))
+    np.testing.assert_array_equal(got[4], got[3])
+    np.testing.assert_array_equal(got[:, 4], got[:, 3])
     assert got.dtype == np.float32
     with pytest.raises(BlunfError, match="whole blocks"):
-        block_depth(d, (3, 3), tol=0.02)
+        upsample_depth(d, (4, 6))
