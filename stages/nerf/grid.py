@@ -205,9 +205,20 @@ def _write_depths(
     checked against the other views' depth. Returns (the frames pointing at those files,
     facts: fractions of the rendered readings kept by each check, None when it did not run).
     """
-    depths = [render_depth(model, f, cfg) for f in frames]
     prior = prior or {}
-    facts: dict = {"depth_check_kept": None, "stereo_check_kept": None}
+    k = max(1, cfg.depth_render_scale)
+    # a swept view's render is needed only where a block of its pixels lacks stereo
+    need = {i: _block_any(p <= 0, k) for i, p in prior.items()}
+    depths = [render_depth(model, f, cfg, need.get(i)) for i, f in enumerate(frames)]
+    facts: dict = {
+        "depth_check_kept": None,
+        "stereo_check_kept": None,
+        "rendered": round(
+            sum(d.size if i not in need else int(need[i].sum()) for i, d in enumerate(depths))
+            / max(1, sum(d.size for d in depths)),
+            4,
+        ),
+    }
     full = {i: upsample_depth(depths[i], p.shape) for i, p in prior.items()}
     cands = [
         np.where(prior[i] > 0, 0.0, full[i]) if i in prior else d for i, d in enumerate(depths)
@@ -272,13 +283,27 @@ def upsample_depth(depth: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     return np.pad(up, ((0, h - up.shape[0]), (0, w - up.shape[1])), mode="edge")
 
 
-def render_depth(model: NerfModel, f: Frame, cfg: NerfConfig) -> np.ndarray:
+def _block_any(mask: np.ndarray, k: int) -> np.ndarray:
+    """mask [H, W] at 1/k (render_depth's pixels, each a k x k block; rows and columns
+    beyond the whole blocks belong to the last): whether any pixel of a block is set."""
+    h, w = max(1, mask.shape[0] // k), max(1, mask.shape[1] // k)
+    rows = np.minimum(np.arange(mask.shape[0]) // k, h - 1)
+    cols = np.minimum(np.arange(mask.shape[1]) // k, w - 1)
+    out = np.zeros((h, w), bool)
+    np.logical_or.at(out, (rows[:, None], cols[None, :]), mask)
+    return out
+
+
+def render_depth(
+    model: NerfModel, f: Frame, cfg: NerfConfig, pixels: np.ndarray | None = None
+) -> np.ndarray:
     """z-depth (metres, float32) of frame f at 1 / depth_render_scale of its resolution; 0
-    where the opacity is below acc_threshold (fusion rescales the intrinsics to fit)."""
+    where the opacity is below acc_threshold (fusion rescales the intrinsics to fit) and,
+    given `pixels` (bool, at that resolution), where it is False (not rendered)."""
     k = max(1, cfg.depth_render_scale)
     w, h = f.intrinsics.width, f.intrinsics.height
     intr = f.intrinsics.scaled(max(1, w // k), max(1, h // k))
-    v = render_view(model, np.asarray(f.pose), intr, cfg.chunk, color=False)
+    v = render_view(model, np.asarray(f.pose), intr, cfg.chunk, color=False, pixels=pixels)
     return np.where(v["acc"] >= cfg.acc_threshold, v["depth"], 0.0).astype(np.float32)
 
 

@@ -416,12 +416,20 @@ def render_view(
     intr: Intrinsics,
     chunk: int = 16384,
     color: bool = True,
+    pixels: np.ndarray | None = None,
 ) -> ViewOut:
     """Render a full view: rgb [H, W, 3] in [0, 1], depth [H, W] (z along the optical axis,
     metres), acc [H, W], semantics [H, W] uint8 class ids (255 where acc < acc_threshold)
     or None when the model has no semantic head. `color` False: depth and opacity only
-    (rgb black, semantics None), without the colour queries (~40 % of the time)."""
+    (rgb black, semantics None), without the colour queries (~40 % of the time). `pixels`
+    (bool [H, W]): only those are rendered, the others are 0 (no opacity: unknown class)."""
     o, d, zs = camera_rays(pose, intr)
+    h, w = intr.height, intr.width
+    if pixels is not None:
+        if pixels.shape != (h, w):
+            raise BlunfError(f"render_view: pixel mask of {pixels.shape} for a {h}x{w} view")
+        sel = torch.from_numpy(np.flatnonzero(pixels))
+        o, d, zs = o[sel], d[sel], zs[sel]
     parts: dict[str, list[Tensor]] = {"rgb": [], "depth": [], "acc": [], "sem": []}
     for i in range(0, len(o), chunk):
         out = render_model(
@@ -437,16 +445,25 @@ def render_view(
         parts["acc"].append(out["acc"])
         if out["semantics"] is not None:
             parts["sem"].append(out["semantics"].argmax(dim=1))
-    h, w = intr.height, intr.width
-    acc = torch.cat(parts["acc"]).view(h, w).numpy()
+
+    def whole(t: list[Tensor], *shape: int) -> np.ndarray:
+        """The rendered values [N, ...] in a full view [H, W, ...] (0 where not rendered)."""
+        x = torch.cat(t) if t else torch.zeros((0, *shape))
+        if pixels is None:
+            return x.reshape(h, w, *shape).numpy()
+        full = torch.zeros((h * w, *shape), dtype=x.dtype)
+        full[sel] = x
+        return full.reshape(h, w, *shape).numpy()
+
+    acc = whole(parts["acc"])
     sem = None
     if parts["sem"]:
-        ids = np.asarray(model.class_ids, np.uint8)[torch.cat(parts["sem"]).numpy()]
+        ids = np.asarray(model.class_ids, np.uint8)[whole(parts["sem"]).reshape(-1)]
         sem = np.where(acc.reshape(-1) >= model.cfg.acc_threshold, ids, UNKNOWN)
         sem = sem.astype(np.uint8).reshape(h, w)
     return {
-        "rgb": torch.cat(parts["rgb"]).view(h, w, 3).clamp(0, 1).numpy(),
-        "depth": torch.cat(parts["depth"]).view(h, w).numpy(),
+        "rgb": np.clip(whole(parts["rgb"], 3), 0, 1),
+        "depth": whole(parts["depth"]),
         "acc": acc,
         "semantics": sem,
     }

@@ -28,6 +28,7 @@ import trimesh
 
 from stages.common.blueprint import Blueprint, Grid
 from stages.common.camera import Intrinsics
+from stages.common.errors import BlunfError
 from stages.edit.config import EditConfig
 from stages.edit.metrics import PSNR_CAP, EditScore, changed, match_instances, pooled_iou
 from stages.edit.ops import (
@@ -508,6 +509,31 @@ def test_render_view_edited_without_edits_is_render_view(surface):
     got = render_view_edited(model, pose, intr, (), chunk=17)
     for k in ("rgb", "depth", "acc"):
         assert np.array_equal(got[k], ref[k]), k
+
+
+@pytest.mark.parametrize("color", [False, True])
+def test_render_view_of_some_pixels_is_the_full_render_there(color):
+    # the photos-only path renders only the pixels stereo left without depth: the same
+    # values as the full view where asked, 0 (no opacity) elsewhere
+    torch.manual_seed(0)
+    cfg = NerfConfig(hash_log2_size=10, hash_levels=2, samples_across=64, width=16)
+    model = build_model(cfg, torch.tensor([0.0, 0.0, 0.0]), torch.tensor([2.0, 2.0, 1.0]), [], [])
+    intr = Intrinsics(8.0, 8.0, 3.5, 2.5, 8, 6)
+    pose = look_at(np.array([1.0, -0.5, 0.8]), np.array([1.0, 1.0, 0.2]))
+    ref = render_view(model, pose, intr, chunk=7, color=color)
+    assert ref["acc"].min() > 0  # every pixel has something to compare
+    mask = np.zeros((6, 8), bool)
+    mask[1:4, 2:7] = True
+    mask[5, 0] = True
+    got = render_view(model, pose, intr, chunk=7, color=color, pixels=mask)
+    for k in ("rgb", "depth", "acc"):
+        assert got[k].shape == ref[k].shape, k
+        np.testing.assert_allclose(got[k][mask], ref[k][mask], rtol=1e-6, atol=1e-7)
+        assert not got[k][~mask].any(), k
+    nothing = render_view(model, pose, intr, color=color, pixels=np.zeros((6, 8), bool))
+    assert not nothing["depth"].any() and nothing["depth"].shape == (6, 8)
+    with pytest.raises(BlunfError, match="pixel mask"):
+        render_view(model, pose, intr, pixels=np.ones((8, 6), bool))
 
 
 def test_orbit_cameras_look_at_the_centre():
