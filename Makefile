@@ -21,7 +21,7 @@ $(BIN)/.installed: pyproject.toml
 
 setup: $(BIN)/.installed  ## idempotent: creates .venv and installs the project
 
-demo: setup  ## the default room from photos alone, then edited through its NeRF (~25 min)
+demo: setup  ## the default room from photos alone, then edited through its NeRF (~20 min)
 	# 1. photos and intrinsics only, as a phone gives: SfM poses, NeRF depth, geometric classes
 	test -d $(DEMO)/phone || $(BIN)/blunf synth $(DEMO)/phone --views 60 --seed 0 --photos-only
 	$(BIN)/blunf run $(DEMO)/phone --out $(DEMO)/phone-run --config configs/phone.yaml
