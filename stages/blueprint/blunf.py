@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from scipy import ndimage
+from skimage.morphology import disk
 from torch import Tensor, nn
 
 from stages.blueprint.config import BlueprintConfig, BlueprintInputs, BlueprintOutputs, BlunfConfig
@@ -29,6 +31,7 @@ from stages.blueprint.encoding import (
 )
 from stages.blueprint.instances import instance_raster
 from stages.common.blueprint import Blueprint, Grid
+from stages.common.capture import UNKNOWN
 from stages.common.errors import BlunfError
 from stages.common.io import write_json
 from stages.project.points import read_bounds, read_grid, read_instances, read_points
@@ -37,6 +40,7 @@ log = logging.getLogger(__name__)
 
 BALANCES = ("none", "sqrt", "cell")
 OUTSIDES = ("clamp", "field")
+STRUCTURE = ("floor", "wall", "ceiling")  # class names shrink_objects leaves as they are
 TRAIN_ACC_POINTS = 262_144  # points scored for the reported train accuracy
 
 
@@ -70,6 +74,8 @@ def run(cfg: BlueprintConfig, inputs: BlueprintInputs, out: Path) -> BlueprintOu
     finally:
         torch.set_num_threads(old_threads)
     labels = labels.astype(np.uint8)
+    shrink = round(c.shrink / grid.cell)  # cells
+    labels, shrunk = shrink_objects(labels, classes, shrink)
     inst = instance_raster(labels, grid, xyz[:, :2], label, read_instances(inputs.points))
     outs = BlueprintOutputs(blueprint=Path(out) / "blueprint.npz", stats=Path(out) / "train.json")
     Blueprint(labels, grid, classes, inst).save(outs.blueprint)
@@ -89,6 +95,8 @@ def run(cfg: BlueprintConfig, inputs: BlueprintInputs, out: Path) -> BlueprintOu
         {
             "points": int(inside.sum()),
             "points_outside_grid": int((~inside).sum()),
+            "shrink_cells": shrink,
+            "shrunk_cells": shrunk,
             "classes": [classes.get(int(k), str(k)) for k in class_ids],
             "grid_shape": list(grid.shape),
             "eval_seconds": round(time.perf_counter() - t1, 3),
@@ -104,6 +112,28 @@ def run(cfg: BlueprintConfig, inputs: BlueprintInputs, out: Path) -> BlueprintOu
         stats["train_accuracy"],
     )
     return outs
+
+
+def shrink_objects(
+    labels: np.ndarray, classes: dict[int, str], cells: int
+) -> tuple[np.ndarray, int]:
+    """(The plan [H, W] with the object footprints shrunk by `cells` cells where they meet
+    the floor, how many cells changed class).
+
+    Objects are the cells of every class but floor, wall and ceiling. Those within `cells`
+    (a disk) of a floor cell become floor, the class of the nearest floor cell: depth that
+    fattens objects spreads them over the floor round them, never into the wall behind.
+    """
+    floor = np.isin(labels, [k for k, n in classes.items() if n == "floor"])
+    structure = np.isin(labels, [k for k, n in classes.items() if n in STRUCTURE])
+    obj = ~structure & (labels != UNKNOWN)
+    if cells <= 0 or not obj.any() or not floor.any():
+        return labels, 0
+    freed = obj & ndimage.binary_dilation(floor, structure=disk(cells).astype(bool))
+    _, (r, c) = ndimage.distance_transform_edt(~floor, return_indices=True)
+    out = labels.copy()
+    out[freed] = labels[r[freed], c[freed]]
+    return out, int(freed.sum())
 
 
 def plan_frame(grid: Grid) -> tuple[tuple[float, float], float]:
@@ -278,6 +308,8 @@ def _check(c: BlunfConfig) -> None:
         raise BlunfError(f"blueprint.blunf.outside must be one of {OUTSIDES}, got {c.outside!r}")
     if c.balance not in BALANCES:
         raise BlunfError(f"blueprint.blunf.balance must be one of {BALANCES}, got {c.balance!r}")
+    if not (c.shrink >= 0 and math.isfinite(c.shrink)):
+        raise BlunfError(f"blueprint.blunf.shrink must be >= 0 metres, got {c.shrink}")
     if c.n_freqs < 0:
         raise BlunfError(f"blueprint.blunf.n_freqs must be >= 0 (0 = auto), got {c.n_freqs}")
     for name in (

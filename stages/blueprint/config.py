@@ -31,6 +31,10 @@ class BlunfConfig:
     # of the bounds | "field" = the field's own extrapolation
     outside: str = "clamp"
     seed: int = 0  # seeds the initialisation and the batch sampling
+    shrink: float = 0.0  # metres: object footprints (every class but floor, wall, ceiling)
+    #                      shrunk by this where they meet the floor, in whole cells, after
+    #                      the field is read (blunf.shrink_objects): for depth that fattens
+    #                      objects (stereo). 0 = off; the saved field stays unshrunk
     threads: int = 0  # torch threads while training (0 = leave torch's setting)
     eval_chunk: int = 65536  # cell centres per forward pass when rendering the plan
 

@@ -20,6 +20,10 @@ class FusionConfig:
     block_resolution: int = 16  # voxels along each side of a hashed voxel block
     weight_threshold: float = 0.5  # a voxel is surface only when more than this many frames
     #                                saw it (0.5 = every observed voxel; 1.5 = two frames)
+    min_support: int = 0  # keep the fused surface only where this many views have a
+    #                       reading within support_voxels of it (fusion/carve.py: removes what
+    #                       averaging disagreeing depth leaves between the readings); 0 = off
+    support_voxels: float = 2.5  # ... within this many voxels, along the view's optical axis
     raycast: bool = True  # ray-cast the fused mesh into every view as that view's clean depth
 
     def __post_init__(self) -> None:
@@ -33,6 +37,10 @@ class FusionConfig:
             )
         if self.block_resolution < 1:
             raise BlunfError(f"fusion.block_resolution: must be >= 1, got {self.block_resolution}")
+        if self.min_support < 0:
+            raise BlunfError(f"fusion.min_support: must be >= 0, got {self.min_support}")
+        if not self.support_voxels > 0:
+            raise BlunfError(f"fusion.support_voxels: must be > 0, got {self.support_voxels}")
         if not self.weight_threshold >= 0:
             raise BlunfError(f"fusion.weight_threshold: must be >= 0, got {self.weight_threshold}")
 

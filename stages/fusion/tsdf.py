@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 
@@ -31,6 +32,7 @@ from stages.common.camera import Intrinsics, check_pose
 from stages.common.capture import Capture, Frame
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth, read_image, write_depth_npy, write_json
+from stages.fusion.carve import supporting_views
 from stages.fusion.config import FusionConfig, FusionInputs, FusionOutputs
 
 log = logging.getLogger(__name__)
@@ -85,6 +87,9 @@ def run(cfg: FusionConfig, inputs: FusionInputs, out: Path) -> FusionOutputs:
     t0 = time.perf_counter()
     mesh = vbg.extract_triangle_mesh(cfg.weight_threshold)
     cloud = vbg.extract_point_cloud(cfg.weight_threshold)
+    carved: dict = {"carved_vertices": 0, "carved_points": 0}
+    if cfg.min_support > 0 and mesh.vertex.positions.shape[0]:
+        mesh, cloud, carved = _carve(mesh, cloud, cap, cfg)
     n_vert, n_tri = mesh.vertex.positions.shape[0], mesh.triangle.indices.shape[0]
     if n_tri == 0:
         raise BlunfError(_nothing(cap, cfg, inputs.frames))
@@ -116,6 +121,7 @@ def run(cfg: FusionConfig, inputs: FusionInputs, out: Path) -> FusionOutputs:
         "integrate_open3d_seconds": round(t_o3d, 3),
         "integrate_fps": round(n / max(t_integrate, 1e-9), 2),
         "extract_seconds": round(t_extract, 3),
+        **carved,
         "raycast": "RaycastingScene on the mesh" if cfg.raycast else "off",
         "raycast_seconds": round(t_raycast, 3),
         "vertices": int(n_vert),
@@ -214,6 +220,34 @@ def _blocks(cap: Capture, cfg: FusionConfig) -> tuple[list[o3c.Tensor | None], i
         b = bc.numpy().astype(np.int64) + 2**20  # [M, 3] block coordinates, made >= 0
         seen.update((b[:, 0] << 42 | b[:, 1] << 21 | b[:, 2]).tolist())
     return coords, len(seen), float(np.mean(valid))
+
+
+def _views(cap: Capture, cfg: FusionConfig) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Every frame's fusable depth [H, W], its K [3, 3] and camera-to-world [4, 4], in turn."""
+    for f in cap.frames:
+        depth, k = _depth(f, cap, cfg)
+        yield depth, k.K, np.asarray(f.pose, np.float64)
+
+
+def _carve(
+    mesh: o3d.t.geometry.TriangleMesh, cloud: o3d.t.geometry.PointCloud, cap: Capture,
+    cfg: FusionConfig,
+) -> tuple[o3d.t.geometry.TriangleMesh, o3d.t.geometry.PointCloud, dict]:  # fmt: skip
+    """The mesh and cloud without what fewer than cfg.min_support views' readings lie on."""
+    t0 = time.perf_counter()
+    v = mesh.vertex.positions.numpy().astype(np.float64)
+    p = cloud.point.positions.numpy().astype(np.float64)
+    dist = cfg.support_voxels * cfg.voxel
+    support = supporting_views(np.concatenate([v, p]), _views(cap, cfg), dist)
+    keep_v, keep_p = np.split(support >= cfg.min_support, [len(v)])
+    mesh = mesh.select_by_index(_tensor(np.flatnonzero(keep_v), o3c.int64))
+    cloud = cloud.select_by_mask(_tensor(keep_p, o3c.bool))
+    facts = {
+        "carved_vertices": int((~keep_v).sum()),  # of the mesh extracted from the TSDF
+        "carved_points": int((~keep_p).sum()),
+        "carve_seconds": round(time.perf_counter() - t0, 3),
+    }
+    return mesh, cloud, facts
 
 
 def _raycast(mesh: o3d.t.geometry.TriangleMesh, cap: Capture, folder: Path

@@ -12,9 +12,10 @@ import pytest
 import torch
 
 from stages.blueprint import IMPLS, BlueprintConfig, BlueprintInputs, BlunfConfig, paper_recipe
-from stages.blueprint.blunf import _sampler, auto_freqs, field_labels
+from stages.blueprint.blunf import _sampler, auto_freqs, field_labels, shrink_objects
 from stages.blueprint.encoding import HashGrid2D
 from stages.common.blueprint import Blueprint, Grid
+from stages.common.errors import BlunfError
 from stages.evaluate.metrics import plan_metrics
 
 # A 2 x 2 m floor (class 0) with a rug (class 1) and a table (class 3: ids need not be
@@ -212,3 +213,46 @@ def test_cell_balance_draws_every_occupied_cell_alike():
     )
     # within a cell, its points come up alike: the 10 points of cell 3 all appear
     assert set(idx[cell[idx] == 3].tolist()) == set(range(1000, 1010))
+
+
+def test_shrink_moves_object_edges_facing_the_floor_to_the_floor():
+    """Floor 0, wall 1 along the left edge, a cabinet 3 against the wall, a table 5 on the
+    floor with a chair 6 touching it. One cell of shrink: the object cells next to the floor
+    (4-neighbours: a disk of radius 1) become floor; the cabinet keeps its side on the wall
+    and the table and chair the side they share; the wall and floor do not change."""
+    classes = {0: "floor", 1: "wall", 3: "cabinet", 5: "table", 6: "chair"}
+    lab = np.zeros((10, 12), np.uint8)
+    lab[:, 0] = 1
+    lab[1:4, 1:4] = 3  # cabinet, columns 1-3, against the wall (column 0)
+    lab[5:9, 4:8] = 5  # table, 4 x 4
+    lab[5:9, 8:10] = 6  # chair, touching the table's right side
+    out, n = shrink_objects(lab, classes, 1)
+    want = np.zeros_like(lab)
+    want[:, 0] = 1
+    want[2, 1:3] = 3  # the cabinet's wall-side cells that no floor cell touches
+    want[6:8, 5:8] = 5  # the table without its top, bottom and left rows
+    want[6:8, 8] = 6  # the chair without its far column and the top / bottom rows
+    assert out.tolist() == want.tolist()
+    assert n == int((out != lab).sum()) and n > 0
+    assert ((out == lab) | (out == 0)).all()  # objects only ever turn to floor
+    same, none = shrink_objects(lab, classes, 0)
+    assert none == 0 and (same == lab).all()
+    no_floor = {0: "rug", 1: "wall", 3: "cabinet", 5: "table", 6: "chair"}
+    kept, none = shrink_objects(lab, no_floor, 2)
+    assert none == 0 and (kept == lab).all()
+
+
+def test_shrink_in_the_stage_is_the_plan_shrunk(tmp_path):
+    """The stage with shrink = one cell writes the plan it writes without, shrunk (same
+    seed, same field), and says so in train.json; a negative shrink is refused."""
+    cfg = BlunfConfig(**SETTINGS["pe"])
+    plain, _ = _run(tmp_path, cfg, name="plain")
+    shrunk, outs = _run(tmp_path, replace(cfg, shrink=GRID.cell), name="shrunk")
+    want, n = shrink_objects(plain.labels, CLASSES, 1)
+    assert n > 0 and (shrunk.labels == want).all()
+    stats = json.loads(outs.stats.read_text())
+    assert stats["shrink_cells"] == 1 and stats["shrunk_cells"] == n
+    # the table is a 8 x 8-cell square on the floor: one cell off its 4 sides, 28 cells
+    assert (plain.labels == 3).sum() - (shrunk.labels == 3).sum() >= 24
+    with pytest.raises(BlunfError, match="blueprint.blunf.shrink"):
+        _run(tmp_path, replace(cfg, shrink=-0.1), name="bad")

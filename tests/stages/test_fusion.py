@@ -7,6 +7,7 @@ ray-cast from the exact triangles. Every check compares with that exact geometry
 
 from __future__ import annotations
 
+import json
 import resource
 import time
 from dataclasses import replace
@@ -23,6 +24,7 @@ from stages.common.capture import Capture, Frame
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth, write_depth_png, write_image
 from stages.fusion import IMPLS, FusionConfig, FusionInputs
+from stages.fusion.carve import supporting_views
 from tests.conftest import shared_capture
 
 W, H = 64, 48
@@ -106,15 +108,21 @@ def make_scene(ceiling: bool = False) -> o3d.t.geometry.RaycastingScene:
 
 
 def room_capture(
-    folder: Path, ceiling: bool = False, gravity=None, transform=None, depth_suffix: str = ".png"
+    folder: Path,
+    ceiling: bool = False,
+    gravity=None,
+    transform=None,
+    depth_suffix: str = ".png",
+    poses: list[np.ndarray] | None = None,
 ) -> Path:
-    """Render the room into `folder` (images, depth, frames.json). `transform` [4, 4] moves
-    the world (poses become transform @ pose; depth maps are camera-frame, unchanged)."""
+    """Render the room into `folder` (images, depth, frames.json) from `poses` (default
+    room_poses()). `transform` [4, 4] moves the world (poses become transform @ pose; depth
+    maps are camera-frame, unchanged)."""
     scene = make_scene(ceiling)
     folder.mkdir(parents=True, exist_ok=True)
     M = np.eye(4) if transform is None else transform
     frames = []
-    for i, pose in enumerate(room_poses()):
+    for i, pose in enumerate(room_poses() if poses is None else poses):
         depth, normals = render(scene, pose)
         stem = f"v{i:02d}"
         write_image(folder / f"{stem}.png", (128 + 100 * normals).clip(0, 255).astype(np.uint8))
@@ -170,7 +178,7 @@ def test_mesh_and_raycast_depth_match_the_true_room(tmp_path):
     # the neighbouring observed voxel (one or two border pixels of a 64x48 view: ~5 %).
     assert hits / seen_px > 0.9, hits / seen_px
 
-    stats = __import__("json").loads(outs.stats.read_text())
+    stats = json.loads(outs.stats.read_text())
     assert stats["frames"] == 8 and stats["triangles"] == len(mesh.triangles)
     # block_count is the exact number of blocks the depth touches: none missing, none spare
     assert stats["block_count"] == stats["blocks"]
@@ -253,6 +261,72 @@ def test_all_depth_invalid_is_an_error(tmp_path):
         fuse(frames, tmp_path / "out", depth_max=0.5)
 
 
+def test_supporting_views_counts_readings_near_a_point():
+    """A point 2 m in front of a camera: supported by a reading within dist of 2 m at its
+    pixel, not by one farther, nor by a view it lies behind or outside of."""
+    pose = look_at((0.0, 0.0, 1.0), (0.0, 5.0, 1.0))  # looks along +y
+    p = np.array([[0.0, 2.0, 1.0]])  # on the optical axis, 2 m out
+    K = INTR.K
+
+    def views(*depths, c2w=pose):
+        return [(np.full((H, W), d, np.float32), K, c2w) for d in depths]
+
+    assert supporting_views(p, views(2.03), 0.05).tolist() == [1]
+    assert supporting_views(p, views(2.03, 1.97, 2.0), 0.05).tolist() == [3]
+    assert supporting_views(p, views(2.03), 0.02).tolist() == [0]
+    assert supporting_views(p, views(3.0, 0.0), 0.05).tolist() == [0]  # far; no reading
+    behind = look_at((0.0, 4.0, 1.0), (0.0, 9.0, 1.0))  # the point is 2 m behind it
+    assert supporting_views(p, views(2.0, c2w=behind), 0.05).tolist() == [0]
+    aside = look_at((0.0, 0.0, 1.0), (5.0, 0.0, 1.0))  # the point is 90 deg off its axis
+    assert supporting_views(p, views(2.0, c2w=aside), 0.05).tolist() == [0]
+
+
+def test_min_support_removes_the_surface_only_one_view_saw(tmp_path):
+    """One view's depth holds a floater: a patch read at 1 m where the room is ~3 m away
+    (a stereo mismatch). The TSDF keeps it (no other view's readings come near those
+    voxels); with min_support = 2 it is gone and the room is left as it was. Each of the 8
+    views has a twin 15 cm to its side, so that every surface is seen twice."""
+    twins = [p.copy() for p in room_poses()]
+    for p in twins:
+        p[:3, 3] += 0.15 * p[:3, 0]
+    clean = Capture.load(room_capture(tmp_path / "cap", poses=room_poses() + twins))
+    frames = list(clean.frames)
+    d = read_depth(frames[2].depth)
+    d[15:30, 20:40] = 1.0
+    path = tmp_path / "floater.png"
+    write_depth_png(path, d)
+    frames[2] = replace(frames[2], depth=path)
+    clean.with_frames(frames).save(tmp_path / "floater.json")
+
+    def far_and_near(outs) -> tuple[int, int]:
+        v = np.asarray(o3d.io.read_triangle_mesh(str(outs.mesh)).vertices, np.float32)
+        dist = make_scene().compute_distance(o3c.Tensor(v)).numpy()  # [N] metres
+        return int((dist > 0.3).sum()), int((dist < 1.5 * VOXEL).sum())
+
+    plain = fuse(tmp_path / "floater.json", tmp_path / "plain")
+    carved = fuse(tmp_path / "floater.json", tmp_path / "carved", min_support=2)
+    clean_run = fuse(tmp_path / "cap" / "frames.json", tmp_path / "clean", min_support=2)
+    far_plain, near_plain = far_and_near(plain)
+    far_carved, near_carved = far_and_near(carved)
+    assert far_plain > 20, far_plain  # the floater is fused without the check
+    assert far_carved == 0
+    # the true room loses only the odd vertex at the frustum edges, seen by a single view
+    assert near_carved > 0.95 * near_plain, (near_carved, near_plain)
+    stats = json.loads(carved.stats.read_text())
+    assert stats["carved_vertices"] >= far_plain and stats["carved_points"] > 0
+    assert json.loads(plain.stats.read_text())["carved_vertices"] == 0
+    # exact depth: every vertex lies on readings of two views but the frustum-edge few
+    clean_stats = json.loads(clean_run.stats.read_text())
+    assert clean_stats["carved_vertices"] < 0.05 * clean_stats["vertices"], clean_stats
+
+
+def test_min_support_settings_are_checked():
+    with pytest.raises(BlunfError, match="fusion.min_support"):
+        FusionConfig(min_support=-1)
+    with pytest.raises(BlunfError, match="fusion.support_voxels"):
+        FusionConfig(support_voxels=0.0)
+
+
 @pytest.mark.slow
 def test_kitchen_fusion(tmp_path):
     """7-Scenes redkitchen, 100 frames at 2 cm: a real mesh, and ray-cast depth that agrees
@@ -265,7 +339,7 @@ def test_kitchen_fusion(tmp_path):
     t0 = time.perf_counter()
     outs = IMPLS["tsdf"](FusionConfig(), FusionInputs(tmp_path / "frames.json"), tmp_path / "out")
     secs = time.perf_counter() - t0
-    stats = __import__("json").loads(outs.stats.read_text())
+    stats = json.loads(outs.stats.read_text())
     mesh = o3d.io.read_triangle_mesh(str(outs.mesh))
     v = np.asarray(mesh.vertices)
     assert len(mesh.triangles) > 50_000

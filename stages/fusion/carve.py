@@ -1,0 +1,48 @@
+"""Fused surface that no depth reading supports, removed after fusion (`fusion.min_support`).
+
+A TSDF averages signed distances. Where the views disagree about a surface (one view's
+stereo carries a chair's edge a few centimetres out over the floor, the next view reads the
+floor there), the zero crossing of the average falls between the readings, on no reading of
+any view, and marching cubes draws a surface there: skirts round objects, streaks along the
+rays of the views that mismatched. From a plan's point of view these are object where there
+is floor, and they hide the floor below them from the top view.
+
+Every vertex is projected into every view; a view supports it when its reading at the
+nearest pixel lies within `dist` of the vertex's depth. The surface that fewer than
+`min_support` views support is removed. Measured on the photos-only demo room (60 views,
+stereo and rendered depth; ground-truth depth decides what is wrong): of the surface
+vertices 0.25-1.3 m above the floor, 11 % lie where no true surface is (more views' true
+depth sees through them than lies on them); 54 % of those have fewer than two supporting
+views within 5 cm, against 3-7 % of the others. Sensor depth needs none of it (the plan
+from the room's exact depth: fwIoU 89.8 without, 89.9 with), so it is off unless a config
+asks for it (configs/phone.yaml).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import numpy as np
+
+from stages.common.camera import project
+
+
+def supporting_views(
+    points: np.ndarray, views: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], dist: float
+) -> np.ndarray:
+    """How many views have a reading within `dist` of each world point [N, 3] -> [N] int32.
+
+    Args:
+        views: per view (depth [H, W]: z-depth in metres, 0 = no reading; its [3, 3]
+            intrinsics; [4, 4] camera-to-world), read one at a time.
+        dist: metres, along the view's optical axis.
+    """
+    support = np.zeros(len(points), np.int32)
+    for depth, K, c2w in views:
+        uv, z = project(points, K, c2w)
+        h, w = depth.shape
+        u, v = np.rint(uv[:, 0]), np.rint(uv[:, 1])
+        idx = np.flatnonzero((z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h))
+        d = depth[v[idx].astype(np.int64), u[idx].astype(np.int64)]
+        support[idx] += (d > 0) & (np.abs(d - z[idx]) <= dist)
+    return support
