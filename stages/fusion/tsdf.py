@@ -89,7 +89,7 @@ def run(cfg: FusionConfig, inputs: FusionInputs, out: Path) -> FusionOutputs:
     cloud = vbg.extract_point_cloud(cfg.weight_threshold)
     carved: dict = {"carved_vertices": 0, "carved_points": 0}
     if cfg.min_support > 0 and mesh.vertex.positions.shape[0]:
-        mesh, cloud, carved = _carve(mesh, cloud, cap, cfg)
+        mesh, cloud, carved = _carve(mesh, cloud, cap, cfg, inputs.frames)
     n_vert, n_tri = mesh.vertex.positions.shape[0], mesh.triangle.indices.shape[0]
     if n_tri == 0:
         raise BlunfError(_nothing(cap, cfg, inputs.frames))
@@ -231,7 +231,7 @@ def _views(cap: Capture, cfg: FusionConfig) -> Iterator[tuple[np.ndarray, np.nda
 
 def _carve(
     mesh: o3d.t.geometry.TriangleMesh, cloud: o3d.t.geometry.PointCloud, cap: Capture,
-    cfg: FusionConfig,
+    cfg: FusionConfig, where: Path,
 ) -> tuple[o3d.t.geometry.TriangleMesh, o3d.t.geometry.PointCloud, dict]:  # fmt: skip
     """The mesh and cloud without what fewer than cfg.min_support views' readings lie on."""
     t0 = time.perf_counter()
@@ -240,6 +240,11 @@ def _carve(
     dist = cfg.support_voxels * cfg.voxel
     support = supporting_views(np.concatenate([v, p]), _views(cap, cfg), dist)
     keep_v, keep_p = np.split(support >= cfg.min_support, [len(v)])
+    if not keep_v.any():
+        raise BlunfError(
+            f"fusion: fusion.min_support = {cfg.min_support} removes the whole surface fused "
+            f"from {where} (no vertex lies on that many views' readings)"
+        )
     mesh = mesh.select_by_index(_tensor(np.flatnonzero(keep_v), o3c.int64))
     cloud = cloud.select_by_mask(_tensor(keep_p, o3c.bool))
     facts = {

@@ -320,6 +320,13 @@ def test_min_support_removes_the_surface_only_one_view_saw(tmp_path):
     assert clean_stats["carved_vertices"] < 0.05 * clean_stats["vertices"], clean_stats
 
 
+def test_min_support_that_removes_everything_says_so(tmp_path):
+    frames = room_capture(tmp_path / "cap")  # each surface seen by one or two of 8 views
+    with pytest.raises(BlunfError, match="min_support = 20 removes the whole surface"):
+        fuse(frames, tmp_path / "out", min_support=20)
+    assert not (tmp_path / "out" / "mesh.ply").exists()
+
+
 def test_min_support_settings_are_checked():
     with pytest.raises(BlunfError, match="fusion.min_support"):
         FusionConfig(min_support=-1)
