@@ -125,6 +125,21 @@ def project(points: np.ndarray, K: np.ndarray, c2w: np.ndarray) -> tuple[np.ndar
     return np.stack([u, v], axis=-1), z
 
 
+def depth_at(
+    pts: np.ndarray, depth: np.ndarray, K: np.ndarray, c2w: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(reading of `depth` at the nearest pixel to each point's projection, 0 when outside
+    the view or behind it; the point's z in that view) for world points pts [N, 3]."""
+    uv, z = project(pts, K, c2w)
+    h, w = depth.shape
+    u = np.rint(uv[:, 0])
+    v = np.rint(uv[:, 1])
+    inside = (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    d = np.zeros(len(pts), np.float64)
+    d[inside] = depth[v[inside].astype(np.int64), u[inside].astype(np.int64)]
+    return d, z
+
+
 def depth_to_points(
     depth: np.ndarray, K: np.ndarray, c2w: np.ndarray, stride: int = 1
 ) -> tuple[np.ndarray, np.ndarray]:

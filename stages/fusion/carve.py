@@ -24,7 +24,7 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from stages.common.camera import project
+from stages.common.camera import depth_at
 
 
 def supporting_views(
@@ -39,10 +39,6 @@ def supporting_views(
     """
     support = np.zeros(len(points), np.int32)
     for depth, K, c2w in views:
-        uv, z = project(points, K, c2w)
-        h, w = depth.shape
-        u, v = np.rint(uv[:, 0]), np.rint(uv[:, 1])
-        idx = np.flatnonzero((z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h))
-        d = depth[v[idx].astype(np.int64), u[idx].astype(np.int64)]
-        support[idx] += (d > 0) & (np.abs(d - z[idx]) <= dist)
+        d, z = depth_at(points, depth, K, c2w)  # d = 0 outside the view or behind it
+        support += (d > 0) & (np.abs(d - z) <= dist)
     return support

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stages.common.camera import depth_to_points, project
+from stages.common.camera import depth_at, depth_to_points
 from stages.common.errors import BlunfError
 
 
@@ -65,7 +65,7 @@ def consistent_depth(
         agree = np.zeros(len(pts), np.int32)
         through = np.zeros(len(pts), np.int32)
         for j in order[i][:neighbours]:
-            dj, z = _depth_at(pts, r_depths[j], r_Ks[j], r_poses[j])
+            dj, z = depth_at(pts, r_depths[j], r_Ks[j], r_poses[j])
             seen = dj > 0
             # relative to the neighbour's reading (guarded: seen implies dj > 0)
             rel = (z - dj) / np.where(seen, dj, 1.0)
@@ -78,21 +78,6 @@ def consistent_depth(
         total += len(pts)
         kept += int(ok.sum())
     return out, kept / max(1, total)
-
-
-def _depth_at(
-    pts: np.ndarray, depth: np.ndarray, K: np.ndarray, c2w: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """(reading of `depth` at the nearest pixel to each point's projection, 0 when outside
-    the view or behind it; the point's z in that view) for world points pts [N, 3]."""
-    uv, z = project(pts, K, c2w)
-    h, w = depth.shape
-    u = np.rint(uv[:, 0])
-    v = np.rint(uv[:, 1])
-    inside = (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    d = np.zeros(len(pts), np.float64)
-    d[inside] = depth[v[inside].astype(np.int64), u[inside].astype(np.int64)]
-    return d, z
 
 
 def overlap_order(
@@ -114,7 +99,7 @@ def overlap_order(
         counts = np.zeros(m, np.int64)
         for j in range(m):
             if (refs is not None or j != i) and len(pts):
-                counts[j] = int((_depth_at(pts, r_depths[j], r_Ks[j], r_poses[j])[0] > 0).sum())
+                counts[j] = int((depth_at(pts, r_depths[j], r_Ks[j], r_poses[j])[0] > 0).sum())
         if refs is None:
             counts[i] = -1
         order.append([int(j) for j in np.argsort(-counts, kind="stable") if counts[j] > 0])
