@@ -90,6 +90,7 @@ def run(cfg: FusionConfig, inputs: FusionInputs, out: Path) -> FusionOutputs:
     carved: dict = {"carved_vertices": 0, "carved_points": 0}
     if cfg.min_support > 0 and mesh.vertex.positions.shape[0]:
         mesh, cloud, carved = _carve(mesh, cloud, cap, cfg, inputs.frames)
+    mesh, cloud = canonical_mesh(mesh), canonical_cloud(cloud)  # the same files every run
     n_vert, n_tri = mesh.vertex.positions.shape[0], mesh.triangle.indices.shape[0]
     if n_tri == 0:
         raise BlunfError(_nothing(cap, cfg, inputs.frames))
@@ -227,6 +228,56 @@ def _views(cap: Capture, cfg: FusionConfig) -> Iterator[tuple[np.ndarray, np.nda
     for f in cap.frames:
         depth, k = _depth(f, cap, cfg)
         yield depth, k.K, np.asarray(f.pose, np.float64)
+
+
+def canonical_mesh(mesh: o3d.t.geometry.TriangleMesh) -> o3d.t.geometry.TriangleMesh:
+    """The mesh in an order fixed by its geometry: vertices sorted by position (x, y, z, then
+    their other attributes), vertices at the very same position merged, triangles sorted by
+    their vertex ids, each starting at its lowest id (winding kept). Triangles that merging
+    leaves with a repeated vertex (no area) are dropped.
+
+    The voxel block grid's hash map lists blocks in an order that changes from run to run, and
+    extraction follows it; everything downstream that samples the mesh with a seed (the
+    semantics stage's RANSAC) would then differ between runs on the same input.
+    """
+    attrs = {key: value.numpy() for key, value in mesh.vertex.items()}
+    pos = attrs.pop("positions")  # [V, 3]
+    cols = [pos] + [a.reshape(len(a), -1) for _, a in sorted(attrs.items())]
+    keys = np.concatenate([c.astype(np.float64) for c in cols], axis=1)  # [V, K]
+    order = np.lexsort(keys.T[::-1])  # [V]: sorted place -> old id
+    first = np.ones(len(order), bool)
+    first[1:] = (np.diff(pos[order], axis=0) != 0).any(axis=1)  # a new position starts
+    new_id = np.empty(len(order), np.int64)
+    new_id[order] = np.cumsum(first) - 1  # old id -> merged, sorted id
+    tri = new_id[mesh.triangle.indices.numpy().astype(np.int64)]  # [T, 3]
+    proper = np.flatnonzero((tri != np.roll(tri, 1, axis=1)).all(axis=1))
+    tri = tri[proper]
+    tri = np.take_along_axis(tri, (np.argmin(tri, 1)[:, None] + np.arange(3)) % 3, axis=1)
+    sort = np.lexsort(tri.T[::-1])
+    tri, t_order = tri[sort], proper[sort]  # t_order: sorted place -> old triangle id
+    keep = order[first]  # old id of each merged vertex
+    out = o3d.t.geometry.TriangleMesh(CPU)
+    for key, value in mesh.vertex.items():
+        out.vertex[key] = _tensor(value.numpy()[keep], value.dtype)
+    out.triangle.indices = _tensor(tri, mesh.triangle.indices.dtype)
+    for key, value in mesh.triangle.items():
+        if key != "indices":
+            out.triangle[key] = _tensor(value.numpy()[t_order], value.dtype)
+    return out
+
+
+def canonical_cloud(cloud: o3d.t.geometry.PointCloud) -> o3d.t.geometry.PointCloud:
+    """The cloud with its points sorted by position (x, y, z, then their other attributes):
+    see canonical_mesh."""
+    attrs = {key: value.numpy() for key, value in cloud.point.items()}
+    cols = [attrs["positions"]] + [
+        a.reshape(len(a), -1) for k, a in sorted(attrs.items()) if k != "positions"
+    ]
+    order = np.lexsort(np.concatenate([c.astype(np.float64) for c in cols], axis=1).T[::-1])
+    out = o3d.t.geometry.PointCloud(CPU)
+    for key, value in cloud.point.items():
+        out.point[key] = _tensor(value.numpy()[order], value.dtype)
+    return out
 
 
 def _carve(

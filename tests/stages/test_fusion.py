@@ -25,6 +25,7 @@ from stages.common.errors import BlunfError
 from stages.common.io import read_depth, write_depth_png, write_image
 from stages.fusion import IMPLS, FusionConfig, FusionInputs
 from stages.fusion.carve import supporting_views
+from stages.fusion.tsdf import canonical_cloud, canonical_mesh
 from tests.conftest import shared_capture
 
 W, H = 64, 48
@@ -184,6 +185,48 @@ def test_mesh_and_raycast_depth_match_the_true_room(tmp_path):
     assert stats["block_count"] == stats["blocks"]
     assert (tmp_path / "out" / "cloud.ply").is_file()
     assert len(o3d.io.read_point_cloud(str(outs.cloud)).points) > 1000
+
+
+def test_fused_files_are_in_a_canonical_order(tmp_path):
+    """The voxel block grid lists blocks in an order that changes between runs: the mesh and
+    cloud are written sorted, so a shuffled copy of them orders to the very same arrays."""
+    outs = fuse(room_capture(tmp_path / "cap"), tmp_path / "out")
+    mesh = o3d.t.io.read_triangle_mesh(str(outs.mesh))
+    pos, tri = mesh.vertex.positions.numpy(), mesh.triangle.indices.numpy()
+    assert (np.diff(pos[:, 0]) >= 0).all()  # written sorted by x first
+    assert (tri.argmin(axis=1) == 0).all() and (np.diff(tri[:, 0]) >= 0).all()
+    rng = np.random.default_rng(0)
+    perm = rng.permutation(len(pos))  # new -> old
+    back = np.argsort(perm)  # old -> new
+    shuffled = o3d.t.geometry.TriangleMesh()
+    for key, value in mesh.vertex.items():
+        shuffled.vertex[key] = o3c.Tensor(value.numpy()[perm])
+    rolled = np.roll(back[tri][rng.permutation(len(tri))], 1, axis=1)  # same winding
+    shuffled.triangle.indices = o3c.Tensor(rolled)
+    again = canonical_mesh(shuffled)
+    for key in ("positions", "colors", "normals"):
+        np.testing.assert_array_equal(again.vertex[key].numpy(), mesh.vertex[key].numpy())
+    np.testing.assert_array_equal(again.triangle.indices.numpy(), tri)
+    cloud = o3d.t.io.read_point_cloud(str(outs.cloud))
+    shuffled_cloud = o3d.t.geometry.PointCloud(o3c.Tensor(np.zeros((1, 3), np.float32)))
+    perm = rng.permutation(cloud.point.positions.shape[0])
+    for key, value in cloud.point.items():
+        shuffled_cloud.point[key] = o3c.Tensor(value.numpy()[perm])
+    again = canonical_cloud(shuffled_cloud)
+    for key, value in cloud.point.items():
+        np.testing.assert_array_equal(again.point[key].numpy(), value.numpy())
+
+
+def test_canonical_mesh_merges_twin_vertices_and_drops_what_collapses():
+    """Two vertices at one position become one; a triangle left with a repeated vertex goes."""
+    pos = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 0, 0], [1, 1, 0]], np.float32)
+    tri = np.array([[0, 1, 2], [1, 4, 2], [1, 3, 4]])  # the last: vertices 1 and 3 coincide
+    mesh = o3d.t.geometry.TriangleMesh(o3c.Tensor(pos), o3c.Tensor(tri))
+    out = canonical_mesh(mesh)
+    got = out.vertex.positions.numpy()
+    np.testing.assert_array_equal(got, [[0, 0, 0], [0, 1, 0], [1, 0, 0], [1, 1, 0]])
+    # triangles (0, 1, 2) and (1, 4, 2) of the input, renumbered, lowest id first, same winding
+    assert out.triangle.indices.numpy().tolist() == [[0, 2, 1], [1, 2, 3]]
 
 
 def test_invalid_depth_is_never_fused(tmp_path):
