@@ -41,13 +41,27 @@ class SemanticsConfig:
     object_max_gap: float = 0.3  # metres: a cluster whose lowest point is higher above the
     #                              floor does not stand on it (wall cabinet, lamp, fused noise)
     #                              and is labelled unknown (255)
+    # rays that pass through every surface and through no wall and cross the floor plane
+    # inside the room (the hole-filled footprint of the floor and walls, on cells of
+    # floor_fill_cell metres) are labelled floor at that crossing (floorfill.py): the floor
+    # seen through holes in the fused surface. The views then get their depth from this
+    # stage (depth/<stem>.npy). Photos-only synthetic rooms: fwIoU 85.3 -> 85.5 (default
+    # room), 78.1 -> 84.6 (seed 3); with their exact depth 90.3 -> 90.4, 85.5 -> 86.0
+    floor_fill: bool = True
+    floor_fill_cell: float = 0.05
 
     def __post_init__(self) -> None:
         if self.impl not in ("geometry", "height"):
             raise BlunfError(f"semantics.impl: {self.impl!r} unknown (known: geometry, height)")
         if not 0 < self.max_tilt_deg < 45:
             raise BlunfError(f"semantics.max_tilt_deg: must be in (0, 45), got {self.max_tilt_deg}")
-        for name in ("plane_dist", "cluster_eps", "wall_min_height", "wall_min_length"):
+        for name in (
+            "plane_dist",
+            "cluster_eps",
+            "wall_min_height",
+            "wall_min_length",
+            "floor_fill_cell",
+        ):
             if not getattr(self, name) > 0:
                 raise BlunfError(f"semantics.{name}: must be > 0, got {getattr(self, name)}")
         for name in ("ransac_iters", "max_planes", "cluster_min_points"):
@@ -80,6 +94,8 @@ class SemanticsOutputs:
     instances: Path  # instances/<stem>.png: object instance id per pixel (0 = none; uint8,
     #                  uint16 beyond 255 objects), numbered by decreasing area
     stats: Path  # semantics.json: planes, objects, triangles and pixels per class, seconds
+    depth: Path  # depth/<stem>.npy: the mesh's depth with the floor seen through it, float32
+    #              metres (floor_fill only; else the frames keep the fusion stage's depth)
 
     @classmethod
     def at(cls, out: Path) -> SemanticsOutputs:
@@ -90,4 +106,5 @@ class SemanticsOutputs:
             labels=out / "labels",
             instances=out / "instances",
             stats=out / "semantics.json",
+            depth=out / "depth",
         )

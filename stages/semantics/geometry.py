@@ -19,16 +19,19 @@ import open3d.core as o3c
 
 from stages.common.capture import UNKNOWN, Capture, Frame
 from stages.common.errors import BlunfError
-from stages.common.io import write_json, write_label_png
+from stages.common.io import write_depth_npy, write_json, write_label_png
 from stages.fusion.tsdf import o3d_extrinsic, o3d_intrinsic
 from stages.semantics.config import (
     CLASSES,
+    FLOOR,
     IGNORE,
+    WALL,
     SemanticsConfig,
     SemanticsInputs,
     SemanticsOutputs,
 )
-from stages.semantics.segment import Segmentation, segment
+from stages.semantics.floorfill import Footprint, Wall, floor_through
+from stages.semantics.segment import Segmentation, _axes, segment, triangles
 
 log = logging.getLogger(__name__)
 
@@ -58,8 +61,9 @@ def run(cfg: SemanticsConfig, inputs: SemanticsInputs, out: Path) -> SemanticsOu
     outs = SemanticsOutputs.at(out)
     outs.labels.mkdir(parents=True, exist_ok=True)
     outs.instances.mkdir(parents=True, exist_ok=True)
+    room = _room(verts, tris, seg, cfg) if cfg.floor_fill else None
     t0 = time.perf_counter()
-    frames, pixels = _render(mesh, seg, cap, outs)
+    frames, pixels = _render(mesh, seg, cap, outs, room, cfg.plane_dist)
     t_render = time.perf_counter() - t0
     sem = replace(cap, frames=tuple(frames), classes=dict(CLASSES), ignore=IGNORE)
     sem.save(outs.frames)
@@ -112,23 +116,45 @@ def _read_mesh(path: Path) -> o3d.t.geometry.TriangleMesh:
 
 
 def _render(
-    mesh: o3d.t.geometry.TriangleMesh, seg: Segmentation, cap: Capture, outs: SemanticsOutputs
+    mesh: o3d.t.geometry.TriangleMesh,
+    seg: Segmentation,
+    cap: Capture,
+    outs: SemanticsOutputs,
+    room: Footprint | None,
+    margin: float,
 ) -> tuple[list[Frame], dict[str, float]]:
     """Class and instance maps of every view; returns the frames pointing at them and the
-    fraction of pixels per class over all views."""
+    fraction of pixels per class over all views (and of floor seen through the surface).
+
+    With a room, the floor seen through the surface within it (floorfill.py, `margin` metres
+    beyond the plane) is labelled floor, and each view's depth is written with it."""
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(mesh)
     cls = np.append(seg.cls, np.uint8(UNKNOWN))  # [T + 1]: the last entry is "no hit"
     inst = np.append(seg.instance, 0)  # [T + 1]
     wide = inst.max(initial=0) > 255
+    walls = tuple(_wall(p) for p in seg.planes if p["kind"] == "wall")
     counts = np.zeros(256, np.int64)
-    frames = []
+    frames, filled = [], 0
+    if room is not None:
+        outs.depth.mkdir(parents=True, exist_ok=True)
     for f in cap.frames:
         k = f.intrinsics
         rays = scene.create_rays_pinhole(o3d_intrinsic(k), o3d_extrinsic(f), k.width, k.height)
-        prim = scene.cast_rays(rays)["primitive_ids"].numpy().astype(np.int64)  # [H, W]
+        hit = scene.cast_rays(rays)
+        prim = hit["primitive_ids"].numpy().astype(np.int64)  # [H, W]
         prim[prim == MISS] = len(cls) - 1
         label = cls[prim]  # [H, W] uint8
+        if room is not None:
+            t = hit["t_hit"].numpy()  # [H, W]: the depth (Open3D's rays have camera z = 1)
+            floor = floor_through(rays.numpy(), t, seg.floor_z, room, margin, walls)  # [H, W]
+            seen = floor > 0
+            label = np.where(seen, np.uint8(FLOOR), label)
+            prim[seen] = len(cls) - 1  # no instance
+            filled += int(seen.sum())
+            dpath = outs.depth / f"{f.stem}.npy"
+            write_depth_npy(dpath, np.where(seen, floor, t))  # inf (no hit) -> 0
+            f = replace(f, depth=dpath)
         counts += np.bincount(label.reshape(-1), minlength=256)
         path = outs.labels / f"{f.stem}.png"
         write_label_png(path, label)
@@ -138,4 +164,24 @@ def _render(
         frames.append(replace(f, label=path, instance=ipath))
     total = max(int(counts.sum()), 1)
     names = {**CLASSES, UNKNOWN: "unknown"}
-    return frames, {name: round(int(counts[k]) / total, 4) for k, name in names.items()}
+    pixels = {name: round(int(counts[k]) / total, 4) for k, name in names.items()}
+    return frames, {**pixels, "floor_seen_through": round(filled / total, 4)}
+
+
+def _wall(plane: dict) -> Wall:
+    """The Wall of an accepted wall plane of the segmentation (its normal, d and box)."""
+    normal = np.asarray(plane["normal"], np.float64)
+    axis = _axes(np.append(normal, plane["d"]))  # the direction its box's s runs along
+    box = np.asarray(plane["box"], np.float64)
+    return Wall(normal, float(plane["d"]), axis, box[:2], box[2:])
+
+
+def _room(verts: np.ndarray, tris: np.ndarray, seg: Segmentation, cfg: SemanticsConfig
+          ) -> Footprint | None:  # fmt: skip
+    """Where the floor may be seen through the surface: the footprint of the floor and wall
+    triangles (None without a floor: no plane to fill)."""
+    keep = (seg.cls == FLOOR) | (seg.cls == WALL)
+    if not (seg.cls == FLOOR).any():
+        return None
+    c = triangles(verts, tris[keep])[0]  # [K, 3] centres
+    return Footprint.of(c[:, :2], cfg.floor_fill_cell)

@@ -20,6 +20,7 @@ from stages.fusion import IMPLS as FUSION
 from stages.fusion import FusionConfig, FusionInputs
 from stages.semantics import IMPLS, SemanticsConfig, SemanticsInputs
 from stages.semantics.config import CEILING, FLOOR, OBJECT, WALL
+from stages.semantics.floorfill import Footprint
 from stages.semantics.segment import segment, triangles
 from tests.conftest import shared_capture
 
@@ -165,6 +166,90 @@ def test_run_renders_classes_and_instances_into_views(tmp_path):
     assert stats["objects"] == 2 and stats["planes"] == {"floor": 1, "wall": 4, "ceiling": 1}
 
 
+def _holed_room(tmp_path):
+    """The exact room with a hole of radius 0.3 m in the floor round (1.5, 1.5) and a doorway
+    in the east wall (y 1-2 m, z < 1 m), written as mesh.ply, and three views: straight down
+    into the hole, through the doorway onto the floor beyond the room, onto the box's top."""
+    verts, tris, _, part = exact_room()
+    c = triangles(verts, tris)[0]
+    hole = (part == 0) & (np.hypot(c[:, 0] - 1.5, c[:, 1] - 1.5) < 0.3)
+    door = (part == 5) & (c[:, 1] > 1.0) & (c[:, 1] < 2.0) & (c[:, 2] < 1.0)
+    tris = tris[~hole & ~door]
+    mesh = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(verts), o3d.utility.Vector3iVector(tris.astype(np.int32))
+    )
+    o3d.io.write_triangle_mesh(str(tmp_path / "mesh.ply"), mesh)
+    intr = Intrinsics(20.0, 20.0, 15.5, 11.5, 32, 24)
+    poses = [
+        _look((1.5, 1.5, 1.5), (1.5, 1.5, 0.0), up=(0, 1, 0)),
+        _look((3.0, 1.5, 1.0), (5.0, 1.5, 0.0)),  # the axis leaves through the doorway
+        _look((2.7, 0.2, 1.4), (2.7, 1.05, 0.7)),
+    ]
+    (tmp_path / "images").mkdir()
+    frames = []
+    for i, pose in enumerate(poses):
+        img = tmp_path / "images" / f"v{i}.png"
+        write_image(img, np.zeros((24, 32, 3), np.uint8))
+        frames.append(Frame(f"v{i}", img, intr, None, None, pose))
+    Capture(tmp_path, tuple(frames)).save(tmp_path / "frames.json")
+    return SemanticsInputs(tmp_path / "frames.json", tmp_path / "mesh.ply")
+
+
+def test_floor_is_seen_through_a_hole_in_the_surface_but_not_beyond_the_room(tmp_path):
+    inputs = _holed_room(tmp_path)
+    runs = {}
+    for fill in (False, True):
+        out = tmp_path / f"out{int(fill)}"
+        out.mkdir()
+        outs = IMPLS["geometry"](SemanticsConfig(floor_fill=fill), inputs, out)
+        runs[fill] = (outs, Capture.load(outs.frames))
+    (plain, plain_cap), (filled, cap) = runs[False], runs[True]
+    assert all(f.depth is None for f in plain_cap.frames)  # no depth of its own without fill
+    down, door, box = (read_label(f.label) for f in cap.frames)
+    down0, door0, box0 = (read_label(f.label) for f in plain_cap.frames)
+    # straight down: the hole (a disc ~4 pixels round the centre) has no surface; filled, it
+    # is floor at the camera's height, and nothing else changes
+    assert (down0[10:14, 14:18] == UNKNOWN).all()
+    changed = down != down0
+    assert changed[10:14, 14:18].all()
+    assert (down[changed] == FLOOR).all() and (down0[changed] == UNKNOWN).all()
+    depth = np.load(cap.frames[0].depth)
+    np.testing.assert_allclose(depth[changed], 1.5, atol=1e-4)
+    assert (depth[~changed] > 0).all()  # the mesh's own depth everywhere else
+    # the rays through the doorway cross the east wall's plane inside its extent before the
+    # floor: the floor beyond is not the room's, and they stay unknown
+    assert (door0[11:13, 15:17] == UNKNOWN).all()
+    np.testing.assert_array_equal(door, door0)
+    # a surface in front of the floor keeps its class (and the object its instance); this view
+    # also sees a little of the hole, on its left
+    assert (box[11:13, 15:17] == OBJECT).all()
+    assert (box[box != box0] == FLOOR).all() and (box0[box != box0] == UNKNOWN).all()
+    np.testing.assert_array_equal(
+        read_label(filled.instances / "v2.png"), read_label(plain.instances / "v2.png")
+    )
+    stats = json.loads(filled.stats.read_text())
+    n_changed = changed.sum() + (box != box0).sum()
+    assert stats["pixels"]["floor_seen_through"] == pytest.approx(
+        n_changed / (3 * 24 * 32), abs=1e-4
+    )
+
+
+def test_room_footprint_is_the_filled_ring_of_floor_and_walls():
+    """Wall centres on a 4 x 3 m ring (a 0.3 m gap in one side) and a floor patch: the
+    footprint holds the whole inside, closed across the gap, and nothing outside."""
+    s = np.arange(0.0, 4.0, 0.04)
+    t = np.arange(0.0, 3.0, 0.04)
+    ring = [np.stack([s, np.zeros_like(s)], 1), np.stack([s, np.full_like(s, 3.0)], 1),
+            np.stack([np.zeros_like(t), t], 1), np.stack([np.full_like(t, 4.0), t], 1)]  # fmt: skip
+    xy = np.concatenate(ring)
+    xy = xy[~((xy[:, 1] == 0.0) & (xy[:, 0] > 2.0) & (xy[:, 0] < 2.06))]  # a one-cell gap
+    xy = np.concatenate([xy, [[0.5, 0.5], [0.55, 0.5]]])
+    room = Footprint.of(xy, 0.05)
+    inside = np.array([[2.0, 1.5], [0.2, 0.2], [3.8, 2.8], [2.03, 0.1]])
+    outside = np.array([[2.0, -0.2], [4.3, 1.5], [-1.0, -1.0], [10.0, 10.0]])
+    assert room.contains(inside).all() and not room.contains(outside).any()
+
+
 def test_run_refuses_a_mesh_without_triangles(tmp_path):
     o3d.io.write_triangle_mesh(str(tmp_path / "mesh.ply"), o3d.geometry.TriangleMesh())
     img = tmp_path / "a.png"
@@ -182,6 +267,8 @@ def test_config_checks():
         SemanticsConfig(impl="magic")
     with pytest.raises(BlunfError, match="floor_max_z"):
         SemanticsConfig(floor_max_z=2.0, ceiling_min_z=1.5)
+    with pytest.raises(BlunfError, match="floor_fill_cell"):
+        SemanticsConfig(floor_fill_cell=0.0)
 
 
 # GT classes of the procedural room: 0 floor, 1 wall, 2 ceiling, 3.. furniture -> object.

@@ -1,0 +1,113 @@
+"""Floor seen through holes in the fused surface.
+
+A ray that passes through every fused surface and crosses the floor plane inside the room
+has seen floor there: nothing stood between the camera and the floor, or the fusion would
+have put a surface in its way. Photos-only depth leaves such holes where the floor meets
+objects (stereo windows straddling a chair's edge match the chair; the fusion stage then
+drops the surface few views support), and a plan's floor between a chair and a table is
+exactly there. The top view still lets an object seen above a filled floor point win.
+
+A ray that crosses a wall's plane inside the wall's extent before it reaches the floor has
+left the room through a hole in the wall (a doorway, a window, an unseen patch): the floor
+beyond is not this room's. So is a crossing outside the room's footprint: the cells
+(`cell` metres) holding floor or wall triangle centres, closed by one cell and with their
+enclosed holes filled (scipy.ndimage).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+
+@dataclass(frozen=True)
+class Footprint:
+    """A boolean mask over a world-aligned xy grid: origin [2] (metres), cell, mask [rows, cols]
+    with row = floor((y - origin_y) / cell), col = floor((x - origin_x) / cell)."""
+
+    origin: np.ndarray
+    cell: float
+    mask: np.ndarray
+
+    @classmethod
+    def of(cls, xy: np.ndarray, cell: float) -> Footprint:
+        """The hole-filled, one-cell-closed occupancy of points xy [N, 2] (N >= 1)."""
+        xy = np.asarray(xy, np.float64)
+        origin = xy.min(axis=0) - 2 * cell  # a free border: closing and filling see the outside
+        ij = np.floor((xy - origin) / cell).astype(np.int64)  # [N, 2] (col, row)
+        shape = (int(ij[:, 1].max()) + 3, int(ij[:, 0].max()) + 3)
+        occ = np.zeros(shape, bool)
+        occ[ij[:, 1], ij[:, 0]] = True
+        occ = ndimage.binary_closing(occ, np.ones((3, 3), bool))
+        return cls(origin, float(cell), ndimage.binary_fill_holes(occ))
+
+    def contains(self, xy: np.ndarray) -> np.ndarray:
+        """bool [...]: whether each point xy [..., 2] lies in the footprint."""
+        ij = np.floor((np.asarray(xy, np.float64) - self.origin) / self.cell)
+        rows, cols = self.mask.shape
+        inside = (ij[..., 0] >= 0) & (ij[..., 0] < cols) & (ij[..., 1] >= 0) & (ij[..., 1] < rows)
+        col = np.where(inside, ij[..., 0], 0).astype(np.int64)
+        row = np.where(inside, ij[..., 1], 0).astype(np.int64)
+        return inside & self.mask[row, col]
+
+
+@dataclass(frozen=True)
+class Wall:
+    """A vertical plane (unit normal [3], offset d: n . x + d = 0) and its extent: lo [2] and
+    hi [2] in (s, z), s the position along `axis` [3] (the segmentation's plane box)."""
+
+    normal: np.ndarray
+    d: float
+    axis: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+
+    def crossed(self, o: np.ndarray, d: np.ndarray, t_end: np.ndarray, pad: float) -> np.ndarray:
+        """bool [...]: whether rays o + t d ([..., 3] each) cross the plane for 0 < t < t_end,
+        within the extent grown by `pad` metres."""
+        den = d @ self.normal  # [...]
+        ok = np.abs(den) > 1e-12
+        t = np.where(ok, -(o @ self.normal + self.d) / np.where(ok, den, 1.0), -1.0)
+        x = o + t[..., None] * d  # [..., 3]
+        q = np.stack([x @ self.axis, x[..., 2]], axis=-1)  # [..., 2]
+        inside = ((q >= self.lo - pad) & (q <= self.hi + pad)).all(axis=-1)
+        return ok & (t > 0) & (t < t_end) & inside
+
+
+def floor_through(
+    rays: np.ndarray,
+    t_hit: np.ndarray,
+    floor_z: float,
+    room: Footprint,
+    margin: float,
+    walls: tuple[Wall, ...] = (),
+) -> np.ndarray:
+    """Depth at which each ray meets the floor plane, where the floor is seen through the
+    surface; 0 elsewhere.
+
+    Args:
+        rays: [..., 6] origin and direction (Open3D's pinhole rays: camera z = 1, so the ray
+            parameter is the depth). t_hit: [...] ray parameter of the first surface hit
+            (inf: none). floor_z: height of the floor plane. room: where the floor may be.
+        margin: metres (along the ray) the surface hit must lie beyond the floor crossing;
+            a hit within it is the floor itself, already labelled.
+        walls: the room's walls, which no ray may pass through on its way to the floor.
+
+    Returns:
+        float32 [...]: the crossing's ray parameter for the rays that point down, cross the
+        plane in front of the camera inside `room`, through no wall, and hit nothing before
+        it; else 0.
+    """
+    o, d = rays[..., :3].astype(np.float64), rays[..., 3:].astype(np.float64)
+    down = d[..., 2] < 0
+    t = np.where(down, (floor_z - o[..., 2]) / np.where(down, d[..., 2], -1.0), 0.0)
+    length = np.linalg.norm(d, axis=-1)  # metres per unit of t
+    beyond = ~np.isfinite(t_hit) | (t_hit > t + margin / np.maximum(length, 1e-12))
+    ok = down & (t > 0) & beyond
+    xy = o[..., :2] + t[..., None] * d[..., :2]
+    ok &= room.contains(xy)
+    for wall in walls:
+        ok &= ~wall.crossed(o, d, t, margin)
+    return np.where(ok, t, 0.0).astype(np.float32)
