@@ -32,9 +32,13 @@ class Footprint:
     mask: np.ndarray
 
     @classmethod
-    def of(cls, xy: np.ndarray, cell: float) -> Footprint:
-        """The hole-filled, one-cell-closed occupancy of points xy [N, 2] (N >= 1)."""
+    def of(cls, xy: np.ndarray, cell: float, max_cells: int = 4_000_000) -> Footprint:
+        """The hole-filled, one-cell-closed occupancy of points xy [N, 2] (N >= 1), on cells
+        of `cell` metres, or coarser ones when a stray point far out would need more than
+        about `max_cells` (memory stays bounded; the walls still bound the fill)."""
         xy = np.asarray(xy, np.float64)
+        span = np.ptp(xy, axis=0) + 4 * cell  # [2]
+        cell = max(cell, float(np.sqrt(span[0] * span[1] / max_cells)))
         origin = xy.min(axis=0) - 2 * cell  # a free border: closing and filling see the outside
         ij = np.floor((xy - origin) / cell).astype(np.int64)  # [N, 2] (col, row)
         shape = (int(ij[:, 1].max()) + 3, int(ij[:, 0].max()) + 3)

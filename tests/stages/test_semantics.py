@@ -248,6 +248,10 @@ def test_room_footprint_is_the_filled_ring_of_floor_and_walls():
     inside = np.array([[2.0, 1.5], [0.2, 0.2], [3.8, 2.8], [2.03, 0.1]])
     outside = np.array([[2.0, -0.2], [4.3, 1.5], [-1.0, -1.0], [10.0, 10.0]])
     assert room.contains(inside).all() and not room.contains(outside).any()
+    assert room.mask.shape[0] < 70 and room.mask.shape[1] < 90  # 3 x 4 m of 5 cm cells
+    # a stray point 5 km out: coarser cells, not 10^10 of them; the room is still inside
+    far = Footprint.of(np.concatenate([xy, [[5000.0, 5000.0]]]), 0.05, max_cells=1_000_000)
+    assert far.mask.size < 1_100_000 and far.contains(inside[:1]).all()
 
 
 def test_run_refuses_a_mesh_without_triangles(tmp_path):
