@@ -1,5 +1,5 @@
 """The NeRF paths through the whole pipeline (slow: each trains a NeRF): edits and the NeRF
-top view on a room with depth, and a phone capture (photos and intrinsics only)."""
+top view on a room with depth, and phone captures (photos and intrinsics only)."""
 
 from __future__ import annotations
 
@@ -108,8 +108,8 @@ def test_photos_only_capture_reaches_a_plan(tmp_path):
     # training pixels; 72.7 with the render checked against the stereo; 69.6 in a later run,
     # the same with and without phone.yaml's surface check and shrink, which move the
     # 320x240 rooms by +2 to +7) where the NeRF alone on photos and tracks gave 60.5 and
-    # 63.3, against ~88 from the same room with its rendered depth (issue 4's bar, within 5
-    # points, is not met). SfM is not
+    # 63.3, against ~88 from the same room with its rendered depth (on this small room issue
+    # 4's bar, within 5 points, is not met; the next test holds it on a 320x240 room). SfM is not
     # bit-reproducible across machines (CI once scored 40.7 where this machine scored 53.7):
     # the bar leaves that margin and catches a broken path (garbage depth or a wrong frame:
     # < 30; the NeRF without stereo: ~60).
@@ -117,6 +117,41 @@ def test_photos_only_capture_reaches_a_plan(tmp_path):
     # the render fills the stereo's holes where other views' stereo confirms it
     assert 0 < depth_nerf["facts"]["stereo_check_kept"] < 1
     assert m["frame"] == "aligned to gt poses" and m["fwiou"] > 50, m
+
+
+@pytest.mark.slow
+def test_photos_only_plan_is_within_5_of_the_plan_from_true_depth(tmp_path):
+    """Issue 4's bar on a room no setting was tuned on (synth seed 3, 60 views of 320x240):
+    the plan from its photos alone (configs/phone.yaml) against the plan from the same photos
+    with their exact depth (default config; poses from SfM in both). Measured 84.6 against
+    86.0 (78.1 without the floor fill, 71.4 before the fused-surface check and stereo's
+    readings at full resolution). The NeRF gets a fixed step count instead of its 120 s
+    budget (~265 steps here), so a slower machine trains it as far. ~9 minutes."""
+    import shutil
+
+    from stages.synth import make_room
+
+    phone = make_room(tmp_path / "phone", views=60, seed=3, photos_only=True)
+    full = make_room(tmp_path / "full", views=60, seed=3)
+    with_depth = tmp_path / "with_depth"
+    shutil.copytree(phone, with_depth)
+    shutil.copytree(full / "depth", with_depth / "depth")
+    cams = json.loads((with_depth / "cameras.json").read_text())
+    cams["depth_scale"] = json.loads((full / "cameras.json").read_text())["depth_scale"]
+    (with_depth / "cameras.json").write_text(json.dumps(cams))
+    steps = ["--set", "nerf.time_budget=0", "--set", "nerf.max_steps=250"]
+    config = ["--config", str(ROOT / "configs" / "phone.yaml")]
+    fwiou = {}
+    for name, cap, extra in [("photos", phone, [*config, *steps]), ("depth", with_depth, [])]:
+        out = tmp_path / f"run_{name}"
+        assert main(["run", str(cap), "--out", str(out), *extra]) == 0
+        r = json.loads((out / "report.json").read_text())
+        m = r["metrics"]["blueprint"]["blunf"]
+        assert m["frame"] == "aligned to gt poses", m
+        fwiou[name] = m["fwiou"]
+    print(f"\nphotos-only plan fwIoU {fwiou['photos']:.1f}, from exact depth {fwiou['depth']:.1f}")
+    assert fwiou["depth"] > 80, fwiou  # the reference itself is sound
+    assert fwiou["photos"] >= fwiou["depth"] - 5, fwiou
 
 
 def _click_on(run: Path, cls: str, rank: int = 0) -> tuple[float, float]:
