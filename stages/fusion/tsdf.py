@@ -240,11 +240,8 @@ def canonical_mesh(mesh: o3d.t.geometry.TriangleMesh) -> o3d.t.geometry.Triangle
     extraction follows it; everything downstream that samples the mesh with a seed (the
     semantics stage's RANSAC) would then differ between runs on the same input.
     """
-    attrs = {key: value.numpy() for key, value in mesh.vertex.items()}
-    pos = attrs.pop("positions")  # [V, 3]
-    cols = [pos] + [a.reshape(len(a), -1) for _, a in sorted(attrs.items())]
-    keys = np.concatenate([c.astype(np.float64) for c in cols], axis=1)  # [V, K]
-    order = np.lexsort(keys.T[::-1])  # [V]: sorted place -> old id
+    pos = mesh.vertex.positions.numpy()  # [V, 3]
+    order = _by_position(mesh.vertex)  # [V]: sorted place -> old id
     first = np.ones(len(order), bool)
     first[1:] = (np.diff(pos[order], axis=0) != 0).any(axis=1)  # a new position starts
     new_id = np.empty(len(order), np.int64)
@@ -269,15 +266,19 @@ def canonical_mesh(mesh: o3d.t.geometry.TriangleMesh) -> o3d.t.geometry.Triangle
 def canonical_cloud(cloud: o3d.t.geometry.PointCloud) -> o3d.t.geometry.PointCloud:
     """The cloud with its points sorted by position (x, y, z, then their other attributes):
     see canonical_mesh."""
-    attrs = {key: value.numpy() for key, value in cloud.point.items()}
-    cols = [attrs["positions"]] + [
-        a.reshape(len(a), -1) for k, a in sorted(attrs.items()) if k != "positions"
-    ]
-    order = np.lexsort(np.concatenate([c.astype(np.float64) for c in cols], axis=1).T[::-1])
+    order = _by_position(cloud.point)
     out = o3d.t.geometry.PointCloud(CPU)
     for key, value in cloud.point.items():
         out.point[key] = _tensor(value.numpy()[order], value.dtype)
     return out
+
+
+def _by_position(attrs: o3d.t.geometry.TensorMap) -> np.ndarray:
+    """The order [N] that sorts a vertex or point map by position (x, y, z), then by its other
+    attributes (normals, colours) in name order."""
+    cols = {key: value.numpy() for key, value in attrs.items()}
+    keys = [cols.pop("positions")] + [a.reshape(len(a), -1) for _, a in sorted(cols.items())]
+    return np.lexsort(np.concatenate(keys, axis=1, dtype=np.float64).T[::-1])
 
 
 def _carve(

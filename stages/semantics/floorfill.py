@@ -21,6 +21,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from stages.semantics.segment import in_extent
+
 
 @dataclass(frozen=True)
 class Footprint:
@@ -57,27 +59,16 @@ class Footprint:
         return inside & self.mask[row, col]
 
 
-@dataclass(frozen=True)
-class Wall:
-    """A vertical plane (unit normal [3], offset d: n . x + d = 0) and its extent: lo [2] and
-    hi [2] in (s, z), s the position along `axis` [3] (the segmentation's plane box)."""
-
-    normal: np.ndarray
-    d: float
-    axis: np.ndarray
-    lo: np.ndarray
-    hi: np.ndarray
-
-    def crossed(self, o: np.ndarray, d: np.ndarray, t_end: np.ndarray, pad: float) -> np.ndarray:
-        """bool [...]: whether rays o + t d ([..., 3] each) cross the plane for 0 < t < t_end,
-        within the extent grown by `pad` metres."""
-        den = d @ self.normal  # [...]
-        ok = np.abs(den) > 1e-12
-        t = np.where(ok, -(o @ self.normal + self.d) / np.where(ok, den, 1.0), -1.0)
-        x = o + t[..., None] * d  # [..., 3]
-        q = np.stack([x @ self.axis, x[..., 2]], axis=-1)  # [..., 2]
-        inside = ((q >= self.lo - pad) & (q <= self.hi + pad)).all(axis=-1)
-        return ok & (t > 0) & (t < t_end) & inside
+def _through(wall: dict, o: np.ndarray, d: np.ndarray, t_end: np.ndarray, pad: float
+             ) -> np.ndarray:  # fmt: skip
+    """bool [...]: whether rays o + t d ([..., 3] each) cross a wall plane of the segmentation
+    (semantics.json's plane_list entries) for 0 < t < t_end, inside its box grown by pad."""
+    normal = np.asarray(wall["normal"], np.float64)
+    den = d @ normal  # [...]
+    ok = np.abs(den) > 1e-12
+    t = np.where(ok, -(o @ normal + wall["d"]) / np.where(ok, den, 1.0), -1.0)
+    x = o + t[..., None] * d  # [..., 3]
+    return ok & (t > 0) & (t < t_end) & in_extent(wall, x, pad)
 
 
 def floor_through(
@@ -86,7 +77,7 @@ def floor_through(
     floor_z: float,
     room: Footprint,
     margin: float,
-    walls: tuple[Wall, ...] = (),
+    walls: tuple[dict, ...] = (),
 ) -> np.ndarray:
     """Depth at which each ray meets the floor plane, where the floor is seen through the
     surface; 0 elsewhere.
@@ -97,7 +88,8 @@ def floor_through(
             (inf: none). floor_z: height of the floor plane. room: where the floor may be.
         margin: metres (along the ray) the surface hit must lie beyond the floor crossing;
             a hit within it is the floor itself, already labelled.
-        walls: the room's walls, which no ray may pass through on its way to the floor.
+        walls: the room's wall planes (the segmentation's plane dicts), which no ray may pass
+            through on its way to the floor.
 
     Returns:
         float32 [...]: the crossing's ray parameter for the rays that point down, cross the
@@ -113,5 +105,5 @@ def floor_through(
     xy = o[..., :2] + t[..., None] * d[..., :2]
     ok &= room.contains(xy)
     for wall in walls:
-        ok &= ~wall.crossed(o, d, t, margin)
+        ok &= ~_through(wall, o, d, t, margin)
     return np.where(ok, t, 0.0).astype(np.float32)

@@ -30,8 +30,8 @@ from stages.semantics.config import (
     SemanticsInputs,
     SemanticsOutputs,
 )
-from stages.semantics.floorfill import Footprint, Wall, floor_through
-from stages.semantics.segment import Segmentation, _axes, segment, triangles
+from stages.semantics.floorfill import Footprint, floor_through
+from stages.semantics.segment import Segmentation, segment, triangles
 
 log = logging.getLogger(__name__)
 
@@ -133,7 +133,7 @@ def _render(
     cls = np.append(seg.cls, np.uint8(UNKNOWN))  # [T + 1]: the last entry is "no hit"
     inst = np.append(seg.instance, 0)  # [T + 1]
     wide = inst.max(initial=0) > 255
-    walls = tuple(_wall(p) for p in seg.planes if p["kind"] == "wall")
+    walls = tuple(p for p in seg.planes if p["kind"] == "wall")
     counts = np.zeros(256, np.int64)
     frames, filled = [], 0
     if room is not None:
@@ -166,14 +166,6 @@ def _render(
     names = {**CLASSES, UNKNOWN: "unknown"}
     pixels = {name: round(int(counts[k]) / total, 4) for k, name in names.items()}
     return frames, {**pixels, "floor_seen_through": round(filled / total, 4)}
-
-
-def _wall(plane: dict) -> Wall:
-    """The Wall of an accepted wall plane of the segmentation (its normal, d and box)."""
-    normal = np.asarray(plane["normal"], np.float64)
-    axis = _axes(np.append(normal, plane["d"]))  # the direction its box's s runs along
-    box = np.asarray(plane["box"], np.float64)
-    return Wall(normal, float(plane["d"]), axis, box[:2], box[2:])
 
 
 def _room(verts: np.ndarray, tris: np.ndarray, seg: Segmentation, cfg: SemanticsConfig

@@ -216,16 +216,21 @@ def _absorb(seg: Segmentation, c: np.ndarray, cfg: SemanticsConfig) -> None:
     ids = {"floor": FLOOR, "wall": WALL, "ceiling": CEILING}
     for pl in seg.planes:
         free = np.flatnonzero(seg.cls == UNKNOWN)
-        normal, d = np.asarray(pl["normal"]), pl["d"]
         p = c[free]
-        near = np.abs(p @ normal + d) < cfg.plane_dist
-        if pl["kind"] == "wall":
-            q = np.stack([p @ _axes(np.append(normal, d)), p[:, 2]], axis=1)
-        else:
-            q = p[:, :2]
-        lo, hi = np.asarray(pl["box"][:2]), np.asarray(pl["box"][2:])
-        inside = ((q >= lo - cfg.plane_dist) & (q <= hi + cfg.plane_dist)).all(axis=1)
-        seg.cls[free[near & inside]] = ids[pl["kind"]]
+        near = np.abs(p @ np.asarray(pl["normal"]) + pl["d"]) < cfg.plane_dist
+        seg.cls[free[near & in_extent(pl, p, cfg.plane_dist)]] = ids[pl["kind"]]
+
+
+def in_extent(plane: dict, p: np.ndarray, pad: float) -> np.ndarray:
+    """bool [...]: whether points p [..., 3] lie inside an accepted plane's box (`_describe`)
+    grown by `pad` metres: in xy for a floor or ceiling, in (s along it, z) for a wall."""
+    if plane["kind"] in ("floor", "ceiling"):
+        q = p[..., :2]
+    else:
+        along = _axes(np.append(np.asarray(plane["normal"], np.float64), plane["d"]))
+        q = np.stack([p @ along, p[..., 2]], axis=-1)
+    lo, hi = np.asarray(plane["box"][:2]), np.asarray(plane["box"][2:])
+    return np.asarray(((q >= lo - pad) & (q <= hi + pad)).all(axis=-1))
 
 
 def _objects(

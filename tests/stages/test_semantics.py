@@ -123,6 +123,17 @@ def _look(centre, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     return pose
 
 
+def _views_capture(folder, poses: list, intr: Intrinsics) -> None:
+    """folder/frames.json: views v0, v1, ... at the given poses, black images, no depth."""
+    (folder / "images").mkdir()
+    frames = []
+    for i, pose in enumerate(poses):
+        img = folder / "images" / f"v{i}.png"
+        write_image(img, np.zeros((intr.height, intr.width, 3), np.uint8))
+        frames.append(Frame(f"v{i}", img, intr, None, None, pose))
+    Capture(folder, tuple(frames)).save(folder / "frames.json")
+
+
 def test_run_renders_classes_and_instances_into_views(tmp_path):
     verts, tris, _, _ = exact_room()
     mesh = o3d.geometry.TriangleMesh(
@@ -139,13 +150,7 @@ def test_run_renders_classes_and_instances_into_views(tmp_path):
         (_look((2.0, 1.5, 1.2), (2.0, 1.5, Z), up=(0, 1, 0)), CEILING),  # straight up
         (_look((3.45, 1.0, 1.8), (3.45, 3.0, 1.8)), UNKNOWN),  # the hanging cabinet
     ]
-    (tmp_path / "images").mkdir()
-    frames = []
-    for i, (pose, _) in enumerate(views):
-        img = tmp_path / "images" / f"v{i}.png"
-        write_image(img, np.zeros((24, 32, 3), np.uint8))
-        frames.append(Frame(f"v{i}", img, intr, None, None, pose))
-    Capture(tmp_path, tuple(frames)).save(tmp_path / "frames.json")
+    _views_capture(tmp_path, [pose for pose, _ in views], intr)
     out = tmp_path / "out"
     out.mkdir()
     inputs = SemanticsInputs(tmp_path / "frames.json", tmp_path / "mesh.ply")
@@ -185,13 +190,7 @@ def _holed_room(tmp_path):
         _look((3.0, 1.5, 1.0), (5.0, 1.5, 0.0)),  # the axis leaves through the doorway
         _look((2.7, 0.2, 1.4), (2.7, 1.05, 0.7)),
     ]
-    (tmp_path / "images").mkdir()
-    frames = []
-    for i, pose in enumerate(poses):
-        img = tmp_path / "images" / f"v{i}.png"
-        write_image(img, np.zeros((24, 32, 3), np.uint8))
-        frames.append(Frame(f"v{i}", img, intr, None, None, pose))
-    Capture(tmp_path, tuple(frames)).save(tmp_path / "frames.json")
+    _views_capture(tmp_path, poses, intr)
     return SemanticsInputs(tmp_path / "frames.json", tmp_path / "mesh.ply")
 
 
