@@ -7,9 +7,27 @@ PYTHON  := $(BIN)/python
 export GLIBC_TUNABLES ?= glibc.malloc.mmap_threshold=33554432:glibc.malloc.trim_threshold=4294967296
 DEMO    ?= runs/demo
 
-.PHONY: setup demo test test-slow check lint typecheck bench bench-quick batch clean FORCE
+.PHONY: setup sysdeps demo test test-slow check lint typecheck bench bench-quick batch clean FORCE
 
-$(BIN)/.installed: pyproject.toml
+# System libraries the wheels link against, as `library:Debian package`: open3d needs libusb,
+# torch and open3d need libgomp. Installed with apt-get when we are root and it exists;
+# otherwise the exact command is printed and setup stops.
+SYSLIBS := libusb-1.0.so.0:libusb-1.0-0 libgomp.so.1:libgomp1
+LDCONFIG := $(shell command -v ldconfig || echo /sbin/ldconfig)
+
+sysdeps:  ## the system libraries the Python packages need (apt-get, when root)
+	@missing=""; for e in $(SYSLIBS); do \
+	  $(LDCONFIG) -p 2>/dev/null | grep -q "$${e%%:*}" || missing="$$missing $${e##*:}"; done; \
+	if [ -z "$$missing" ]; then exit 0; fi; \
+	if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	  echo "blunf: installing system packages:$$missing"; \
+	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq$$missing >/dev/null; \
+	else \
+	  echo "blunf: missing system packages:$$missing. Install them, then run make again:"; \
+	  echo "  sudo apt-get install -y$$missing"; exit 1; \
+	fi
+
+$(BIN)/.installed: pyproject.toml | sysdeps
 	test -d $(VENV) || $(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 	# CPU torch first: a later range that 2.13.0 satisfies then pulls nothing more.
@@ -19,7 +37,7 @@ $(BIN)/.installed: pyproject.toml
 	  || (echo "blunf: a dependency failed to import; on Debian run: apt-get install -y libusb-1.0-0 libgomp1" && exit 1)
 	touch $@
 
-setup: $(BIN)/.installed  ## idempotent: creates .venv and installs the project
+setup: sysdeps $(BIN)/.installed  ## idempotent: system libraries, .venv and the project
 
 demo: setup  ## the default room from photos alone, then edited through its NeRF (~20 min)
 	# 1. photos and intrinsics only, as a phone gives: SfM poses, NeRF depth, geometric classes
