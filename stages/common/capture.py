@@ -205,11 +205,12 @@ def check_intrinsics(intr: Intrinsics, where: str) -> None:
 
 
 def _find(folder: Path, stem: str, exts: tuple[str, ...]) -> Path | None:
-    for e in exts:
-        p = folder / f"{stem}{e}"
-        if p.exists():
-            return p
-    return None
+    """The file of this stem in folder, None when there is none; two (0003.png and
+    0003.npy) are an error: which one is meant is not known."""
+    found = [p for p in (folder / f"{stem}{e}" for e in exts) if p.exists()]
+    if len(found) > 1:
+        raise BlunfError(f"{found[0]} and {found[1]}: two files for frame {stem!r}; keep one")
+    return found[0] if found else None
 
 
 def _inside(root: Path, p: Path) -> Path:
