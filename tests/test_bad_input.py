@@ -396,7 +396,7 @@ CASES = [
 ]
 
 # Run again through `python -m pipeline` (fresh interpreter, real argv, real stderr).
-SUBPROCESS = ("image_truncated", "frames_abc", "config_invalid_yaml")
+SUBPROCESS = ("image_truncated", "frames_abc", "config_invalid_yaml", "depth_png_8bit")
 
 
 # ---- the checks ---------------------------------------------------------------------------
