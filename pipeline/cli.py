@@ -130,6 +130,7 @@ def _dispatch(args: argparse.Namespace) -> int:
     if args.cmd == "run":
         from pipeline.config import load_config
         from pipeline.run import run
+        from stages.common.io import check_exists
 
         sets = list(args.sets)
         if args.frames:
@@ -137,8 +138,7 @@ def _dispatch(args: argparse.Namespace) -> int:
         cfg = load_config(args.config, sets)
         if args.edits is not None and not args.edits.is_file():
             raise BlunfError(f"{args.edits}: edit spec not found")
-        if not args.capture.exists():
-            raise BlunfError(f"{args.capture}: capture folder not found")
+        check_exists(args.capture, "capture folder")
         n = setup_runtime(cfg.run.threads)
         log.debug("threads: %d", n)
         report = run(args.capture, args.out, cfg, args.edits)

@@ -15,7 +15,7 @@ from stages.align import AlignInputs
 from stages.blueprint import BlueprintInputs, NerfTopInputs
 from stages.common.capture import Capture
 from stages.common.errors import BlunfError
-from stages.common.io import read_json
+from stages.common.io import check_exists, read_json
 from stages.edit import EditInputs, EditOutputs, spec_textures
 from stages.evaluate import EvaluateInputs
 from stages.export.files import ExportInputs
@@ -32,8 +32,7 @@ log = logging.getLogger(__name__)
 def run(capture: Path, out: Path, cfg: Config, edits: Path | None = None) -> Report:
     """Build the blueprint of `capture` into the run folder `out`; returns the report."""
     capture, out = Path(capture), Path(out)
-    if not capture.exists():
-        raise BlunfError(f"{capture}: capture folder not found")
+    check_exists(capture, "capture folder")
     if out.resolve().is_relative_to(capture.resolve()):
         raise BlunfError(f"{out}: the run folder must not be inside the capture {capture}")
     for stage in ("ingest", "align", "fusion", "project"):  # fail before any work

@@ -14,6 +14,7 @@ from pathlib import Path
 
 from stages.common.capture import Capture, read_layout, write_layout
 from stages.common.errors import BlunfError
+from stages.common.io import check_exists
 from stages.ingest import colmap, nerfstudio, replica, select, sevenscenes
 
 log = logging.getLogger(__name__)
@@ -40,8 +41,7 @@ def detect(src: Path) -> str:
     src = Path(src)
     if src.is_file() and src.suffix == ".json":
         return "nerfstudio"
-    if not src.exists():
-        raise BlunfError(f"{src}: capture folder not found")
+    check_exists(src, "capture folder")
     if not src.is_dir():
         raise BlunfError(f"{src}: not a capture folder")
     if not any(src.iterdir()):
@@ -56,6 +56,8 @@ def detect(src: Path) -> str:
         return "blunf"
     if colmap.find_model(src) is not None:
         return "colmap"
+    if (src / "sparse").is_dir() and not (src / "cameras.json").is_file():
+        return "colmap"  # a COLMAP project whose model is missing: its reader says so
     if (src / "images").is_dir():
         return "blunf"
     raise BlunfError(f"{src}: not a known capture layout (known: {', '.join(READERS)})")
@@ -68,8 +70,7 @@ def load(src: Path, work: Path, kind: str = "auto") -> Capture:
         kind = detect(src)
     if kind not in READERS:
         raise BlunfError(f"capture kind {kind!r} unknown (known: auto, {', '.join(READERS)})")
-    if not src.exists():
-        raise BlunfError(f"{src}: capture folder not found")
+    check_exists(src, "capture folder")
     folder = src if src.is_dir() else src.parent
     if work.resolve().is_relative_to(folder.resolve()):
         raise BlunfError(f"{work}: work folder inside the capture {src}, which is never written")
