@@ -6,7 +6,7 @@ version of the stage). A stage writes into a temp folder that is renamed into pl
 
 The code version hashes every project file the stage runs: the modules of its package and,
 transitively, every project module they import (at module level or inside a function, or
-name as "package.module:attr" for a lazy registry), with the package __init__ files that
+named "package.module:attr" in a lazy registry), with the package __init__ files that
 importing them executes. A stage that imports another stage's module is therefore still
 keyed on that module's code.
 """
