@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib
 import logging
+import os
 import shutil
 import time
 import typing
@@ -15,6 +16,7 @@ from pipeline.config import Config, stage_view
 from pipeline.report import Report, StageRecord, peak_rss_mb, peak_rss_reset
 from stages.common.errors import BlunfError
 from stages.common.io import read_json
+from stages.common.threads import torch_threads
 
 log = logging.getLogger(__name__)
 
@@ -63,12 +65,12 @@ class Runner:
             log.info("%-10s %s: running (%s) %s", stage, impl, key, stage_view(scfg, impl))
             fn = registry(stage)[impl]  # imports the implementation (torch, Open3D...) only now
             outputs_cls = typing.get_type_hints(fn)["return"]
-            _size_torch_threads(self.cfg.run.threads)
             tmp = self.cache.temp(stage, key)
             try:  # a failing stage leaves nothing behind (a killed one is swept by the next run)
                 peak_rss_reset()
                 t0, c0 = time.perf_counter(), time.process_time()
-                fn(scfg, inputs, tmp)
+                with torch_threads(_run_threads(self.cfg.run.threads)):
+                    fn(scfg, inputs, tmp)
                 secs, cpu = time.perf_counter() - t0, time.process_time() - c0
                 facts = _facts(tmp, stage, impl)
                 meta = {
@@ -103,15 +105,11 @@ def _outputs_class(meta: dict, stage: str, impl: str) -> Any:
     return typing.get_type_hints(registry(stage)[impl])["return"]
 
 
-def _size_torch_threads(threads: int) -> None:
-    """Torch threads = the free cores (or run.threads), set once torch is actually needed."""
-    import os
-    import sys
-
-    if "torch" in sys.modules:
-        env = os.environ.get("OMP_NUM_THREADS", "")
-        n = threads or (int(env) if env.isdigit() and int(env) > 0 else 1)
-        sys.modules["torch"].set_num_threads(n)
+def _run_threads(threads: int) -> int:
+    """The torch threads a stage runs with: run.threads, else OMP_NUM_THREADS, else 1 (set only
+    once torch is actually needed: see torch_threads)."""
+    env = os.environ.get("OMP_NUM_THREADS", "")
+    return threads or (int(env) if env.isdigit() and int(env) > 0 else 1)
 
 
 def _facts(folder: Path, stage: str, impl: str) -> dict:

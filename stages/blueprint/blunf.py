@@ -34,7 +34,8 @@ from stages.common.blueprint import Blueprint, Grid
 from stages.common.capture import UNKNOWN
 from stages.common.errors import BlunfError
 from stages.common.io import write_json
-from stages.project.points import read_bounds, read_grid, read_instances, read_points
+from stages.common.points import read_bounds, read_grid, read_instances, read_points
+from stages.common.threads import torch_threads
 
 log = logging.getLogger(__name__)
 
@@ -59,10 +60,7 @@ def run(cfg: BlueprintConfig, inputs: BlueprintInputs, out: Path) -> BlueprintOu
     class_ids, y = np.unique(label[inside], return_inverse=True)  # contiguous logits
     center, half = plan_frame(grid)
     uv = torch.from_numpy(normalise(xyz[inside, :2], center, half))  # [N, 2]
-    old_threads = torch.get_num_threads()
-    if c.threads > 0:
-        torch.set_num_threads(c.threads)
-    try:
+    with torch_threads(c.threads):
         cell = torch.from_numpy((row * grid.shape[1] + col)[inside])  # [N] plan cell of each
         model, stats = train(
             c, uv, torch.from_numpy(y.astype(np.int64)), len(class_ids), max(grid.shape), cell
@@ -71,8 +69,6 @@ def run(cfg: BlueprintConfig, inputs: BlueprintInputs, out: Path) -> BlueprintOu
         xy = clamp(grid.centers().reshape(-1, 2), bounds)  # [H W, 2]
         centers = normalise(xy, center, half)  # [H W, 2]
         labels = class_ids[predict(model, centers, c.eval_chunk)].reshape(grid.shape)
-    finally:
-        torch.set_num_threads(old_threads)
     labels = labels.astype(np.uint8)
     shrink = round(c.shrink / grid.cell)  # cells
     labels, shrunk = shrink_objects(labels, classes, shrink)
