@@ -6,7 +6,8 @@ hidden folder `RUN/.runs/<time>-<pid>/`. The names DESIGN.md gives (`RUN/report.
 `.current -> .runs/<id>` is replaced by one atomic rename once the run's folder is complete:
 every top-level name then points into the new run at the same instant. A run killed while
 copying leaves only its own `.runs/<id>` (its pid dead), which the next run sweeps, with the
-previous run's outputs untouched. Older runs' folders are removed once replaced.
+previous run's outputs untouched; so does a run that fails. Older runs' folders are removed
+once replaced.
 
 The environment variable BLUNF_PUBLISH_PAUSE (seconds) makes a run wait after each file it
 publishes: tests use it to kill a run in the middle of publishing.
@@ -37,7 +38,8 @@ def write_error(e: OSError, where: Path | str) -> BlunfError | None:
     """A one-line error naming the path when `e` is a write failure, else None."""
     if e.errno not in WRITE_ERRNOS:
         return None
-    return BlunfError(f"{e.filename or where}: cannot write ({e.strerror})")
+    # filename2 is the destination of a copy or rename (shutil names the source filename)
+    return BlunfError(f"{e.filename2 or e.filename or where}: cannot write ({e.strerror})")
 
 
 @contextmanager
@@ -64,6 +66,7 @@ class Publication:
         except OSError as e:
             why = e.strerror
             raise BlunfError(f"{self.out}: cannot write into the run folder ({why})") from None
+        self.switched = False
         self._pause = float(os.environ.get("BLUNF_PUBLISH_PAUSE", "0") or 0)
 
     def add(self, src: Path, name: str) -> None:
@@ -86,6 +89,7 @@ class Publication:
             _link(self.out / name, f"{CURRENT}/{name}")
         old = _current(self.out)
         _link(self.out / CURRENT, f"{RUNS}/{self.dir.name}")
+        self.switched = True
         for p in self.out.iterdir():  # names the previous run had and this one has not
             if p.is_symlink() and os.readlink(p) == f"{CURRENT}/{p.name}" and p.name not in names:
                 p.unlink(missing_ok=True)

@@ -32,7 +32,6 @@ class Report:
     outputs: dict[str, str] = field(default_factory=dict)
     plan: dict[str, Any] = field(default_factory=dict)  # classes' areas and the components
     started: float = field(default_factory=time.time)
-    error: str = ""  # why the run stopped, when it failed (the one-line message)
 
     def add(self, rec: StageRecord) -> None:
         self.stages.append(rec)
@@ -47,7 +46,7 @@ class Report:
             "outputs": self.outputs,
             "plan": self.plan,
             "config": self.config,
-        } | ({"error": self.error} if self.error else {})
+        }
 
     def write(self, path: Path) -> None:
         write_json(path, self.to_json())

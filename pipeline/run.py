@@ -56,23 +56,10 @@ def run(capture: Path, out: Path, cfg: Config, edits: Path | None = None) -> Rep
         pub.add_json("report.json", report.to_json())
         with writing(out):
             pub.switch()
-    except BaseException as e:
-        report.error = str(e) if isinstance(e, BlunfError) else type(e).__name__
-        _publish_report_only(pub, report)
-        raise
+    finally:  # a failed run switches nothing in: the previous run's outputs stay whole
+        if not pub.switched:
+            pub.discard()
     return report
-
-
-def _publish_report_only(pub: Publication, report: Report) -> None:
-    """A failed run's report becomes the run folder's, alone: its report never sits beside
-    another run's plan. Best effort: on a full or read-only disk nothing is left."""
-    try:
-        pub.discard()
-        pub.dir.mkdir(parents=True)
-        pub.add_json("report.json", report.to_json())
-        pub.switch()
-    except (OSError, BlunfError):
-        pub.discard()
 
 
 def _recipe(r: Runner, pub: Publication, capture: Path, cfg: Config, spec: EditSpec | None) -> None:
