@@ -66,7 +66,8 @@ def _recipe(r: Runner, pub: Publication, capture: Path, cfg: Config, spec: EditS
     report = r.report
     frames = r.stage("ingest", cfg["ingest"].impl, IngestInputs(capture=capture)).frames
     cap = Capture.load(frames)
-    check_capture(cap, spec)  # what the frames decide fails here, before any expensive stage
+    with writing(frames.parent):  # what the frames decide fails here, before any costly stage
+        check_capture(cap, spec, frames.parent / ".labels-checked")
     plan = make_plan(cap, cfg, spec.path if spec is not None else None)
 
     posed = r.step(plan.get("poses"), PosesInputs(frames=frames))
