@@ -93,6 +93,9 @@ class Publication:
         for p in self.out.iterdir():  # names the previous run had and this one has not
             if p.is_symlink() and os.readlink(p) == f"{CURRENT}/{p.name}" and p.name not in names:
                 p.unlink(missing_ok=True)
+        legacy = self.out / "edits"  # an older layout's edits/ folder, of an older run
+        if "edits" not in names and legacy.is_dir() and not legacy.is_symlink():
+            shutil.rmtree(legacy, ignore_errors=True)
         if old is not None and old != self.dir.name:
             shutil.rmtree(self.out / RUNS / old, ignore_errors=True)
         sweep(self.out)
