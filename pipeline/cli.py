@@ -1,4 +1,4 @@
-"""`blunf` / `python -m pipeline`: run, synth, bench, import.
+"""`blunf` / `python -m pipeline`: run, synth, bench, import, clean.
 
 User errors (BlunfError, a bad argument, a missing file) end with one line naming the file or
 value at fault and exit status 2; nothing half-written is left in the cache.
@@ -78,6 +78,9 @@ def parser() -> argparse.ArgumentParser:
     i.add_argument("kind", help="7scenes, replica-vmap, colmap, nerfstudio")
     i.add_argument("src", type=Path)
     i.add_argument("out", type=Path)
+
+    c = sub.add_parser("clean", help="drop the cache entries the latest run did not use")
+    c.add_argument("run_dir", type=Path)
     return p
 
 
@@ -120,6 +123,14 @@ def main(argv: list[str] | None = None) -> int:
         return _dispatch(args)
     except BlunfError as e:
         print(f"blunf: error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:  # a write failure no stage turned into a BlunfError
+        from pipeline.publish import write_error
+
+        err = write_error(e, "?")
+        if err is None:
+            raise
+        print(f"blunf: error: {err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("blunf: interrupted", file=sys.stderr)
@@ -178,5 +189,11 @@ def _dispatch(args: argparse.Namespace) -> int:
 
         setup_runtime(args.threads)
         print(bench(args.out, quick=args.quick, repeats=args.repeats, threads=args.threads))
+        return 0
+    if args.cmd == "clean":
+        from pipeline.clean import clean
+
+        freed, n = clean(args.run_dir)
+        print(f"freed {freed / 1e6:.1f} MB ({n} entries)")
         return 0
     raise BlunfError(f"unknown command {args.cmd!r}")

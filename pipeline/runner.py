@@ -13,6 +13,8 @@ from typing import Any
 
 from pipeline.cache import Cache, stage_key
 from pipeline.config import Config, stage_view
+from pipeline.planner import Step
+from pipeline.publish import writing
 from pipeline.report import Report, StageRecord, peak_rss_mb, peak_rss_reset
 from stages.common.errors import BlunfError
 from stages.common.io import read_json
@@ -41,28 +43,38 @@ class Runner:
         self.cache = Cache(self.out)
         self.cache.sweep()
 
-    def skip(self, stage: str, impl: str, reason: str) -> None:
-        log.info("%-10s skipped: %s", stage, reason)
-        self.report.add(StageRecord(stage, impl, "skipped", reason))
+    def step(self, step: Step, inputs: Any) -> Any:
+        """A step of the plan: its stage's outputs, or None when the plan skips it (the skip
+        and its reason go to the report). `inputs` may be a function giving them, called only
+        when the step runs (inputs made of outputs that exist only then)."""
+        if not step.run:
+            log.info("%-10s skipped: %s", step.stage, step.reason)
+            self.report.add(StageRecord(step.stage, step.impl, "skipped", step.reason))
+            return None
+        stage, impl = step.work or (step.stage, step.impl)
+        return self.stage(stage, impl, inputs() if callable(inputs) else inputs, step.reason)
 
     def stage(self, stage: str, impl: str, inputs: Any, reason: str = "", cfg: Any = None) -> Any:
         """Run (or reuse) `stages.<stage>.IMPLS[impl](cfg, inputs, out)`; returns its outputs."""
         check_impl(stage, impl)
         scfg = cfg if cfg is not None else self.cfg[stage]
-        key = stage_key(stage, impl, stage_view(scfg, impl), self.cache.input_keys(inputs))
-        with self.cache.lock(stage, key):
+        view = stage_view(scfg, impl)
+        input_keys = self.cache.input_keys(inputs)  # hashes outside files (the capture) once
+        key = stage_key(stage, impl, view, input_keys)
+        changed = _changed(scfg, impl)
+        with writing(self.out / stage), self.cache.lock(stage, key):
             folder = self.cache.folder(stage, key)
             if self.cache.is_done(stage, key):
                 meta = read_json(folder / "meta.json")
                 outputs_cls = _outputs_class(meta, stage, impl)
-                log.info("%-10s cached (%s)", stage, key)
+                log.info("%-10s %s: cached (%s)%s", stage, impl, key, changed)
                 self.report.add(
                     StageRecord(
                         stage, impl, "cached", reason, 0.0, None, key, meta.get("facts", {})
                     )
                 )
                 return outputs_cls.at(folder)
-            log.info("%-10s %s: running (%s) %s", stage, impl, key, stage_view(scfg, impl))
+            log.info("%-10s %s: running (%s)%s", stage, impl, key, changed)
             fn = registry(stage)[impl]  # imports the implementation (torch, Open3D...) only now
             outputs_cls = typing.get_type_hints(fn)["return"]
             tmp = self.cache.temp(stage, key)
@@ -72,13 +84,14 @@ class Runner:
                 with torch_threads(_run_threads(self.cfg.run.threads)):
                     fn(scfg, inputs, tmp)
                 secs, cpu = time.perf_counter() - t0, time.process_time() - c0
-                facts = _facts(tmp, stage, impl)
+                stats = stats_name(outputs_cls, impl)
+                facts = _facts(tmp / stats) if stats else {}
                 meta = {
                     "stage": stage,
                     "impl": impl,
                     "key": key,
-                    "config": stage_view(scfg, impl),
-                    "inputs": self.cache.input_keys(inputs),
+                    "config": view,  # the full resolved config: here, not in the log
+                    "inputs": input_keys,
                     "seconds": round(secs, 3),
                     "cpu_seconds": round(cpu, 3),
                     "peak_rss_mb": peak_rss_mb(),
@@ -94,6 +107,34 @@ class Runner:
             StageRecord(stage, impl, "ran", reason, round(secs, 3), meta["peak_rss_mb"], key, facts)
         )
         return outputs_cls.at(folder)
+
+
+def stats_name(outputs_cls: Any, impl: str) -> str | None:
+    """The stats file a stage's Outputs class names (per implementation when a mapping)."""
+    name = getattr(outputs_cls, "STATS", None)
+    return name.get(impl) if isinstance(name, dict) else name
+
+
+def _changed(scfg: Any, impl: str) -> str:
+    """` key=value ...` for the settings that differ from the stage's defaults ("" if none)."""
+    try:
+        default = stage_view(type(scfg)(), impl)
+    except Exception:  # a config without defaults: nothing to compare with
+        return ""
+    now = _flat(stage_view(scfg, impl))
+    base = _flat(default)
+    diff = [f"{k}={v}" for k, v in now.items() if k != "impl" and base.get(k, object()) != v]
+    return (" " + " ".join(diff)) if diff else ""
+
+
+def _flat(d: dict, prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
 
 
 def _outputs_class(meta: dict, stage: str, impl: str) -> Any:
@@ -112,15 +153,12 @@ def _run_threads(threads: int) -> int:
     return threads or (int(env) if env.isdigit() and int(env) > 0 else 1)
 
 
-def _facts(folder: Path, stage: str, impl: str) -> dict:
-    """The small JSON a stage writes about itself, if any, for the report."""
-    for name in (f"{stage}.json", f"{impl}.json", "train.json", "stats.json"):
-        p = folder / name
-        if not p.is_file():
-            continue
-        try:
-            d = read_json(p)
-        except BlunfError:
-            continue
-        return d if isinstance(d, dict) and len(str(d)) < 20000 else {}
-    return {}
+def _facts(p: Path) -> dict:
+    """The small JSON a stage writes about itself (its Outputs' STATS file), for the report."""
+    if not p.is_file():
+        return {}
+    try:
+        d = read_json(p)
+    except BlunfError:
+        return {}
+    return d if isinstance(d, dict) and len(str(d)) < 20000 else {}

@@ -425,7 +425,8 @@ def assert_cache_clean(run: Path) -> None:
         return
     tmp = [str(p) for p in run.rglob(".tmp-*")]
     assert not tmp, f"temp folders left behind: {tmp}"
-    for stage in (p for p in run.iterdir() if p.is_dir()):
+    stages = (p for p in run.iterdir() if p.is_dir() and not p.is_symlink())
+    for stage in (p for p in stages if not p.name.startswith(".")):  # not .runs/ (outputs)
         for entry in stage.iterdir():
             if entry.name.startswith("."):
                 assert entry.suffix == ".lock" and entry.is_file(), entry

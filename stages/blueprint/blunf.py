@@ -22,7 +22,6 @@ from torch import Tensor, nn
 
 from stages.blueprint.config import BlueprintConfig, BlueprintInputs, BlueprintOutputs, BlunfConfig
 from stages.blueprint.encoding import (
-    ENCODINGS,
     HashGrid2D,
     Identity,
     PositionalEncoding,
@@ -39,8 +38,6 @@ from stages.common.threads import torch_threads
 
 log = logging.getLogger(__name__)
 
-BALANCES = ("none", "sqrt", "cell")
-OUTSIDES = ("clamp", "field")
 STRUCTURE = ("floor", "wall", "ceiling")  # class names shrink_objects leaves as they are
 TRAIN_ACC_POINTS = 262_144  # points scored for the reported train accuracy
 
@@ -48,8 +45,7 @@ TRAIN_ACC_POINTS = 262_144  # points scored for the reported train accuracy
 def run(cfg: BlueprintConfig, inputs: BlueprintInputs, out: Path) -> BlueprintOutputs:
     """Fit the field to the points, then write the plan it predicts on the grid."""
     c = cfg.blunf
-    _check(c)
-    log.info("blueprint/blunf: %s", c)
+    log.debug("blueprint/blunf: %s", c)
     t0 = time.perf_counter()
     xyz, label, _, classes = read_points(inputs.points)
     grid = read_grid(inputs.grid)
@@ -295,37 +291,3 @@ def _sampler(c: BlunfConfig, y: Tensor, n_classes: int, gen: torch.Generator, ce
         return order[start[k] + r]
 
     return sample
-
-
-def _check(c: BlunfConfig) -> None:
-    if c.encoding not in ENCODINGS:
-        raise BlunfError(f"blueprint.blunf.encoding must be one of {ENCODINGS}, got {c.encoding!r}")
-    if c.outside not in OUTSIDES:
-        raise BlunfError(f"blueprint.blunf.outside must be one of {OUTSIDES}, got {c.outside!r}")
-    if c.balance not in BALANCES:
-        raise BlunfError(f"blueprint.blunf.balance must be one of {BALANCES}, got {c.balance!r}")
-    if not (c.shrink >= 0 and math.isfinite(c.shrink)):
-        raise BlunfError(f"blueprint.blunf.shrink must be >= 0 metres, got {c.shrink}")
-    if c.n_freqs < 0:
-        raise BlunfError(f"blueprint.blunf.n_freqs must be >= 0 (0 = auto), got {c.n_freqs}")
-    for name in (
-        "width",
-        "batch",
-        "hash_levels",
-        "hash_features",
-        "hash_base_res",
-        "eval_chunk",
-    ):
-        if getattr(c, name) < 1:
-            raise BlunfError(f"blueprint.blunf.{name} must be >= 1, got {getattr(c, name)}")
-    if c.steps < 0 or c.layers < (1 if c.encoding == "siren" else 0):
-        raise BlunfError(f"blueprint.blunf: bad steps {c.steps} or layers {c.layers}")
-    if not 4 <= c.hash_log2_size <= 26:
-        raise BlunfError(
-            f"blueprint.blunf.hash_log2_size must be in [4, 26], got {c.hash_log2_size}"
-        )
-    if not (c.lr > 0 and 0 < c.lr_final <= 1 and c.siren_omega > 0):
-        raise BlunfError(
-            f"blueprint.blunf: lr {c.lr}, lr_final {c.lr_final} and siren_omega "
-            f"{c.siren_omega} must be > 0 (lr_final <= 1)"
-        )

@@ -71,7 +71,7 @@ class View:
 
 def run(cfg: EditConfig, inputs: EditInputs, out: Path) -> EditOutputs:
     """Apply the spec's edits; write renders, masks, GIF, edited plan and mesh, edit.json."""
-    log.info("edit/nerf: %s", cfg)
+    log.debug("edit/nerf: %s", cfg)  # the full config: meta.json
     t_start = time.perf_counter()
     out = Path(out)
     spec, bp, cap, cells, cmap = _checked(inputs)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
@@ -30,6 +31,7 @@ class EvaluateInputs:
 
 @dataclass(frozen=True)
 class EvaluateOutputs:
+    STATS: ClassVar[str | None] = None  # metrics.json feeds report.metrics
     metrics: Path  # metrics.json: {"blueprint": {method: {...}}, "poses": {...}}; held-out
     #                scores under blueprint.<method>.heldout_pacc
 

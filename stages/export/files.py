@@ -5,6 +5,7 @@ from __future__ import annotations
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 from stages.common.blueprint import Blueprint
 from stages.common.capture import Capture
@@ -36,6 +37,7 @@ class ExportInputs:
 
 @dataclass(frozen=True)
 class ExportOutputs:
+    STATS: ClassVar[str | None] = "export.json"  # its stats file: the report's facts
     folder: Path
     files: tuple[str, ...] = FILES
 

@@ -44,7 +44,7 @@ VOXEL_BYTES = 4 + 4 + 3 * 4  # float32 tsdf, weight and RGB per voxel
 
 def run(cfg: FusionConfig, inputs: FusionInputs, out: Path) -> FusionOutputs:
     """Fuse every frame into a TSDF; write the mesh, the cloud and ray-cast depth per view."""
-    log.info("fusion tsdf: %s", cfg)
+    log.debug("fusion tsdf: %s", cfg)  # the full config: meta.json
     cap = Capture.load(inputs.frames)
     _check(cap, inputs.frames)
     outs = FusionOutputs.at(out)

@@ -13,6 +13,7 @@ import os
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 from PIL import Image
@@ -42,6 +43,7 @@ class IngestInputs:
 
 @dataclass(frozen=True)
 class IngestOutputs:
+    STATS: ClassVar[str | None] = "ingest.json"  # its stats file: the report's facts
     frames: Path  # frames.json written by Capture.save
 
     @classmethod

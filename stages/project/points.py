@@ -42,7 +42,7 @@ def run(cfg: ProjectConfig, inputs: ProjectInputs, out: Path) -> ProjectOutputs:
     """Project every labelled pixel with depth of every frame into the world."""
     t0 = time.perf_counter()
     _check(cfg)
-    log.info("project: %s", cfg)
+    log.debug("project: %s", cfg)  # the full config: meta.json
     cap = Capture.load(inputs.frames)
     if not cap.frames:
         raise BlunfError(f"{inputs.frames}: the capture has no frames")

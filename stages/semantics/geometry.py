@@ -39,7 +39,7 @@ MISS = np.iinfo(np.uint32).max  # Open3D's INVALID_ID: the ray hit nothing
 
 def run(cfg: SemanticsConfig, inputs: SemanticsInputs, out: Path) -> SemanticsOutputs:
     """Segment the fused mesh and write a class map and an instance map for every view."""
-    log.info("semantics geometry: %s", cfg)
+    log.debug("semantics geometry: %s", cfg)  # the full config: meta.json
     t0 = time.perf_counter()
     cap = Capture.load(inputs.frames)
     if not cap.frames:
