@@ -212,7 +212,7 @@ def test_sfm_names_the_groups_when_photos_of_two_rooms_make_two_models(tmp_path:
     assert facts["left_out"] and all(s.startswith(other) for s in facts["left_out"])
     assert any("left out of the model" in w for w in facts["warnings"])
     # the facts reach the report: small enough for the runner to copy them
-    assert _facts(tmp_path / "out", "poses", "sfm")["warnings"] == facts["warnings"]
+    assert _facts(tmp_path / "out" / "sfm.json")["warnings"] == facts["warnings"]
 
 
 @pytest.fixture(scope="module")
