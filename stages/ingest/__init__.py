@@ -14,14 +14,15 @@ from pathlib import Path
 
 from stages.common.capture import Capture, read_layout, write_layout
 from stages.common.errors import BlunfError
-from stages.ingest import colmap, nerfstudio, replica, select, sevenscenes
+from stages.ingest import colmap, exif, nerfstudio, photos, replica, select, sevenscenes, video
 
 log = logging.getLogger(__name__)
 
 
 def _read_blunf(src: Path, work: Path) -> Capture:
-    """The project's own layout, read in place (`work` is not used)."""
-    return read_layout(src)
+    """The project's own layout, read in place (`work` is not used); without intrinsics in
+    cameras.json they come from the photos' EXIF or a prior, for SfM to refine."""
+    return read_layout(src, exif.guess_all)
 
 
 READERS: dict[str, Callable[[Path, Path], Capture]] = {
@@ -30,6 +31,8 @@ READERS: dict[str, Callable[[Path, Path], Capture]] = {
     "replica-vmap": replica.read,
     "nerfstudio": nerfstudio.read,
     "colmap": colmap.read,
+    "photos": photos.read,
+    "video": video.read,
 }
 
 IMPLS = {"auto": select.run}
@@ -40,6 +43,8 @@ def detect(src: Path) -> str:
     src = Path(src)
     if src.is_file() and src.suffix == ".json":
         return "nerfstudio"
+    if src.is_file() and src.suffix.lower() in video.VIDEO_EXTS:
+        return "video"
     if not src.exists():
         raise BlunfError(f"{src}: capture folder not found")
     if not src.is_dir():
@@ -58,11 +63,19 @@ def detect(src: Path) -> str:
         return "colmap"
     if (src / "images").is_dir():
         return "blunf"
-    raise BlunfError(f"{src}: not a known capture layout (known: {', '.join(READERS)})")
+    if photos.image_files(src):
+        return "photos"
+    raise BlunfError(
+        f"{src}: not a known capture layout and no .jpg or .png images in it "
+        f"(known: {', '.join(READERS)}; video: {', '.join(video.VIDEO_EXTS)})"
+    )
 
 
-def load(src: Path, work: Path, kind: str = "auto") -> Capture:
-    """Read the capture at src with the reader for `kind` ("auto" = detect it)."""
+def load(
+    src: Path, work: Path, kind: str = "auto", opts: video.VideoOptions | None = None
+) -> Capture:
+    """Read the capture at src with the reader for `kind` ("auto" = detect it); `opts`:
+    how a video's frames are taken."""
     src, work = Path(src), Path(work)
     if kind == "auto":
         kind = detect(src)
@@ -70,16 +83,16 @@ def load(src: Path, work: Path, kind: str = "auto") -> Capture:
         raise BlunfError(f"capture kind {kind!r} unknown (known: auto, {', '.join(READERS)})")
     if not src.exists():
         raise BlunfError(f"{src}: capture folder not found")
-    folder = src if src.is_dir() else src.parent
+    folder = src if src.is_dir() or kind == "video" else src.parent
     if work.resolve().is_relative_to(folder.resolve()):
         raise BlunfError(f"{work}: work folder inside the capture {src}, which is never written")
-    cap = READERS[kind](src, work)
+    cap = video.read(src, work, opts) if kind == "video" else READERS[kind](src, work)
     log.info("read %s capture %s: %d frames", kind, src, len(cap.frames))
     return cap
 
 
-def import_capture(kind: str, src: Path, out: Path) -> Path:
+def import_capture(kind: str, src: Path, out: Path, opts: video.VideoOptions | None = None) -> Path:
     """Read a capture of layout `kind` and write it in the project's layout at out."""
     with tempfile.TemporaryDirectory(prefix="blunf-import-") as tmp:
-        cap = load(src, Path(tmp), kind)
+        cap = load(src, Path(tmp), kind, opts)
         return write_layout(cap, Path(out))
