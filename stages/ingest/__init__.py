@@ -66,8 +66,8 @@ def detect(src: Path) -> str:
     if photos.image_files(src):
         return "photos"
     raise BlunfError(
-        f"{src}: not a known capture layout and no .jpg or .png images in it "
-        f"(known: {', '.join(READERS)}; video: {', '.join(video.VIDEO_EXTS)})"
+        f"{src}: not a known capture layout (known: {', '.join(READERS)}) and no .jpg or "
+        f".png photos in it (a video: {', '.join(video.VIDEO_EXTS)})"
     )
 
 
