@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import av
@@ -18,6 +19,7 @@ from PIL import Image, ImageFilter
 
 from pipeline.cli import main
 from pipeline.config import load_config
+from pipeline.planner import make_plan
 from pipeline.report import Report
 from pipeline.runner import Runner
 from stages.common.capture import Capture, read_layout
@@ -108,7 +110,7 @@ def test_exif_focal_is_the_prior_and_sfm_refines_it(inputs, tmp_path):
     (est,) = sfm_facts["intrinsics"]["cameras"]
     assert sfm_facts["intrinsics"]["source"] == "self-calibrated"
     assert est["prior_source"] == "exif" and (est["cx"], est["cy"]) == (99.5, 74.5)
-    assert est["fx"] == pytest.approx(TRUE_F, rel=0.02)  # measured 125.32 (-0.2 %)
+    assert est["fx"] == pytest.approx(TRUE_F, rel=0.02)  # measured 156.93 (-0.03 %)
     assert {f.calib for f in cap.frames} == {"self-calibrated"}
     assert cap.frames[0].intrinsics.fx == est["fx"]
 
@@ -119,7 +121,7 @@ def test_without_exif_sfm_self_calibrates_from_the_prior(inputs, tmp_path):
     assert (cam["source"], cam["fx"], cam["camera"]) == ("prior", 240.0, "unknown device 200x150")
     (est,) = sfm_facts["intrinsics"]["cameras"]
     assert est["prior_fx"] == 240.0
-    assert est["fx"] == pytest.approx(TRUE_F, rel=0.05)  # measured 126.84 (+1.0 %)
+    assert est["fx"] == pytest.approx(TRUE_F, rel=0.05)  # measured 156.88 (-0.05 %)
     assert "weak" not in sfm_facts["intrinsics"]  # 16 views around a room
 
 
@@ -133,7 +135,7 @@ def test_video_sharpest_frames_then_self_calibration(inputs, tmp_path):
     assert facts["kind"] == "video" and facts["intrinsics"]["source"] == "prior"
     assert sfm_facts["registered"] >= 15
     (est,) = sfm_facts["intrinsics"]["cameras"]
-    assert est["fx"] == pytest.approx(TRUE_F, rel=0.05)  # measured 124.78 (-0.6 %)
+    assert est["fx"] == pytest.approx(TRUE_F, rel=0.05)  # measured 156.74 (-0.14 %)
 
 
 def test_few_views_are_reported_as_weak(inputs, tmp_path):
@@ -221,6 +223,14 @@ def test_layouts_of_photos_and_their_errors(tmp_path, inputs):
     bad.write_bytes(b"not a video" * 100)
     with pytest.raises(BlunfError, match=r"bad\.mp4: cannot decode the video"):
         load(bad, tmp_path / "w4")
+
+
+def test_poses_without_intrinsics_are_refused_by_the_planner(inputs, tmp_path):
+    cap = load(inputs["plain"], tmp_path / "w")
+    cap = cap.with_frames([replace(f, pose=np.eye(4)) for f in cap.frames])
+    with pytest.raises(BlunfError, match=r"0000\.jpg: the capture gives poses but no intrinsics"):
+        make_plan(cap, load_config())
+    assert make_plan(cap, load_config(None, ["poses.impl=sfm"])).runs("poses")
 
 
 def test_video_rotation_is_honoured(tmp_path):
