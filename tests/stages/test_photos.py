@@ -203,6 +203,19 @@ def test_two_devices_or_two_sizes_get_two_cameras(tmp_path):
         load(src, tmp_path / "w2")
 
 
+def test_large_photos_are_downscaled_once_with_their_intrinsics(tmp_path):
+    src = tmp_path / "big"
+    for i in range(3):
+        _jpeg(src / f"{i}.jpg", (1280, 960), {exif.FOCAL_35MM: 26})
+    out = tmp_path / "ingest"
+    out.mkdir()
+    cap = Capture.load(ingest(IngestConfig(), IngestInputs(src), out).frames)
+    f = cap.frames[0]
+    assert Image.open(f.image).size == (640, 480) and f.image.is_relative_to(out)
+    assert f.intrinsics.fx == pytest.approx(26 / exif.FILM_DIAGONAL_MM * 800)  # 1600 / 2
+    assert (f.intrinsics.cx, f.intrinsics.cy, f.calib) == (319.5, 239.5, "exif")
+
+
 def test_layouts_of_photos_and_their_errors(tmp_path, inputs):
     assert detect(inputs["plain"]) == "photos" and detect(inputs["video"]) == "video"
     # the project's layout without cameras.json: intrinsics from the photos, no longer an error
