@@ -3,19 +3,27 @@
 key = hash(stage, implementation, the config it depends on, the keys of its inputs, the code
 version of the stage). A stage writes into a temp folder that is renamed into place once
 `meta.json` is written, so a killed run never leaves a half-written entry under a key.
+
+The code version hashes every project file the stage runs: the modules of its package and,
+transitively, every project module they import (at module level or inside a function, or
+named "package.module:attr" in a lazy registry), with the package __init__ files that
+importing them executes. A stage that imports another stage's module is therefore still
+keyed on that module's code.
 """
 
 from __future__ import annotations
 
+import ast
 import dataclasses
 import fcntl
 import hashlib
 import json
 import os
+import re
 import shutil
 from collections.abc import Iterator
 from contextlib import contextmanager
-from functools import cache
+from functools import cache, lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +31,10 @@ import stages
 
 KEY_LEN = 16
 STAGES_ROOT = Path(stages.__file__).parent
+PROJECT_ROOT = STAGES_ROOT.parent
+# A string naming a module, as lazy registries do: "stages.fusion.tsdf:run".
+_MODULE_NAME = re.compile(r"[A-Za-z_]\w*(?:\.[A-Za-z_]\w*)+(?::[\w.]+)?")
+_QUOTED_NAME = re.compile(r"""["'][A-Za-z_]\w*(?:\.[A-Za-z_]\w*)+(?::[\w.]+)?["']""")
 
 
 def _h(data: bytes | str) -> str:
@@ -31,14 +43,86 @@ def _h(data: bytes | str) -> str:
 
 
 @cache
-def code_version(stage: str) -> str:
-    """Hash of the stage package's sources and of stages/common (what the stage runs)."""
+def code_version(stage: str, root: Path = PROJECT_ROOT) -> str:
+    """Hash of every project file the stage runs (`stage_sources`), names and bytes."""
     h = hashlib.blake2b(digest_size=16)
-    for folder in (STAGES_ROOT / stage, STAGES_ROOT / "common"):
-        for p in sorted(folder.rglob("*.py")):
-            h.update(str(p.relative_to(STAGES_ROOT)).encode())
-            h.update(p.read_bytes())
+    for p in stage_sources(stage, root):
+        data = p.read_bytes()
+        h.update(f"{p.relative_to(root).as_posix()}\0{len(data)}\0".encode())
+        h.update(data)
     return h.hexdigest()
+
+
+def stage_sources(stage: str, root: Path = PROJECT_ROOT) -> list[Path]:
+    """The modules of `root/stages/<stage>/` and every project module they import, directly
+    or not, with the package __init__ files on the way. Sorted paths under `root`."""
+    root = Path(root)
+    todo = sorted((root / "stages" / stage).rglob("*.py"))
+    if not todo:
+        raise ValueError(f"no stage package {root / 'stages' / stage}")
+    todo += _module_files(root, ("stages", stage))
+    seen: set[Path] = set()
+    names: set[tuple[str, ...]] = set()
+    while todo:
+        p = todo.pop()
+        if p in seen:
+            continue
+        seen.add(p)
+        for name in imported_names(p, root) - names:
+            names.add(name)
+            todo += [f for f in _module_files(root, name) if f not in seen]
+    return sorted(seen)
+
+
+def imported_names(path: Path, root: Path) -> frozenset[tuple[str, ...]]:
+    """Dotted names the module at `path` (under `root`) may import: every `import` and
+    `from ... import` anywhere in it (relative ones resolved; `from m import n` gives m and
+    m.n, n being a module or not) and every string literal that is a module name or
+    "module:attr" (lazy registries)."""
+    package = path.relative_to(root).parts[:-1]  # where relative imports start (__init__ too)
+    return _names_in(path.read_bytes(), package)
+
+
+@lru_cache(maxsize=4096)
+def _names_in(source: bytes, package: tuple[str, ...]) -> frozenset[tuple[str, ...]]:
+    names: set[tuple[str, ...]] = set()
+    tree = ast.parse(source)
+    todo: list[ast.AST] = [tree]
+    while todo:  # statements only (imports are statements): far fewer nodes than ast.walk
+        node = todo.pop()
+        if isinstance(node, ast.Import):
+            names.update(tuple(a.name.split(".")) for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = package[: len(package) - node.level + 1] if node.level else ()
+            mod = base + (tuple(node.module.split(".")) if node.module else ())
+            names.add(mod)
+            names.update(mod + (a.name,) for a in node.names if a.name != "*")
+        for value in vars(node).values():
+            if isinstance(value, list):
+                todo += [v for v in value if isinstance(v, ast.stmt | ast.excepthandler)]
+                todo += [c for v in value if isinstance(v, ast.match_case) for c in v.body]
+    if _QUOTED_NAME.search(source.decode()):  # then only string constants (not a docstring)
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Constant) and isinstance(node.value, str):
+                if _MODULE_NAME.fullmatch(node.value):
+                    names.add(tuple(node.value.partition(":")[0].split(".")))
+    return frozenset(names)
+
+
+def _module_files(root: Path, name: tuple[str, ...]) -> list[Path]:
+    """The files under `root` that importing module `name` executes: each package's
+    __init__.py down to it and the module itself. Empty when `name` is not under root
+    (a third-party module, or an attribute)."""
+    out = []
+    for i in range(1, len(name) + 1):
+        base = root.joinpath(*name[:i])
+        if (base / "__init__.py").is_file():
+            out.append(base / "__init__.py")
+        elif i == len(name) and base.with_suffix(".py").is_file():
+            out.append(base.with_suffix(".py"))
+        elif not base.is_dir():  # a folder without __init__.py is a namespace package
+            return []
+    return out
 
 
 def content_hash(path: Path) -> str:

@@ -1,4 +1,4 @@
-"""`blunf` / `python -m pipeline`: run, synth, bench, import.
+"""`blunf` / `python -m pipeline`: run, synth, bench, import, clean.
 
 User errors (BlunfError, a bad argument, a missing file) end with one line naming the file or
 value at fault and exit status 2; nothing half-written is left in the cache.
@@ -80,6 +80,9 @@ def parser() -> argparse.ArgumentParser:
     i.add_argument("out", type=Path)
     i.add_argument("--frames", type=_positive, help="video: frames kept (default: by length)")
     i.add_argument("--max-side", type=_positive, help="video: longer side of the frames written")
+
+    c = sub.add_parser("clean", help="drop the cache entries the latest run did not use")
+    c.add_argument("run_dir", type=Path)
     return p
 
 
@@ -123,6 +126,14 @@ def main(argv: list[str] | None = None) -> int:
     except BlunfError as e:
         print(f"blunf: error: {e}", file=sys.stderr)
         return 2
+    except OSError as e:  # a write failure no stage turned into a BlunfError
+        from pipeline.publish import write_error
+
+        err = write_error(e, "?")
+        if err is None:
+            raise
+        print(f"blunf: error: {err}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print("blunf: interrupted", file=sys.stderr)
         return 130
@@ -132,6 +143,7 @@ def _dispatch(args: argparse.Namespace) -> int:
     if args.cmd == "run":
         from pipeline.config import load_config
         from pipeline.run import run
+        from stages.common.io import check_exists
 
         sets = list(args.sets)
         if args.frames:
@@ -139,8 +151,7 @@ def _dispatch(args: argparse.Namespace) -> int:
         cfg = load_config(args.config, sets)
         if args.edits is not None and not args.edits.is_file():
             raise BlunfError(f"{args.edits}: edit spec not found")
-        if not args.capture.exists():
-            raise BlunfError(f"{args.capture}: capture folder not found")
+        check_exists(args.capture, "capture folder")
         n = setup_runtime(cfg.run.threads)
         log.debug("threads: %d", n)
         report = run(args.capture, args.out, cfg, args.edits)
@@ -182,5 +193,11 @@ def _dispatch(args: argparse.Namespace) -> int:
 
         setup_runtime(args.threads)
         print(bench(args.out, quick=args.quick, repeats=args.repeats, threads=args.threads))
+        return 0
+    if args.cmd == "clean":
+        from pipeline.clean import clean
+
+        freed, n = clean(args.run_dir)
+        print(f"freed {freed / 1e6:.1f} MB ({n} entries)")
         return 0
     raise BlunfError(f"unknown command {args.cmd!r}")

@@ -29,6 +29,12 @@ class RunSection:
     # CPU threads for torch and Open3D; 0 = the cores this process may use.
     threads: int = 0
 
+    def __post_init__(self) -> None:
+        if not self.methods:
+            raise BlunfError("run.methods: give at least one blueprint method, e.g. [blunf, mvr]")
+        if len(set(self.methods)) != len(self.methods):
+            raise BlunfError(f"run.methods: a method is named twice in {list(self.methods)}")
+
 
 def stage_configs() -> dict[str, type]:
     """Stage name -> its config dataclass, in pipeline order (the one place that lists them)."""

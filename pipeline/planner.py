@@ -20,6 +20,9 @@ class Step:
     impl: str
     run: bool
     reason: str = ""
+    # (stage, impl) that does the work when another stage's code does it (depth: the nerf
+    # stage); None = `stage` with `impl`
+    work: tuple[str, str] | None = None
 
 
 @dataclass(frozen=True)
@@ -32,6 +35,10 @@ class Plan:
 
     def runs(self, stage: str) -> bool:
         return any(s.stage == stage and s.run for s in self.steps)
+
+    def all(self, stage: str) -> tuple[Step, ...]:
+        """Every step of a stage (blueprint: one per method, the product's first)."""
+        return tuple(s for s in self.steps if s.stage == stage)
 
 
 def gt_files(cap: Capture) -> dict[str, Path]:
@@ -113,6 +120,7 @@ def make_plan(cap: Capture, cfg: Config, edits: Path | None = None) -> Plan:
                     else " (poses given: no SfM tracks to supervise its depth)"
                 )
                 + ", renders it for fusion",
+                work=("nerf", cfg["nerf"].impl),
             )
         )
     s.append(Step("fusion", cfg["fusion"].impl, True))

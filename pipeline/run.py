@@ -1,22 +1,22 @@
-"""The recipe: capture in, blueprint out. Paths, then one call per stage."""
+"""The recipe: capture in, blueprint out. Paths, then one call per step of the plan."""
 
 from __future__ import annotations
 
 import logging
-import os
-import shutil
 from pathlib import Path
 
+from pipeline.checks import check_capture
 from pipeline.config import Config
 from pipeline.planner import gt_files, make_plan
+from pipeline.publish import Publication, writing
 from pipeline.report import Report
 from pipeline.runner import Runner, check_impl
 from stages.align import AlignInputs
 from stages.blueprint import BlueprintInputs, NerfTopInputs
 from stages.common.capture import Capture
 from stages.common.errors import BlunfError
-from stages.common.io import read_json
-from stages.edit import EditInputs, EditOutputs, spec_textures
+from stages.common.io import check_exists, read_json
+from stages.edit import EditInputs, EditOutputs, EditSpec, load_spec
 from stages.evaluate import EvaluateInputs
 from stages.export.files import ExportInputs
 from stages.fusion import FusionInputs
@@ -32,8 +32,7 @@ log = logging.getLogger(__name__)
 def run(capture: Path, out: Path, cfg: Config, edits: Path | None = None) -> Report:
     """Build the blueprint of `capture` into the run folder `out`; returns the report."""
     capture, out = Path(capture), Path(out)
-    if not capture.exists():
-        raise BlunfError(f"{capture}: capture folder not found")
+    check_exists(capture, "capture folder")
     if out.resolve().is_relative_to(capture.resolve()):
         raise BlunfError(f"{out}: the run folder must not be inside the capture {capture}")
     for stage in ("ingest", "align", "fusion", "project"):  # fail before any work
@@ -42,68 +41,51 @@ def run(capture: Path, out: Path, cfg: Config, edits: Path | None = None) -> Rep
         check_impl("poses", cfg["poses"].impl)
     for m in cfg.run.methods:
         check_impl("blueprint", m)
-    textures = spec_textures(edits) if edits is not None else ()  # a bad spec fails here
+    spec = load_spec(edits) if edits is not None else None  # a bad spec fails here
     if out.exists() and not out.is_dir():
         raise BlunfError(f"{out}: the run folder exists and is not a folder")
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise BlunfError(f"{out}: cannot create the run folder ({e.strerror})") from None
+    pub = Publication(out)  # a read-only run folder fails here, before any work
     report = Report(scene=out.name, capture=str(capture.resolve()), config=cfg.to_dict())
-    r = Runner(out, cfg, report)
     try:
-        _recipe(r, capture, cfg, edits, textures)
-    finally:
-        report.write(out / "report.json")
+        _recipe(Runner(out, cfg, report), pub, capture, cfg, spec)
+        pub.add_json("report.json", report.to_json())
+        with writing(out):
+            pub.switch()
+    finally:  # a failed run switches nothing in: the previous run's outputs stay whole
+        if not pub.switched:
+            pub.discard()
     return report
 
 
-def _recipe(
-    r: Runner, capture: Path, cfg: Config, edits: Path | None, textures: tuple[Path, ...]
-) -> None:
+def _recipe(r: Runner, pub: Publication, capture: Path, cfg: Config, spec: EditSpec | None) -> None:
     report = r.report
     frames = r.stage("ingest", cfg["ingest"].impl, IngestInputs(capture=capture)).frames
     cap = Capture.load(frames)
-    plan = make_plan(cap, cfg, edits)
+    with writing(frames.parent):  # what the frames decide fails here, before any costly stage
+        check_capture(cap, spec, frames.parent / ".labels-checked")
+    plan = make_plan(cap, cfg, spec.path if spec is not None else None)
 
-    step = plan.get("poses")
-    if step.run:
-        frames = r.stage("poses", step.impl, PosesInputs(frames=frames), step.reason).frames
-    else:
-        r.skip("poses", step.impl, step.reason)
+    posed = r.step(plan.get("poses"), PosesInputs(frames=frames))
+    frames = posed.frames if posed else frames
     # SfM's world has an arbitrary turn about z: the first camera fixes the plan's frame then
-    frames = r.stage("align", cfg["align"].impl, AlignInputs(frames, free_yaw=step.run)).frames
-    step = plan.get("depth")
-    nerf = None
-    if step.run:  # photos only: the NeRF's rendered depth is what fusion integrates
-        nerf = r.stage("nerf", cfg["nerf"].impl, NerfInputs(frames=frames), step.reason)
-        frames = nerf.frames
-    else:
-        r.skip("depth", step.impl, step.reason)
-    fused = r.stage("fusion", cfg["fusion"].impl, FusionInputs(frames=frames))
-    labelled = fused.frames  # the frames the plan is projected from
-    step = plan.get("semantics")
-    if step.run:
-        sem = SemanticsInputs(frames=fused.frames, mesh=fused.mesh)
-        labelled = r.stage("semantics", step.impl, sem, step.reason).frames
-    else:
-        r.skip("semantics", step.impl, step.reason)
-    step = plan.get("nerf")
-    if step.run:  # on the fused (dense, clean) depth and the labels: semantics and edits
-        nerf = r.stage("nerf", step.impl, NerfInputs(frames=labelled), step.reason)
-    else:
-        r.skip("nerf", step.impl, step.reason)
-    pts = r.stage(
-        "project",
-        cfg["project"].impl,
-        ProjectInputs(frames=labelled, holdout=plan.heldout),
-    )
+    frames = r.step(plan.get("align"), AlignInputs(frames, free_yaw=posed is not None)).frames
+    depth = r.step(plan.get("depth"), NerfInputs(frames=frames))  # photos only: NeRF depth
+    fused = r.step(plan.get("fusion"), FusionInputs(frames=depth.frames if depth else frames))
+    sem = r.step(plan.get("semantics"), SemanticsInputs(frames=fused.frames, mesh=fused.mesh))
+    labelled = sem.frames if sem else fused.frames  # the frames the plan is projected from
+    # on the fused (dense, clean) depth and the labels: for the NeRF baseline and edits
+    nerf = r.step(plan.get("nerf"), NerfInputs(frames=labelled)) or depth
+    pts = r.step(plan.get("project"), ProjectInputs(frames=labelled, holdout=plan.heldout))
     gt = gt_files(cap)
     plans = {}
-    for m in cfg.run.methods:
-        if m == "nerf_top":
-            assert nerf is not None
-            ins: object = NerfTopInputs(
+    for step in plan.all("blueprint"):
+        ins: object = BlueprintInputs(points=pts.points, grid=pts.grid)
+        if step.impl == "nerf_top":
+            ins = NerfTopInputs(
                 nerf.model,
                 pts.points,
                 pts.grid,
@@ -112,63 +94,49 @@ def _recipe(
                 gt_poses=gt.get("poses"),
                 poses_estimated=plan.runs("poses"),
             )
-        else:
-            ins = BlueprintInputs(points=pts.points, grid=pts.grid)
-        plans[m] = r.stage("blueprint", m, ins).blueprint
+        plans[step.impl] = r.step(step, ins).blueprint
+    product = plans[cfg.run.methods[0]]
     if nerf is not None:
         report.metrics["nerf"] = _nerf_metrics(read_json(nerf.stats))
-    step = plan.get("edit")
-    if step.run:
-        assert nerf is not None and edits is not None
-        gt_dir = (
-            Path(cap.gt) if cap.gt is not None and (Path(cap.gt) / "instances").is_dir() else None
-        )
-        ed = r.stage(
-            "edit",
-            step.impl,
-            EditInputs(
-                spec=edits,
-                blueprint=plans[cfg.run.methods[0]],
-                model=nerf.model,
-                mesh=fused.mesh,
-                frames=labelled,
-                gt=gt_dir,
-                textures=textures,
-            ),
-            step.reason,
-        )
+
+    gt_dir = Path(cap.gt) if cap.gt is not None and (Path(cap.gt) / "instances").is_dir() else None
+    ed = r.step(
+        plan.get("edit"),
+        lambda: EditInputs(
+            spec=spec.path if spec else Path(),
+            blueprint=product,
+            model=nerf.model,
+            mesh=fused.mesh,
+            frames=labelled,
+            gt=gt_dir,
+            textures=spec.textures if spec else (),
+        ),
+    )
+    if ed is not None:
         report.metrics.update(read_json(ed.stats).get("metrics", {}))
-        _publish_edits(ed, r.out / "edits")
+        _publish_edits(ed, pub)
         report.outputs["edits"] = str(r.out / "edits")
-    else:
-        r.skip("edit", step.impl, step.reason)
 
-    step = plan.get("evaluate")
-    if step.run:
-        ev = r.stage(
-            "evaluate",
-            step.impl,
-            EvaluateInputs(
-                frames=labelled,
-                gt=cap.gt if gt else None,  # gt_files lie in cap.gt
-                blueprints=tuple(plans.values()),
-                methods=tuple(plans),
-                poses_estimated=plan.runs("poses"),
-                heldout=pts.heldout if plan.heldout else None,
-            ),
-            step.reason,
-        )
+    ev = r.step(
+        plan.get("evaluate"),
+        EvaluateInputs(
+            frames=labelled,
+            gt=cap.gt if gt else None,  # gt_files lie in cap.gt
+            blueprints=tuple(plans.values()),
+            methods=tuple(plans),
+            poses_estimated=plan.runs("poses"),
+            heldout=pts.heldout if plan.heldout else None,
+        ),
+    )
+    if ev is not None:
         report.metrics.update(read_json(ev.metrics))
-    else:
-        r.skip("evaluate", step.impl, step.reason)
 
-    ex = r.stage(
-        "export",
-        "files",
-        ExportInputs(blueprint=plans[cfg.run.methods[0]], mesh=fused.mesh, frames=fused.frames),
+    ex = r.step(
+        plan.get("export"),
+        ExportInputs(blueprint=product, mesh=fused.mesh, frames=fused.frames),
     )
     for name in ex.files:
-        _publish(ex.folder / name, r.out / name)
+        pub.add(ex.folder / name, name)
         report.outputs[name] = str(r.out / name)
     summary = read_json(ex.folder / "components.json")
     report.plan = {
@@ -183,22 +151,10 @@ def _nerf_metrics(stats: dict) -> dict:
     return {k: stats[k] for k in keys if stats.get(k) is not None}
 
 
-def _publish_edits(ed: EditOutputs, dst: Path) -> None:
+def _publish_edits(ed: EditOutputs, pub: Publication) -> None:
     """The edit stage's pictures, plan and mesh into the run's edits/ folder."""
-    dst.mkdir(exist_ok=True)
     files = [ed.gif, ed.blueprint, ed.blueprint_png, ed.mesh, ed.stats]
     files += sorted(ed.views.glob("*.png")) if ed.views.is_dir() else []
     for f in files:
         if f.is_file():
-            _publish(f, dst / f.name)
-
-
-def _publish(src: Path, dst: Path) -> None:
-    """Copy src to dst atomically (temp file beside dst, then rename): a run sharing the
-    folder, or a reader, never sees a half-copied output."""
-    tmp = dst.with_name(f".{dst.name}.tmp-{os.getpid()}")
-    try:
-        shutil.copyfile(src, tmp)
-        os.replace(tmp, dst)
-    finally:
-        tmp.unlink(missing_ok=True)
+            pub.add(f, f"edits/{f.name}")

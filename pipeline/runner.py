@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib
 import logging
+import os
 import shutil
 import time
 import typing
@@ -12,9 +13,12 @@ from typing import Any
 
 from pipeline.cache import Cache, stage_key
 from pipeline.config import Config, stage_view
+from pipeline.planner import Step
+from pipeline.publish import writing
 from pipeline.report import Report, StageRecord, peak_rss_mb, peak_rss_reset
 from stages.common.errors import BlunfError
 from stages.common.io import read_json
+from stages.common.threads import torch_threads
 
 log = logging.getLogger(__name__)
 
@@ -39,44 +43,55 @@ class Runner:
         self.cache = Cache(self.out)
         self.cache.sweep()
 
-    def skip(self, stage: str, impl: str, reason: str) -> None:
-        log.info("%-10s skipped: %s", stage, reason)
-        self.report.add(StageRecord(stage, impl, "skipped", reason))
+    def step(self, step: Step, inputs: Any) -> Any:
+        """A step of the plan: its stage's outputs, or None when the plan skips it (the skip
+        and its reason go to the report). `inputs` may be a function giving them, called only
+        when the step runs (inputs made of outputs that exist only then)."""
+        if not step.run:
+            log.info("%-10s skipped: %s", step.stage, step.reason)
+            self.report.add(StageRecord(step.stage, step.impl, "skipped", step.reason))
+            return None
+        stage, impl = step.work or (step.stage, step.impl)
+        return self.stage(stage, impl, inputs() if callable(inputs) else inputs, step.reason)
 
     def stage(self, stage: str, impl: str, inputs: Any, reason: str = "", cfg: Any = None) -> Any:
         """Run (or reuse) `stages.<stage>.IMPLS[impl](cfg, inputs, out)`; returns its outputs."""
         check_impl(stage, impl)
         scfg = cfg if cfg is not None else self.cfg[stage]
-        key = stage_key(stage, impl, stage_view(scfg, impl), self.cache.input_keys(inputs))
-        with self.cache.lock(stage, key):
+        view = stage_view(scfg, impl)
+        input_keys = self.cache.input_keys(inputs)  # hashes outside files (the capture) once
+        key = stage_key(stage, impl, view, input_keys)
+        changed = _changed(scfg, impl)
+        with writing(self.out / stage), self.cache.lock(stage, key):
             folder = self.cache.folder(stage, key)
             if self.cache.is_done(stage, key):
                 meta = read_json(folder / "meta.json")
                 outputs_cls = _outputs_class(meta, stage, impl)
-                log.info("%-10s cached (%s)", stage, key)
+                log.info("%-10s %s: cached (%s)%s", stage, impl, key, changed)
                 self.report.add(
                     StageRecord(
                         stage, impl, "cached", reason, 0.0, None, key, meta.get("facts", {})
                     )
                 )
                 return outputs_cls.at(folder)
-            log.info("%-10s %s: running (%s) %s", stage, impl, key, stage_view(scfg, impl))
+            log.info("%-10s %s: running (%s)%s", stage, impl, key, changed)
             fn = registry(stage)[impl]  # imports the implementation (torch, Open3D...) only now
             outputs_cls = typing.get_type_hints(fn)["return"]
-            _size_torch_threads(self.cfg.run.threads)
             tmp = self.cache.temp(stage, key)
             try:  # a failing stage leaves nothing behind (a killed one is swept by the next run)
                 peak_rss_reset()
                 t0, c0 = time.perf_counter(), time.process_time()
-                fn(scfg, inputs, tmp)
+                with torch_threads(_run_threads(self.cfg.run.threads)):
+                    fn(scfg, inputs, tmp)
                 secs, cpu = time.perf_counter() - t0, time.process_time() - c0
-                facts = _facts(tmp, stage, impl)
+                stats = stats_name(outputs_cls, impl)
+                facts = _facts(tmp / stats) if stats else {}
                 meta = {
                     "stage": stage,
                     "impl": impl,
                     "key": key,
-                    "config": stage_view(scfg, impl),
-                    "inputs": self.cache.input_keys(inputs),
+                    "config": view,  # the full resolved config: here, not in the log
+                    "inputs": input_keys,
                     "seconds": round(secs, 3),
                     "cpu_seconds": round(cpu, 3),
                     "peak_rss_mb": peak_rss_mb(),
@@ -94,6 +109,34 @@ class Runner:
         return outputs_cls.at(folder)
 
 
+def stats_name(outputs_cls: Any, impl: str) -> str | None:
+    """The stats file a stage's Outputs class names (per implementation when a mapping)."""
+    name = getattr(outputs_cls, "STATS", None)
+    return name.get(impl) if isinstance(name, dict) else name
+
+
+def _changed(scfg: Any, impl: str) -> str:
+    """` key=value ...` for the settings that differ from the stage's defaults ("" if none)."""
+    try:
+        default = stage_view(type(scfg)(), impl)
+    except Exception:  # a config without defaults: nothing to compare with
+        return ""
+    now = _flat(stage_view(scfg, impl))
+    base = _flat(default)
+    diff = [f"{k}={v}" for k, v in now.items() if k != "impl" and base.get(k, object()) != v]
+    return (" " + " ".join(diff)) if diff else ""
+
+
+def _flat(d: dict, prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
 def _outputs_class(meta: dict, stage: str, impl: str) -> Any:
     """The Outputs class a cached entry was written with (no need to import the stage's code)."""
     name = meta.get("outputs_class")
@@ -103,26 +146,19 @@ def _outputs_class(meta: dict, stage: str, impl: str) -> Any:
     return typing.get_type_hints(registry(stage)[impl])["return"]
 
 
-def _size_torch_threads(threads: int) -> None:
-    """Torch threads = the free cores (or run.threads), set once torch is actually needed."""
-    import os
-    import sys
-
-    if "torch" in sys.modules:
-        env = os.environ.get("OMP_NUM_THREADS", "")
-        n = threads or (int(env) if env.isdigit() and int(env) > 0 else 1)
-        sys.modules["torch"].set_num_threads(n)
+def _run_threads(threads: int) -> int:
+    """The torch threads a stage runs with: run.threads, else OMP_NUM_THREADS, else 1 (set only
+    once torch is actually needed: see torch_threads)."""
+    env = os.environ.get("OMP_NUM_THREADS", "")
+    return threads or (int(env) if env.isdigit() and int(env) > 0 else 1)
 
 
-def _facts(folder: Path, stage: str, impl: str) -> dict:
-    """The small JSON a stage writes about itself, if any, for the report."""
-    for name in (f"{stage}.json", f"{impl}.json", "train.json", "stats.json"):
-        p = folder / name
-        if not p.is_file():
-            continue
-        try:
-            d = read_json(p)
-        except BlunfError:
-            continue
-        return d if isinstance(d, dict) and len(str(d)) < 20000 else {}
-    return {}
+def _facts(p: Path) -> dict:
+    """The small JSON a stage writes about itself (its Outputs' STATS file), for the report."""
+    if not p.is_file():
+        return {}
+    try:
+        d = read_json(p)
+    except BlunfError:
+        return {}
+    return d if isinstance(d, dict) and len(str(d)) < 20000 else {}

@@ -93,6 +93,34 @@ def _depth_npy_garbage(cap: Path, tmp: Path) -> None:
     (cap / "depth" / f"{STEM}.npy").write_bytes(b"\x93NUMPY garbage")
 
 
+def _depth_8bit(cap: Path, tmp: Path) -> None:
+    # an 8-bit grey map of the right size (values up to 255 "millimetres")
+    Image.fromarray(np.full((72, 96), 200, np.uint8)).save(cap / "depth" / f"{STEM}.png")
+
+
+def _depth_all_zero(cap: Path, tmp: Path) -> None:
+    for p in (cap / "depth").iterdir():
+        write_depth_png(p, np.zeros((72, 96)))
+
+
+def _same_stem_jpg(cap: Path, tmp: Path) -> None:
+    Image.open(_img(cap)).convert("RGB").save(cap / "images" / f"{STEM}.jpg", quality=95)
+
+
+def _colmap_empty_model(cap: Path, tmp: Path) -> None:
+    # a COLMAP project whose reconstruction never finished: images and an empty sparse/0
+    (cap / "cameras.json").unlink()
+    (cap / "sparse" / "0").mkdir(parents=True)
+
+
+def _symlink_loop(cap: Path, tmp: Path) -> None:
+    (tmp / "loop").symlink_to(tmp / "loop")
+
+
+def _symlink_dangling(cap: Path, tmp: Path) -> None:
+    (tmp / "dangling").symlink_to(tmp / "gone")
+
+
 def _label_size(cap: Path, tmp: Path) -> None:
     Image.fromarray(np.zeros((36, 48), np.uint8)).save(cap / "labels" / f"{STEM}.png")
 
@@ -171,6 +199,22 @@ def _negative_fx(d: dict) -> None:
     d["intrinsics"]["fx"] = -75.0
 
 
+def _huge_focal(d: dict) -> None:
+    d["intrinsics"]["fx"] = d["intrinsics"]["fy"] = 1e308  # finite and > 0, FOV ~0 degrees
+
+
+def _wide_fov(d: dict) -> None:
+    d["intrinsics"]["fx"] = d["intrinsics"]["fy"] = 2.0  # a 175-degree view at 96 px
+
+
+def _far_principal_point(d: dict) -> None:
+    d["intrinsics"]["cx"] = 5000.0
+
+
+def _frame_tiny_focal(d: dict) -> None:
+    d["frames"][STEM]["intrinsics"] = {**d["intrinsics"], "fx": 1e-3}
+
+
 def _frame_entry(d: dict) -> None:
     d["frames"][STEM] = 5
 
@@ -212,6 +256,8 @@ CASES = [
     Case("depth_png_rgb", _depth_rgb, names=f"depth/{STEM}.png"),
     Case("depth_npy_3d", _depth_npy_3d, names=f"depth/{STEM}.npy"),
     Case("depth_npy_garbage", _depth_npy_garbage, names=f"depth/{STEM}.npy"),
+    Case("depth_png_8bit", _depth_8bit, names=f"depth/{STEM}.png: depth image is 8-bit"),
+    Case("depth_all_zero", _depth_all_zero, names="{cap}/depth: the capture's depth is empty"),
     Case("label_wrong_size", _label_size, names=f"labels/{STEM}.png"),
     Case("label_colour", _label_colour, names=f"labels/{STEM}.png"),
     Case("label_id_300", _label_id_300, names=f"labels/{STEM}.png"),
@@ -221,6 +267,28 @@ CASES = [
     Case("capture_empty", names="{tmp}/empty", capture="{tmp}/empty"),
     Case("capture_missing", names="{tmp}/missing", capture="{tmp}/missing"),
     Case("capture_is_a_file", names="{tmp}/file.txt", capture="{tmp}/file.txt"),
+    Case(
+        "capture_symlink_loop",
+        _symlink_loop,
+        capture="{tmp}/loop",
+        names="{tmp}/loop: capture folder is a symlink loop",
+    ),
+    Case(
+        "capture_symlink_dangling",
+        _symlink_dangling,
+        capture="{tmp}/dangling",
+        names="{tmp}/dangling: capture folder is a symlink to {tmp}/gone, which does not exist",
+    ),
+    Case(
+        "colmap_empty_sparse",
+        _colmap_empty_model,
+        names="{cap}/sparse/0: COLMAP model folder holds no model",
+    ),
+    Case(
+        "image_same_stem_two_kinds",
+        _same_stem_jpg,
+        names=f"{{cap}}/images/{STEM}.jpg and {{cap}}/images/{STEM}.png",
+    ),
     Case("capture_no_images", _no_images, names="images"),
     Case("capture_only_cameras_json", _only_cameras, names="{cap}"),
     Case("cameras_invalid_json", _text("cameras.json", '{"intrinsics": '), names="cameras.json"),
@@ -232,6 +300,26 @@ CASES = [
     Case("intrinsics_missing", _edit_cams(_no_intrinsics), names="cameras.json"),
     Case("intrinsics_no_fx", _edit_cams(_no_fx), names="fx"),
     Case("intrinsics_negative_fx", _edit_cams(_negative_fx), names="cameras.json"),
+    Case(
+        "intrinsics_focal_1e308",
+        _edit_cams(_huge_focal),
+        names="cameras.json intrinsics: horizontal field of view",
+    ),
+    Case(
+        "intrinsics_fov_175",
+        _edit_cams(_wide_fov),
+        names="cameras.json intrinsics: horizontal field of view 175 degrees",
+    ),
+    Case(
+        "intrinsics_principal_point_far",
+        _edit_cams(_far_principal_point),
+        names="cameras.json intrinsics: principal point cx = 5000",
+    ),
+    Case(
+        "intrinsics_of_one_frame_tiny_focal",
+        _edit_cams(_frame_tiny_focal),
+        names=f"cameras.json intrinsics of {STEM}: horizontal field of view 180 degrees",
+    ),
     Case("cameras_frame_entry_not_object", _edit_cams(_frame_entry), names=STEM),
     Case("depth_scale_string", _depth_scale("mm"), names="depth_scale"),
     Case("depth_scale_zero", _depth_scale(0), names="depth_scale"),
@@ -308,7 +396,7 @@ CASES = [
 ]
 
 # Run again through `python -m pipeline` (fresh interpreter, real argv, real stderr).
-SUBPROCESS = ("image_truncated", "frames_abc", "config_invalid_yaml")
+SUBPROCESS = ("image_truncated", "frames_abc", "config_invalid_yaml", "depth_png_8bit")
 
 
 # ---- the checks ---------------------------------------------------------------------------
@@ -337,7 +425,8 @@ def assert_cache_clean(run: Path) -> None:
         return
     tmp = [str(p) for p in run.rglob(".tmp-*")]
     assert not tmp, f"temp folders left behind: {tmp}"
-    for stage in (p for p in run.iterdir() if p.is_dir()):
+    stages = (p for p in run.iterdir() if p.is_dir() and not p.is_symlink())
+    for stage in (p for p in stages if not p.name.startswith(".")):  # not .runs/ (outputs)
         for entry in stage.iterdir():
             if entry.name.startswith("."):
                 assert entry.suffix == ".lock" and entry.is_file(), entry

@@ -14,7 +14,7 @@ log = logging.getLogger(__name__)
 
 def run(cfg: AlignConfig, inputs: AlignInputs, out: Path) -> AlignOutputs:
     """`gravity` when the capture has a gravity vector, else `floor`; the choice is noted."""
-    log.info("align auto: %s", cfg)
+    log.debug("align auto: %s", cfg)  # the full config: meta.json
     cap = load(inputs)
     if cap.gravity is not None:
         R, floor_z, info = gravity.solve(cap, cfg, inputs.frames)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 from stages.common.errors import BlunfError
 
@@ -65,6 +66,7 @@ class AlignInputs:
 
 @dataclass(frozen=True)
 class AlignOutputs:
+    STATS: ClassVar[str | None] = "align.json"  # its stats file: the report's facts
     frames: Path  # frames.json with every pose replaced by T @ pose
     align: Path  # align.json: T, method, floor height before the shift, inliers, Manhattan
     #              yaw and its confidence, notes

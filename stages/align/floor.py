@@ -79,7 +79,7 @@ def solve(cap: Capture, cfg: AlignConfig, where: Path) -> tuple[np.ndarray, floa
 
 def run(cfg: AlignConfig, inputs: AlignInputs, out: Path) -> AlignOutputs:
     """Rotate the floor normal onto +z and shift the floor to z = 0 (no gravity needed)."""
-    log.info("align floor: %s", cfg)
+    log.debug("align floor: %s", cfg)  # the full config: meta.json
     cap = load(inputs)
     R, floor_z, info = solve(cap, cfg, inputs.frames)
     return finish(cap, out, R, floor_z, info, inputs.free_yaw)

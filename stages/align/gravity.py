@@ -52,7 +52,7 @@ def solve(cap: Capture, cfg: AlignConfig, where: Path) -> tuple[np.ndarray, floa
 
 def run(cfg: AlignConfig, inputs: AlignInputs, out: Path) -> AlignOutputs:
     """Rotate the capture's gravity onto (0, 0, -1) and shift the floor to z = 0."""
-    log.info("align gravity: %s", cfg)
+    log.debug("align gravity: %s", cfg)  # the full config: meta.json
     cap = load(inputs)
     R, floor_z, info = solve(cap, cfg, inputs.frames)
     return finish(cap, out, R, floor_z, info, inputs.free_yaw)

@@ -15,7 +15,7 @@ log = logging.getLogger(__name__)
 
 def run(cfg: AlignConfig, inputs: AlignInputs, out: Path) -> AlignOutputs:
     """Write the frames unchanged with T = identity."""
-    log.info("align none: %s", cfg)
+    log.debug("align none: %s", cfg)  # the full config: meta.json
     cap = load(inputs)
     info = {
         "method": "none",

@@ -22,7 +22,6 @@ from torch import Tensor, nn
 
 from stages.blueprint.config import BlueprintConfig, BlueprintInputs, BlueprintOutputs, BlunfConfig
 from stages.blueprint.encoding import (
-    ENCODINGS,
     HashGrid2D,
     Identity,
     PositionalEncoding,
@@ -34,12 +33,11 @@ from stages.common.blueprint import Blueprint, Grid
 from stages.common.capture import UNKNOWN
 from stages.common.errors import BlunfError
 from stages.common.io import write_json
-from stages.project.points import read_bounds, read_grid, read_instances, read_points
+from stages.common.points import read_bounds, read_grid, read_instances, read_points
+from stages.common.threads import torch_threads
 
 log = logging.getLogger(__name__)
 
-BALANCES = ("none", "sqrt", "cell")
-OUTSIDES = ("clamp", "field")
 STRUCTURE = ("floor", "wall", "ceiling")  # class names shrink_objects leaves as they are
 TRAIN_ACC_POINTS = 262_144  # points scored for the reported train accuracy
 
@@ -47,8 +45,7 @@ TRAIN_ACC_POINTS = 262_144  # points scored for the reported train accuracy
 def run(cfg: BlueprintConfig, inputs: BlueprintInputs, out: Path) -> BlueprintOutputs:
     """Fit the field to the points, then write the plan it predicts on the grid."""
     c = cfg.blunf
-    _check(c)
-    log.info("blueprint/blunf: %s", c)
+    log.debug("blueprint/blunf: %s", c)
     t0 = time.perf_counter()
     xyz, label, _, classes = read_points(inputs.points)
     grid = read_grid(inputs.grid)
@@ -59,10 +56,7 @@ def run(cfg: BlueprintConfig, inputs: BlueprintInputs, out: Path) -> BlueprintOu
     class_ids, y = np.unique(label[inside], return_inverse=True)  # contiguous logits
     center, half = plan_frame(grid)
     uv = torch.from_numpy(normalise(xyz[inside, :2], center, half))  # [N, 2]
-    old_threads = torch.get_num_threads()
-    if c.threads > 0:
-        torch.set_num_threads(c.threads)
-    try:
+    with torch_threads(c.threads):
         cell = torch.from_numpy((row * grid.shape[1] + col)[inside])  # [N] plan cell of each
         model, stats = train(
             c, uv, torch.from_numpy(y.astype(np.int64)), len(class_ids), max(grid.shape), cell
@@ -71,8 +65,6 @@ def run(cfg: BlueprintConfig, inputs: BlueprintInputs, out: Path) -> BlueprintOu
         xy = clamp(grid.centers().reshape(-1, 2), bounds)  # [H W, 2]
         centers = normalise(xy, center, half)  # [H W, 2]
         labels = class_ids[predict(model, centers, c.eval_chunk)].reshape(grid.shape)
-    finally:
-        torch.set_num_threads(old_threads)
     labels = labels.astype(np.uint8)
     shrink = round(c.shrink / grid.cell)  # cells
     labels, shrunk = shrink_objects(labels, classes, shrink)
@@ -299,37 +291,3 @@ def _sampler(c: BlunfConfig, y: Tensor, n_classes: int, gen: torch.Generator, ce
         return order[start[k] + r]
 
     return sample
-
-
-def _check(c: BlunfConfig) -> None:
-    if c.encoding not in ENCODINGS:
-        raise BlunfError(f"blueprint.blunf.encoding must be one of {ENCODINGS}, got {c.encoding!r}")
-    if c.outside not in OUTSIDES:
-        raise BlunfError(f"blueprint.blunf.outside must be one of {OUTSIDES}, got {c.outside!r}")
-    if c.balance not in BALANCES:
-        raise BlunfError(f"blueprint.blunf.balance must be one of {BALANCES}, got {c.balance!r}")
-    if not (c.shrink >= 0 and math.isfinite(c.shrink)):
-        raise BlunfError(f"blueprint.blunf.shrink must be >= 0 metres, got {c.shrink}")
-    if c.n_freqs < 0:
-        raise BlunfError(f"blueprint.blunf.n_freqs must be >= 0 (0 = auto), got {c.n_freqs}")
-    for name in (
-        "width",
-        "batch",
-        "hash_levels",
-        "hash_features",
-        "hash_base_res",
-        "eval_chunk",
-    ):
-        if getattr(c, name) < 1:
-            raise BlunfError(f"blueprint.blunf.{name} must be >= 1, got {getattr(c, name)}")
-    if c.steps < 0 or c.layers < (1 if c.encoding == "siren" else 0):
-        raise BlunfError(f"blueprint.blunf: bad steps {c.steps} or layers {c.layers}")
-    if not 4 <= c.hash_log2_size <= 26:
-        raise BlunfError(
-            f"blueprint.blunf.hash_log2_size must be in [4, 26], got {c.hash_log2_size}"
-        )
-    if not (c.lr > 0 and 0 < c.lr_final <= 1 and c.siren_omega > 0):
-        raise BlunfError(
-            f"blueprint.blunf: lr {c.lr}, lr_final {c.lr_final} and siren_omega "
-            f"{c.siren_omega} must be > 0 (lr_final <= 1)"
-        )

@@ -2,8 +2,16 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
+
+from stages.common.errors import BlunfError
+
+ENCODINGS = ("none", "pe", "hash", "siren")  # as stages.blueprint.encoding.ENCODINGS
+BALANCES = ("none", "sqrt", "cell")
+OUTSIDES = ("clamp", "field")
 
 
 @dataclass(frozen=True)
@@ -38,6 +46,35 @@ class BlunfConfig:
     threads: int = 0  # torch threads while training (0 = leave torch's setting)
     eval_chunk: int = 65536  # cell centres per forward pass when rendering the plan
 
+    def __post_init__(self) -> None:  # checked when the config loads, before any stage runs
+        c, w = self, "blueprint.blunf"
+        if c.encoding not in ENCODINGS:
+            raise BlunfError(f"{w}.encoding must be one of {ENCODINGS}, got {c.encoding!r}")
+        if c.outside not in OUTSIDES:
+            raise BlunfError(f"{w}.outside must be one of {OUTSIDES}, got {c.outside!r}")
+        if c.balance not in BALANCES:
+            raise BlunfError(f"{w}.balance must be one of {BALANCES}, got {c.balance!r}")
+        if not (c.shrink >= 0 and math.isfinite(c.shrink)):
+            raise BlunfError(f"{w}.shrink must be >= 0 metres, got {c.shrink}")
+        if c.n_freqs < 0:
+            raise BlunfError(f"{w}.n_freqs must be >= 0 (0 = auto), got {c.n_freqs}")
+        for name in ("width", "batch", "hash_levels", "hash_features", "hash_base_res"):
+            if getattr(c, name) < 1:
+                raise BlunfError(f"{w}.{name} must be >= 1, got {getattr(c, name)}")
+        if c.eval_chunk < 1:
+            raise BlunfError(f"{w}.eval_chunk must be >= 1, got {c.eval_chunk}")
+        if c.steps < 0:
+            raise BlunfError(f"{w}.steps must be >= 0, got {c.steps}")
+        if c.layers < (1 if c.encoding == "siren" else 0):
+            raise BlunfError(f"{w}.layers must be >= 1 with siren (>= 0 else), got {c.layers}")
+        if not 4 <= c.hash_log2_size <= 26:
+            raise BlunfError(f"{w}.hash_log2_size must be in [4, 26], got {c.hash_log2_size}")
+        if not (c.lr > 0 and 0 < c.lr_final <= 1 and c.siren_omega > 0):
+            raise BlunfError(
+                f"{w}: lr {c.lr}, lr_final {c.lr_final} and siren_omega "
+                f"{c.siren_omega} must be > 0 (lr_final <= 1)"
+            )
+
 
 def paper_recipe() -> BlunfConfig:
     """The paper's recipe: PE with 12 frequencies, one hidden layer of 64 ReLU units (tcnn
@@ -64,6 +101,10 @@ class MvrConfig:
 
     min_votes: int = 1  # cells with fewer projected points stay unknown (255)
 
+    def __post_init__(self) -> None:
+        if self.min_votes < 1:
+            raise BlunfError(f"blueprint.mvr.min_votes must be >= 1, got {self.min_votes}")
+
 
 @dataclass(frozen=True)
 class NerfTopConfig:
@@ -84,7 +125,8 @@ class BlueprintConfig:
     nerf_top: NerfTopConfig = field(default_factory=NerfTopConfig)  # impl = "nerf_top"
 
 
-STATS_FILES = ("train.json", "mvr.json", "nerf_top.json")  # the stats file each impl writes
+# the stats file each implementation writes (the report's facts)
+STATS_FILES = {"blunf": "train.json", "mvr": "mvr.json", "nerf_top": "nerf_top.json"}
 
 
 @dataclass(frozen=True)
@@ -108,6 +150,7 @@ class NerfTopInputs:
 
 @dataclass(frozen=True)
 class BlueprintOutputs:
+    STATS: ClassVar[dict[str, str]] = STATS_FILES  # by implementation
     blueprint: Path  # blueprint.npz (Blueprint.save)
     stats: Path  # train.json (blunf) or mvr.json (mvr): counts and timings
 
@@ -115,5 +158,6 @@ class BlueprintOutputs:
     def at(cls, out: Path) -> BlueprintOutputs:
         """The outputs inside a finished blueprint folder (stats named by the impl that ran)."""
         out = Path(out)
-        stats = next((out / n for n in STATS_FILES if (out / n).exists()), out / STATS_FILES[0])
+        names = list(STATS_FILES.values())
+        stats = next((out / n for n in names if (out / n).exists()), out / names[0])
         return cls(blueprint=out / "blueprint.npz", stats=stats)

@@ -18,7 +18,7 @@ from stages.common.blueprint import Blueprint, Grid
 from stages.common.capture import UNKNOWN
 from stages.common.errors import BlunfError
 from stages.common.io import write_json
-from stages.project.points import read_grid, read_instances, read_points
+from stages.common.points import read_grid, read_instances, read_points
 
 log = logging.getLogger(__name__)
 

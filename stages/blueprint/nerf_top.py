@@ -18,11 +18,10 @@ from stages.blueprint.instances import instance_raster
 from stages.blueprint.mvr import majority_vote
 from stages.common.blueprint import Blueprint
 from stages.common.errors import BlunfError
+from stages.common.gt_frame import gt_frame
 from stages.common.io import write_json
-from stages.evaluate.gt import gt_frame
-from stages.evaluate.metrics import plan_metrics
-from stages.evaluate.plan import evaluate_plan
-from stages.project.points import read_grid, read_instances, read_points
+from stages.common.plan_metrics import evaluate_plan, plan_metrics
+from stages.common.points import read_grid, read_instances, read_points
 
 log = logging.getLogger(__name__)
 

@@ -23,6 +23,9 @@ DEPTH_EXTS = (".png", ".npy")
 UNKNOWN = 255  # blueprint / label value for unknown or unseen
 # intrinsics of images without any given: (intrinsics, calib, camera) per image
 GuessIntrinsics = Callable[[list[Path]], list[tuple[Intrinsics, str, str]]]
+FOV_DEG = (10.0, 170.0)  # plausible field of view of a camera, each image axis (degrees)
+MAX_PIXEL_ASPECT = 2.0  # fy / fx within [1/this, this] (anamorphic at most 2:1)
+PP_MARGIN = 0.25  # principal point at most this fraction of the image size outside it
 
 
 @dataclass(frozen=True)
@@ -166,12 +169,57 @@ class Capture:
         return Capture.from_json(d)
 
 
+def check_unique_stems(named: list[tuple[str, Path]]) -> None:
+    """Refuse two files that would become frames of one name (images/0003.png and
+    images/0003.jpg would share one depth map, label map and pose)."""
+    seen: dict[str, Path] = {}
+    for stem, p in named:
+        if stem in seen:
+            raise BlunfError(
+                f"{seen[stem]} and {p}: two images of one frame name {stem!r} "
+                "(they would share its depth, labels and pose); keep one"
+            )
+        seen[stem] = p
+
+
+def check_intrinsics(intr: Intrinsics, where: str) -> None:
+    """Refuse intrinsics no camera has: a field of view outside FOV_DEG (e.g. fx = 1e308, which
+    would leave fusion nothing to fuse), pixels far from square, or a principal point
+    outside the image by more than PP_MARGIN of its size."""
+    lo, hi = FOV_DEG
+    axes = (
+        ("horizontal", "fx", intr.fx, "width", intr.width),
+        ("vertical", "fy", intr.fy, "height", intr.height),
+    )
+    for axis, f_name, f, side, px in axes:
+        deg = float(np.degrees(2 * np.arctan2(px / 2, f)))
+        if not lo <= deg <= hi:
+            raise BlunfError(
+                f"{where}: {axis} field of view {deg:.3g} degrees ({f_name} = {f:.6g} px "
+                f"for {side} {px}) is not a camera's (want {lo:g}-{hi:g} degrees)"
+            )
+    aspect = intr.fy / intr.fx
+    if not 1 / MAX_PIXEL_ASPECT <= aspect <= MAX_PIXEL_ASPECT:
+        raise BlunfError(
+            f"{where}: fy / fx = {aspect:.3g} (fx = {intr.fx:.6g}, fy = {intr.fy:.6g}): pixels "
+            f"that far from square are not a camera's (want {1 / MAX_PIXEL_ASPECT:g}-"
+            f"{MAX_PIXEL_ASPECT:g})"
+        )
+    for c, px, name in ((intr.cx, intr.width, "cx"), (intr.cy, intr.height, "cy")):
+        if not -PP_MARGIN * px <= c <= (1 + PP_MARGIN) * px:
+            raise BlunfError(
+                f"{where}: principal point {name} = {c:.6g} px lies far outside the image "
+                f"(size {intr.width}x{intr.height})"
+            )
+
+
 def _find(folder: Path, stem: str, exts: tuple[str, ...]) -> Path | None:
-    for e in exts:
-        p = folder / f"{stem}{e}"
-        if p.exists():
-            return p
-    return None
+    """The file of this stem in folder, None when there is none; two (0003.png and
+    0003.npy) are an error: which one is meant is not known."""
+    found = [p for p in (folder / f"{stem}{e}" for e in exts) if p.exists()]
+    if len(found) > 1:
+        raise BlunfError(f"{found[0]} and {found[1]}: two files for frame {stem!r}; keep one")
+    return found[0] if found else None
 
 
 def _inside(root: Path, p: Path) -> Path:
@@ -192,8 +240,11 @@ def read_layout(root: Path, guess: GuessIntrinsics | None = None) -> Capture:
     images = sorted(p for p in img_dir.iterdir() if p.suffix.lower() in IMAGE_EXTS)
     if not images:
         raise BlunfError(f"{img_dir}: no .jpg or .png images")
-    cams = read_json(root / "cameras.json") if (root / "cameras.json").exists() else {}
+    check_unique_stems([(p.stem, p) for p in images])
     where = str(root / "cameras.json")
+    if not (root / "cameras.json").exists() and guess is None:
+        raise BlunfError(f"{where}: not found (it gives the camera intrinsics, see DESIGN.md)")
+    cams = read_json(root / "cameras.json") if (root / "cameras.json").exists() else {}
     if not isinstance(cams, dict):
         raise BlunfError(f"{where}: must be a JSON object (intrinsics, frames, ...)")
     shared = cams.get("intrinsics")
@@ -225,6 +276,9 @@ def read_layout(root: Path, guess: GuessIntrinsics | None = None) -> Capture:
             )
         else:
             intr = Intrinsics.from_json(intr_d, f"{where} intrinsics of {stem}")
+            check_intrinsics(
+                intr, f"{where} intrinsics" + ("" if intr_d is shared else f" of {stem}")
+            )
             calib, camera = "given", ""
         pose = entry.get("pose")
         pose_a = check_pose(pose, f"{where} pose of {stem}") if pose is not None else None

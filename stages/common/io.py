@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import io
 import json
 import os
@@ -18,6 +19,29 @@ from stages.common.errors import BlunfError
 # Depth readings at or beyond this multiple of the map's median valid reading are treated as
 # invalid (garbage far values; a scale-free cut, so kilometre or millimetre worlds read alike).
 MAX_DEPTH_RATIO = 20.0
+# PIL modes of a depth image: 16-bit integers (PNG) or 32-bit integers / floats (TIFF)
+DEPTH_MODES = ("I;16", "I;16B", "I;16L", "I;16N", "I", "F")
+
+
+def check_exists(path: Path, what: str) -> Path:
+    """`path` as given, once it is known to lead somewhere; else a one-line error that says
+    why not: not found, a symlink whose target is missing, a symlink loop, no permission.
+    (Path.exists() answers False for all of these alike.) `what` names it ("capture folder")."""
+    path = Path(path)
+    try:
+        os.stat(path)
+        return path
+    except FileNotFoundError:
+        if path.is_symlink():
+            raise BlunfError(
+                f"{path}: {what} is a symlink to {os.readlink(path)}, which does not exist"
+            ) from None
+        raise BlunfError(f"{path}: {what} not found") from None
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            loop = f"{path}: {what} is a symlink loop (it leads back to itself)"
+            raise BlunfError(loop) from None
+        raise BlunfError(f"{path}: cannot reach the {what} ({e.strerror})") from None
 
 
 def _open(path: Path) -> Image.Image:
@@ -47,6 +71,31 @@ def image_size(path: Path) -> tuple[int, int]:
         raise BlunfError(f"{path}: not a readable image ({e.__class__.__name__})") from None
 
 
+def _check_depth_mode(img: Image.Image, path: Path) -> None:
+    """Refuse a depth image that is not one channel of 16-bit (or wider) values: an 8-bit map
+    holds at most 255 mm, and a colour one is not depth at all."""
+    if img.mode in DEPTH_MODES:
+        return
+    what = "8-bit" if img.mode in ("1", "L", "P") else f"{len(img.getbands())}-channel"
+    raise BlunfError(
+        f"{path}: depth image is {what} (mode {img.mode}); depth must be a single-channel "
+        "16-bit PNG in millimetres (or depth_scale units per metre) or a float .npy in metres"
+    )
+
+
+def depth_size(path: Path) -> tuple[int, int]:
+    """(width, height) of a depth PNG from its header, refusing one that is not 16-bit."""
+    path = Path(path)
+    try:
+        with Image.open(path) as img:
+            _check_depth_mode(img, path)
+            return img.size
+    except FileNotFoundError:
+        raise BlunfError(f"{path}: file not found") from None
+    except (UnidentifiedImageError, OSError) as e:
+        raise BlunfError(f"{path}: not a readable image ({e.__class__.__name__})") from None
+
+
 def read_depth(
     path: Path,
     scale: float = 1000.0,
@@ -55,7 +104,8 @@ def read_depth(
 ) -> np.ndarray:
     """Read a depth map in metres. Returns float32 [H, W]; invalid readings are 0.
 
-    PNG depth is divided by `scale` (units per metre). Zero, the `invalid` codes, NaN, inf,
+    PNG depth (16-bit; an 8-bit or colour map is an error) is divided by `scale` (units
+    per metre). Zero, the `invalid` codes, NaN, inf,
     negative values and readings at or beyond `max_ratio` times the median of the map's
     positive finite readings all become 0 (missing). The cut scales with the map, so a world
     in millimetres or kilometres reads the same as one in metres.
@@ -69,9 +119,9 @@ def read_depth(
         if d.ndim != 2:
             raise BlunfError(f"{path}: depth must be 2-D, got shape {d.shape}")
     else:
-        raw = np.asarray(_open(path))
-        if raw.ndim != 2:
-            raise BlunfError(f"{path}: depth PNG must be single-channel, got shape {raw.shape}")
+        img = _open(path)
+        _check_depth_mode(img, path)
+        raw = np.asarray(img)
         bad = (
             np.isin(raw, np.asarray(invalid, dtype=raw.dtype))
             if invalid

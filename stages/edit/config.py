@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 from stages.common.errors import BlunfError
 
@@ -71,6 +72,7 @@ class EditInputs:
 
 @dataclass(frozen=True)
 class EditOutputs:
+    STATS: ClassVar[str | None] = "edit.json"  # its stats file: the report's facts
     views: Path  # views/<name>.png: before | after side by side, per requested view
     masks: Path  # masks/<name>_<edit>.png: each selection's mask in each view (0 / 255)
     gif: Path  # orbit.gif: the edited scene along an orbit

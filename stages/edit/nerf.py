@@ -27,6 +27,7 @@ from scipy import ndimage
 from stages.common.blueprint import Blueprint
 from stages.common.camera import Intrinsics
 from stages.common.capture import UNKNOWN, Capture
+from stages.common.components import component_map
 from stages.common.errors import BlunfError
 from stages.common.io import (
     read_image,
@@ -34,6 +35,8 @@ from stages.common.io import (
     write_json,
     write_label_png,
 )
+from stages.common.plan_picture import plan_png
+from stages.common.threads import torch_threads
 from stages.edit.config import EditConfig, EditInputs, EditOutputs
 from stages.edit.metrics import EditScore, gt_instance_names, gt_instances
 from stages.edit.ops import (
@@ -47,8 +50,6 @@ from stages.edit.ops import (
 from stages.edit.render import orbit_poses, render_view_edited
 from stages.edit.select import Extent, extent_of, select_cells
 from stages.edit.spec import Edit, EditSpec, check_views, load_spec
-from stages.export.components import component_map
-from stages.export.render import plan_png
 from stages.nerf.field import load_model
 
 log = logging.getLogger(__name__)
@@ -70,7 +71,7 @@ class View:
 
 def run(cfg: EditConfig, inputs: EditInputs, out: Path) -> EditOutputs:
     """Apply the spec's edits; write renders, masks, GIF, edited plan and mesh, edit.json."""
-    log.info("edit/nerf: %s", cfg)
+    log.debug("edit/nerf: %s", cfg)  # the full config: meta.json
     t_start = time.perf_counter()
     out = Path(out)
     spec, bp, cap, cells, cmap = _checked(inputs)
@@ -80,10 +81,7 @@ def run(cfg: EditConfig, inputs: EditInputs, out: Path) -> EditOutputs:
     verts = np.asarray(mesh.vertices, np.float64)  # [V, 3]
     rgba = vertex_colors(mesh)  # [V, 4] or None
     colors = None if rgba is None else rgba[:, :3].astype(np.float64) / 255.0  # [V, 3]
-    old_threads = torch.get_num_threads()
-    if cfg.threads > 0:
-        torch.set_num_threads(cfg.threads)
-    try:
+    with torch_threads(cfg.threads):
         model = _load_model(inputs.model)
         edits: list[FieldEdit] = []  # as applied to the field
         mesh_edits: list[FieldEdit] = []  # the same, shaded against the mesh's colours
@@ -114,8 +112,6 @@ def run(cfg: EditConfig, inputs: EditInputs, out: Path) -> EditOutputs:
         t_gif = time.perf_counter()
         _gif(cfg, model, spec, cap, edits, scored["orbit_frames"], outs.gif)
         gif_seconds = time.perf_counter() - t_gif
-    finally:
-        torch.set_num_threads(old_threads)
 
     new_bp, n_changed = _edited_plan(cfg, bp, spec, cells)
     new_bp.save(outs.blueprint)

@@ -1,7 +1,7 @@
 """Selections on the plan and their 3-D extent.
 
 A selection is a set of plan cells: the component under a click or a cell (same class,
-8-connected, `stages.export.components.component_map`), every component of a class, or the
+8-connected, `stages.common.components.component_map`), every component of a class, or the
 known cells whose centres fall inside a polygon or a stroke (a polyline buffered by half its
 width). Unknown cells (255) are never selected.
 
@@ -26,10 +26,10 @@ from torch import Tensor
 
 from stages.common.blueprint import Blueprint, Grid
 from stages.common.capture import UNKNOWN
+from stages.common.components import class_name
 from stages.common.errors import BlunfError
 from stages.edit.config import EditConfig
 from stages.edit.spec import Selector
-from stages.export.components import class_name
 
 NEIGHBOURS = [(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1) if (dr, dc) != (0, 0)]
 

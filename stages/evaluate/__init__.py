@@ -3,8 +3,6 @@
 from stages.evaluate import gt
 from stages.evaluate.config import EvaluateConfig
 from stages.evaluate.gt import EvaluateInputs, EvaluateOutputs
-from stages.evaluate.metrics import plan_metrics
-from stages.evaluate.plan import evaluate_plan
 
 IMPLS = {"gt": gt.run}
 
@@ -13,6 +11,4 @@ __all__ = [
     "EvaluateConfig",
     "EvaluateInputs",
     "EvaluateOutputs",
-    "evaluate_plan",
-    "plan_metrics",
 ]

@@ -1,15 +1,11 @@
-"""Pose metrics: estimated camera-to-world poses against ground truth, up to a similarity.
-
-The similarity (Umeyama, with scale) comes from skimage's `SimilarityTransform`, which works in
-3-D; pycolmap's aligners need Reconstruction objects, which the callers do not have.
-"""
+"""Pose metrics: estimated camera-to-world poses against ground truth, up to a similarity
+(`stages.common.gt_frame.similarity`)."""
 
 from __future__ import annotations
 
 import numpy as np
-from skimage.transform import SimilarityTransform
 
-MIN_ALIGN = 3  # a similarity in 3-D needs at least 3 non-collinear centres
+from stages.common.gt_frame import MIN_ALIGN, similarity
 
 
 def _rotation(m: np.ndarray) -> np.ndarray:
@@ -26,21 +22,6 @@ def _angle_deg(r: np.ndarray) -> np.ndarray:
     """Rotation angles of [N, 3, 3] rotations, in degrees. Returns [N]."""
     cos = (np.trace(r, axis1=1, axis2=2) - 1.0) / 2.0
     return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-
-
-def similarity(src: np.ndarray, dst: np.ndarray) -> np.ndarray | None:
-    """The similarity (Umeyama, with scale) best mapping points src [N, 3] onto dst [N, 3].
-
-    Returns the 4x4 matrix, or None when fewer than 3 points are given, either set is
-    degenerate (all points equal) or the estimate fails.
-    """
-    src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
-    if len(src) < MIN_ALIGN or len(src) != len(dst):
-        return None
-    if np.ptp(src, axis=0).max() < 1e-12 or np.ptp(dst, axis=0).max() < 1e-12:
-        return None
-    tf = SimilarityTransform.from_estimate(src, dst)
-    return np.asarray(tf.params, np.float64) if tf else None
 
 
 def pose_metrics(est: dict[str, np.ndarray], gt: dict[str, np.ndarray]) -> dict:

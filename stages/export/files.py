@@ -5,15 +5,16 @@ from __future__ import annotations
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 from stages.common.blueprint import Blueprint
 from stages.common.capture import Capture
+from stages.common.components import plan_summary, polygons
 from stages.common.io import write_json
-from stages.export.components import plan_summary, polygons
+from stages.common.nerfstudio import write_transforms
+from stages.common.plan_picture import plan_png
 from stages.export.config import ExportConfig
-from stages.export.render import plan_png
 from stages.export.vector import write_dxf, write_geojson, write_svg
-from stages.ingest.nerfstudio import write_transforms
 
 FILES = (
     "blueprint.png",
@@ -36,6 +37,7 @@ class ExportInputs:
 
 @dataclass(frozen=True)
 class ExportOutputs:
+    STATS: ClassVar[str | None] = "export.json"  # its stats file: the report's facts
     folder: Path
     files: tuple[str, ...] = FILES
 

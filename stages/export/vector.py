@@ -1,7 +1,8 @@
 """Vector plans: the blueprint's components as SVG, GeoJSON and DXF, in world metres.
 
-Geometry comes from `stages.export.components` (exact cell outlines, optionally simplified);
-colours are `stages.export.render.class_color`, the PNG's colours (one fixed colour per class id).
+Geometry comes from `stages.common.components` (exact cell outlines, optionally simplified);
+colours are `stages.common.plan_picture.class_color`, the PNG's colours (one fixed colour per
+class id).
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from ezdxf.lldxf.validator import INVALID_LAYER_NAME_CHARACTERS
 
 from stages.common.blueprint import Blueprint
 from stages.common.capture import UNKNOWN
-from stages.export.components import (
+from stages.common.components import (
     class_name,
     component_map,
     components,
@@ -28,7 +29,7 @@ from stages.export.components import (
     polygons,
     rings,
 )
-from stages.export.render import class_color
+from stages.common.plan_picture import class_color
 
 __all__ = [
     "class_color",

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 from stages.common.errors import BlunfError
 
@@ -52,6 +53,7 @@ class FusionInputs:
 
 @dataclass(frozen=True)
 class FusionOutputs:
+    STATS: ClassVar[str | None] = "fusion.json"  # its stats file: the report's facts
     mesh: Path  # mesh.ply: fused surface with vertex colours
     cloud: Path  # cloud.ply: points on the fused surface with colours and normals
     depth: Path  # depth/: <stem>.npy per view, ray-cast depth in float32 metres (0 = no hit)

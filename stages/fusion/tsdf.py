@@ -32,19 +32,19 @@ from stages.common.camera import Intrinsics, check_pose
 from stages.common.capture import Capture, Frame
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth, read_image, write_depth_npy, write_json
+from stages.common.o3d import CPU, o3d_extrinsic, o3d_intrinsic, o3d_tensor
 from stages.fusion.carve import supporting_views
 from stages.fusion.config import FusionConfig, FusionInputs, FusionOutputs
 
 log = logging.getLogger(__name__)
 
-CPU = o3c.Device("CPU:0")
 ATTRS = ("tsdf", "weight", "color")
 VOXEL_BYTES = 4 + 4 + 3 * 4  # float32 tsdf, weight and RGB per voxel
 
 
 def run(cfg: FusionConfig, inputs: FusionInputs, out: Path) -> FusionOutputs:
     """Fuse every frame into a TSDF; write the mesh, the cloud and ray-cast depth per view."""
-    log.info("fusion tsdf: %s", cfg)
+    log.debug("fusion tsdf: %s", cfg)  # the full config: meta.json
     cap = Capture.load(inputs.frames)
     _check(cap, inputs.frames)
     outs = FusionOutputs.at(out)
@@ -164,27 +164,9 @@ def _grid(cfg: FusionConfig, block_count: int) -> o3d.t.geometry.VoxelBlockGrid:
     )  # fmt: skip
 
 
-def _tensor(a: np.ndarray, dtype: o3c.Dtype) -> o3c.Tensor:
-    return o3c.Tensor(np.ascontiguousarray(a), dtype, CPU)
-
-
 def _image(a: np.ndarray) -> o3d.t.geometry.Image:
     """Open3D image of float32 [H, W] (as [H, W, 1]) or [H, W, C]."""
-    return o3d.t.geometry.Image(_tensor(a if a.ndim == 3 else a[..., None], o3c.float32))
-
-
-def o3d_extrinsic(f: Frame) -> o3c.Tensor:
-    """Open3D's extrinsic: world-to-camera [4, 4]."""
-    return _tensor(np.linalg.inv(np.asarray(f.pose, np.float64)), o3c.float64)
-
-
-def o3d_intrinsic(intr: Intrinsics) -> o3c.Tensor:
-    """K for Open3D, whose pixel (i, j) spans [i, i + 1) x [j, j + 1) (integration truncates
-    the projection, ray generation adds 0.5): its centres are half a pixel off ours. Without
-    this shift the synthetic test room's depth errors grow from 3 mm to 12 mm."""
-    K = intr.K
-    K[:2, 2] += 0.5
-    return _tensor(K, o3c.float64)
+    return o3d.t.geometry.Image(o3d_tensor(a if a.ndim == 3 else a[..., None], o3c.float32))
 
 
 def _fit(intr: Intrinsics, width: int, height: int) -> Intrinsics:
@@ -255,11 +237,11 @@ def canonical_mesh(mesh: o3d.t.geometry.TriangleMesh) -> o3d.t.geometry.Triangle
     keep = order[first]  # old id of each merged vertex
     out = o3d.t.geometry.TriangleMesh(CPU)
     for key, value in mesh.vertex.items():
-        out.vertex[key] = _tensor(value.numpy()[keep], value.dtype)
-    out.triangle.indices = _tensor(tri, mesh.triangle.indices.dtype)
+        out.vertex[key] = o3d_tensor(value.numpy()[keep], value.dtype)
+    out.triangle.indices = o3d_tensor(tri, mesh.triangle.indices.dtype)
     for key, value in mesh.triangle.items():
         if key != "indices":
-            out.triangle[key] = _tensor(value.numpy()[t_order], value.dtype)
+            out.triangle[key] = o3d_tensor(value.numpy()[t_order], value.dtype)
     return out
 
 
@@ -269,7 +251,7 @@ def canonical_cloud(cloud: o3d.t.geometry.PointCloud) -> o3d.t.geometry.PointClo
     order = _by_position(cloud.point)
     out = o3d.t.geometry.PointCloud(CPU)
     for key, value in cloud.point.items():
-        out.point[key] = _tensor(value.numpy()[order], value.dtype)
+        out.point[key] = o3d_tensor(value.numpy()[order], value.dtype)
     return out
 
 
@@ -297,8 +279,8 @@ def _carve(
             f"fusion: fusion.min_support = {cfg.min_support} removes the whole surface fused "
             f"from {where} (no vertex lies on that many views' readings)"
         )
-    mesh = mesh.select_by_index(_tensor(np.flatnonzero(keep_v), o3c.int64))
-    cloud = cloud.select_by_mask(_tensor(keep_p, o3c.bool))
+    mesh = mesh.select_by_index(o3d_tensor(np.flatnonzero(keep_v), o3c.int64))
+    cloud = cloud.select_by_mask(o3d_tensor(keep_p, o3c.bool))
     facts = {
         "carved_vertices": int((~keep_v).sum()),  # of the mesh extracted from the TSDF
         "carved_points": int((~keep_p).sum()),

@@ -14,6 +14,7 @@ from pathlib import Path
 
 from stages.common.capture import Capture, read_layout, write_layout
 from stages.common.errors import BlunfError
+from stages.common.io import check_exists
 from stages.ingest import colmap, exif, nerfstudio, photos, replica, select, sevenscenes, video
 
 log = logging.getLogger(__name__)
@@ -45,8 +46,7 @@ def detect(src: Path) -> str:
         return "nerfstudio"
     if src.is_file() and src.suffix.lower() in video.VIDEO_EXTS:
         return "video"
-    if not src.exists():
-        raise BlunfError(f"{src}: capture folder not found")
+    check_exists(src, "capture folder")
     if not src.is_dir():
         raise BlunfError(f"{src}: not a capture folder")
     if not any(src.iterdir()):
@@ -61,6 +61,8 @@ def detect(src: Path) -> str:
         return "blunf"
     if colmap.find_model(src) is not None:
         return "colmap"
+    if (src / "sparse").is_dir() and not (src / "cameras.json").is_file():
+        return "colmap"  # a COLMAP project whose model is missing: its reader says so
     if (src / "images").is_dir():
         return "blunf"
     if photos.image_files(src):
@@ -81,8 +83,7 @@ def load(
         kind = detect(src)
     if kind not in READERS:
         raise BlunfError(f"capture kind {kind!r} unknown (known: auto, {', '.join(READERS)})")
-    if not src.exists():
-        raise BlunfError(f"{src}: capture folder not found")
+    check_exists(src, "capture folder")
     folder = src if src.is_dir() or kind == "video" else src.parent
     if work.resolve().is_relative_to(folder.resolve()):
         raise BlunfError(f"{work}: work folder inside the capture {src}, which is never written")

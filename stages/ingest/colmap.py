@@ -73,6 +73,12 @@ def read(src: Path, work: Path) -> Capture:
     src = Path(src)
     model = find_model(src)
     if model is None:
+        sparse = src / "sparse" / "0" if (src / "sparse" / "0").is_dir() else src / "sparse"
+        if sparse.is_dir():
+            raise BlunfError(
+                f"{sparse}: COLMAP model folder holds no model (no cameras.bin or cameras.txt);"
+                " did the reconstruction finish?"
+            )
         raise BlunfError(f"{src}: no COLMAP model (cameras.bin|txt in ., sparse/0 or sparse)")
     images_dir = _find_images(src, model)
     try:

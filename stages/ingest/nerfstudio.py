@@ -1,18 +1,10 @@
-"""nerfstudio `transforms.json`: reading a capture from it and writing one for other tools.
-
-Format: intrinsics `fl_x fl_y cx cy w h` (+ optional `k1 k2 p1 p2 k3`) at the top level or
-per frame; `frames: [{file_path, transform_matrix, depth_file_path?}]`, paths relative to
-the file's folder. `transform_matrix` is camera-to-world with OpenGL camera axes (x right,
-y up, z back); the project uses OpenCV axes (x right, y down, z forward), so the camera's
-y and z columns are negated both ways. nerfstudio (like COLMAP) puts the centre of the
-top-left pixel at (0.5, 0.5) while the project puts it at (0, 0): cx and cy move by 0.5.
-"""
+"""Reading a capture from a nerfstudio `transforms.json`, in place. The format (OpenGL camera
+axes, pixel centres at 0.5) and its writer are in `stages.common.nerfstudio`."""
 
 from __future__ import annotations
 
 import logging
 import math
-import os
 from pathlib import Path
 
 import numpy as np
@@ -20,17 +12,13 @@ import numpy as np
 from stages.common.camera import Intrinsics, check_pose
 from stages.common.capture import Capture, Frame
 from stages.common.errors import BlunfError
-from stages.common.io import image_size, read_json, write_json
+from stages.common.io import image_size, read_json
+from stages.common.nerfstudio import DIST_KEYS, GL_CV, PIXEL_OFFSET
 
 log = logging.getLogger(__name__)
 
-# Camera-axes change between OpenGL and OpenCV (its own inverse): c2w_cv = c2w_gl @ GL_CV.
-GL_CV = np.diag([1.0, -1.0, -1.0, 1.0])
-# nerfstudio pixel coordinate of the top-left pixel's centre.
-PIXEL_OFFSET = 0.5
 # Perspective models whose distortion is OpenCV's (k1, k2, p1, p2[, k3]).
 MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
-DIST_KEYS = ("k1", "k2", "p1", "p2", "k3")
 
 
 def _resolve(base: Path, rel: str, where: str) -> Path:
@@ -128,59 +116,3 @@ def read(src: Path, work: Path) -> Capture:
         depth_invalid=(),
         kind="nerfstudio",
     )
-
-
-def _intr_json(intr: Intrinsics) -> dict:
-    d = {
-        "fl_x": intr.fx,
-        "fl_y": intr.fy,
-        "cx": intr.cx + PIXEL_OFFSET,
-        "cy": intr.cy + PIXEL_OFFSET,
-        "w": intr.width,
-        "h": intr.height,
-    }
-    d.update(zip(DIST_KEYS, intr.dist, strict=False))
-    return d
-
-
-def _rel(p: Path, base: Path) -> str:
-    """Path relative to base when p lies under it, else absolute."""
-    a, b = Path(os.path.abspath(p)), Path(os.path.abspath(base))
-    return a.relative_to(b).as_posix() if a.is_relative_to(b) else str(a)
-
-
-def write_transforms(capture: Capture, path: Path) -> Path:
-    """Write the capture's frames (all posed) as a nerfstudio transforms.json. Returns path.
-
-    Image paths are relative to the file's folder when the images lie under it. Depth is
-    written for PNG depth maps only (nerfstudio reads .npy depth with the PNG scale).
-    """
-    path = Path(path)
-    if not capture.frames:
-        raise BlunfError(f"{path}: no frames to write")
-    base = path.parent
-    intrs = {f.intrinsics for f in capture.frames}
-    shared = len(intrs) == 1
-    meta: dict = {
-        "camera_model": "OPENCV" if any(i.dist for i in intrs) else "PINHOLE",
-    }
-    if shared:
-        meta.update(_intr_json(next(iter(intrs))))
-    meta["depth_unit_scale_factor"] = 1.0 / capture.depth_scale
-    out_frames = []
-    for f in capture.frames:
-        if f.pose is None:
-            raise BlunfError(f"{path}: frame {f.stem!r} has no pose")
-        entry: dict = {
-            "file_path": _rel(f.image, base),
-            "transform_matrix": (np.asarray(f.pose, np.float64) @ GL_CV).tolist(),
-        }
-        if not shared:
-            entry.update(_intr_json(f.intrinsics))
-        if f.depth is not None and f.depth.suffix.lower() == ".png":
-            entry["depth_file_path"] = _rel(f.depth, base)
-        out_frames.append(entry)
-    meta["frames"] = out_frames
-    base.mkdir(parents=True, exist_ok=True)
-    write_json(path, meta)
-    return path

@@ -13,13 +13,15 @@ import os
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 from PIL import Image
 
-from stages.common.capture import Capture, Frame
+from stages.common.capture import Capture, Frame, check_intrinsics, check_unique_stems
 from stages.common.errors import BlunfError
 from stages.common.io import (
+    depth_size,
     image_size,
     read_depth,
     read_image,
@@ -44,6 +46,7 @@ class IngestInputs:
 
 @dataclass(frozen=True)
 class IngestOutputs:
+    STATS: ClassVar[str | None] = "ingest.json"  # its stats file: the report's facts
     frames: Path  # frames.json written by Capture.save
 
     @classmethod
@@ -88,6 +91,7 @@ def check_structure(cap: Capture, allowed: tuple[Path, ...]) -> None:
     outside them (paths a layout states explicitly, e.g. nerfstudio's, may lie anywhere)."""
     if not cap.frames:
         raise BlunfError(f"{cap.root}: capture has no frames")
+    check_unique_stems([(f.stem, f.image) for f in cap.frames])
     for attr, what in (("depth", "depth"), ("label", "labels"), ("pose", "poses")):
         given = [getattr(f, attr) is not None for f in cap.frames]
         if any(given) and not all(given):
@@ -103,13 +107,11 @@ def check_structure(cap: Capture, allowed: tuple[Path, ...]) -> None:
                 raise BlunfError(f"{p}: points outside the capture folder {cap.root}")
 
 
-def _size(p: Path, full: bool, kind: str, cap: Capture) -> tuple[int, int]:
-    """(width, height) of an image, depth or label file; full = decode it all."""
+def _size(p: Path, full: bool, kind: str) -> tuple[int, int]:
+    """(width, height) of an image, depth or label file; full = decode it all (not depth)."""
     if kind == "image":
         return read_image(p).shape[1::-1] if full else image_size(p)
-    if kind == "depth":
-        if full:
-            return read_depth(p, cap.depth_scale, cap.depth_invalid).shape[::-1]
+    if kind == "depth":  # (full: check_frames decodes depth itself)
         if p.suffix == ".npy":
             try:
                 a = np.load(p, mmap_mode="r")
@@ -118,24 +120,46 @@ def _size(p: Path, full: bool, kind: str, cap: Capture) -> tuple[int, int]:
             if a.ndim != 2:
                 raise BlunfError(f"{p}: depth must be 2-D, got shape {a.shape}")
             return a.shape[::-1]
-        return image_size(p)
+        return depth_size(p)
     return read_label(p).shape[::-1] if full else image_size(p)
 
 
-def check_frames(cap: Capture, full: bool) -> None:
-    """Each image readable and of its intrinsics' size; depth, labels and instance maps of the
-    image's size."""
+def check_frames(cap: Capture, full: bool) -> list[str]:
+    """Each image readable and of its intrinsics' size, the intrinsics those of a camera;
+    depth, labels and instance maps of the image's size. With full = True, also refuses a
+    capture whose depth maps hold no reading at all. Returns the stems of the frames whose
+    depth map is empty (full = True only)."""
+    for intr in sorted({f.intrinsics for f in cap.frames}, key=str):
+        user = next(f for f in cap.frames if f.intrinsics == intr)
+        check_intrinsics(intr, f"{cap.root}: intrinsics of {user.image.name}")
+    empty = []
     for f in cap.frames:
-        w, h = _size(f.image, full, "image", cap)
+        w, h = _size(f.image, full, "image")
         iw, ih = f.intrinsics.width, f.intrinsics.height
         if (w, h) != (iw, ih):
             raise BlunfError(f"{f.image}: image is {w}x{h} but its intrinsics say {iw}x{ih}")
         for p, kind in ((f.depth, "depth"), (f.label, "label"), (f.instance, "instance map")):
             if p is None:
                 continue
-            pw, ph = _size(Path(p), full, kind, cap)
+            if kind == "depth" and full:
+                d = read_depth(Path(p), cap.depth_scale, cap.depth_invalid)  # [H, W] metres
+                if not (d > 0).any():
+                    empty.append(f.stem)
+                ph, pw = d.shape
+            else:
+                pw, ph = _size(Path(p), full, kind)
             if (pw, ph) != (w, h):
                 raise BlunfError(f"{p}: {kind} is {pw}x{ph} but its image is {w}x{h}")
+    if cap.has_depth and empty and len(empty) == len(cap.frames):
+        folders = sorted({str(Path(f.depth).parent) for f in cap.frames if f.depth is not None})
+        raise BlunfError(
+            f"{', '.join(folders)}: the capture's depth is empty (no reading in any of the "
+            f"{len(empty)} depth maps: all 0 or invalid codes {list(cap.depth_invalid)}); "
+            "fix them, or remove them to work from the photos alone"
+        )
+    if empty:
+        log.warning("ingest: %d depth maps hold no reading: %s", len(empty), empty)
+    return empty
 
 
 def _nearest(a: np.ndarray, w: int, h: int) -> np.ndarray:
@@ -210,7 +234,7 @@ def run(cfg: IngestConfig, inputs: IngestInputs, out: Path) -> IngestOutputs:
     total = len(cap.frames)
     idx = select_indices(len(cap.frames), cfg.frames)
     cap = cap.with_frames([cap.frames[i] for i in idx])
-    check_frames(cap, full=cfg.check == "full")
+    empty_depth = check_frames(cap, full=cfg.check == "full")
     t_check = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -238,6 +262,7 @@ def run(cfg: IngestConfig, inputs: IngestInputs, out: Path) -> IngestOutputs:
         "has_labels": cap.has_labels,
         "has_poses": cap.has_poses,
         "has_gravity": cap.gravity is not None,
+        "empty_depth": empty_depth,
         "size": [f0.width, f0.height],
         "resized": (out / "resized").is_dir(),
         "seconds": {"read": t_read, "check": t_check, "resize": t_resize},

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 from stages.common.errors import BlunfError
 
@@ -123,6 +124,7 @@ class NerfInputs:
 
 @dataclass(frozen=True)
 class NerfOutputs:
+    STATS: ClassVar[str | None] = "nerf.json"  # its stats file: the report's facts
     model: Path  # model.pt: load with stages.nerf.load_model
     stats: Path  # nerf.json: steps, seconds, stop_reason, psnr_heldout, depth_absrel, curve
     frames: Path  # frames.json: the input capture with depth -> the rendered depth maps

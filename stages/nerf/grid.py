@@ -45,7 +45,7 @@ log = logging.getLogger(__name__)
 
 def run(cfg: NerfConfig, inputs: NerfInputs, out: Path) -> NerfOutputs:
     """Train on the capture's posed frames; write the model, stats and rendered depth."""
-    log.info("nerf/grid: %s", cfg)
+    log.debug("nerf/grid: %s", cfg)  # the full config: meta.json
     out = Path(out)
     cap = Capture.load(inputs.frames)
     if not cap.frames:

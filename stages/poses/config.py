@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 from stages.common.errors import BlunfError
 
@@ -66,6 +67,7 @@ class PosesInputs:
 
 @dataclass(frozen=True)
 class PosesOutputs:
+    STATS: ClassVar[str | None] = "sfm.json"  # its stats file: the report's facts
     frames: Path  # frames.json with a camera-to-world pose on every frame kept
     sfm: Path  # sfm.json: what was registered, how the scale was found, timings
 

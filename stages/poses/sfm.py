@@ -22,6 +22,7 @@ from stages.common.capture import Capture, Frame
 from stages.common.errors import BlunfError
 from stages.common.io import image_size, read_depth, write_depth_npy, write_json
 from stages.poses import calib
+from stages.poses import models as models_detail
 from stages.poses import scale as scale_mod
 from stages.poses.config import PosesConfig, PosesInputs, PosesOutputs
 
@@ -71,7 +72,11 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
     facts["mapper"] = cfg.mapper
     facts["models"] = len(recs)
 
-    rec = max(recs, key=lambda r: r.num_reg_images()) if recs else None
+    recs = sorted(recs, key=lambda r: r.num_reg_images(), reverse=True)  # largest first
+    rec = recs[0] if recs else None
+    index = {name: i for i, name in enumerate(names)}
+    members = [sorted(index[im.name] for im in r.images.values() if im.has_pose) for r in recs]
+    facts.update(models_detail.describe(members, stems))
     ids = {}  # COLMAP image name -> image id, registered images of the largest model
     if rec is not None:
         ids = {im.name: im.image_id for im in rec.images.values() if im.has_pose}
@@ -79,9 +84,11 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
     k = len(kept)
     need = max(MIN_REGISTERED, int(np.ceil(cfg.min_registered_frac * n)))
     if k < need:
+        split = "; ".join(", ".join(g["spans"]) for g in facts["groups"])
         raise BlunfError(
             f"sfm: only {k} of {n} images registered (need {need}; poses.min_registered_frac="
             f"{cfg.min_registered_frac}): too little texture or overlap between photos?"
+            + (f" SfM made {len(recs)} models: {split}" if len(recs) > 1 else "")
         )
     assert rec is not None
     unregistered = [stems[i] for i in sorted(set(range(n)) - set(kept))]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 
 @dataclass(frozen=True)
@@ -39,6 +40,7 @@ class ProjectInputs:
 
 @dataclass(frozen=True)
 class ProjectOutputs:
+    STATS: ClassVar[str | None] = "project.json"  # its stats file: the report's facts
     # points.npz: xyz float32 [N, 3] offsets from origin float64 [3] (read_points adds them),
     # label uint8 [N], view int32 [N], instance int32 [N] (object instance, 0 = none; absent
     # from files written before it: read_instances gives zeros), classes

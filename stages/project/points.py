@@ -16,7 +16,6 @@ cell, so they move and scale with the world; the plan grid keeps world multiples
 
 from __future__ import annotations
 
-import json
 import logging
 import time
 from pathlib import Path
@@ -27,7 +26,8 @@ from stages.common.blueprint import Grid
 from stages.common.camera import Intrinsics, pixel_grid, unproject
 from stages.common.capture import UNKNOWN, Capture, Frame, heldout_views
 from stages.common.errors import BlunfError
-from stages.common.io import image_size, read_depth, read_json, read_label, write_json
+from stages.common.io import image_size, read_depth, read_label, write_json
+from stages.common.points import str_keys, write_grid, write_points
 from stages.project.config import ProjectConfig, ProjectInputs, ProjectOutputs
 from stages.project.topview import top_view_keep
 
@@ -42,7 +42,7 @@ def run(cfg: ProjectConfig, inputs: ProjectInputs, out: Path) -> ProjectOutputs:
     """Project every labelled pixel with depth of every frame into the world."""
     t0 = time.perf_counter()
     _check(cfg)
-    log.info("project: %s", cfg)
+    log.debug("project: %s", cfg)  # the full config: meta.json
     cap = Capture.load(inputs.frames)
     if not cap.frames:
         raise BlunfError(f"{inputs.frames}: the capture has no frames")
@@ -91,17 +91,9 @@ def run(cfg: ProjectConfig, inputs: ProjectInputs, out: Path) -> ProjectOutputs:
             f"{cfg.cell} m (> project.max_cells = {cfg.max_cells}); check poses and depth units"
         )
     outs = ProjectOutputs.at(out)
-    np.savez(
-        outs.points,
-        xyz=xyz,
-        origin=origin,
-        label=label,
-        view=view,
-        instance=instance,
-        classes=_classes_json(classes),
-    )
-    write_json(outs.grid, {**grid.to_json(), "bounds": [*lo.tolist(), *hi.tolist()]})
-    write_json(outs.classes, {"classes": _str_keys(classes), "labelling": labelling})
+    write_points(outs.points, xyz, origin, label, view, instance, classes)
+    write_grid(outs.grid, grid, lo, hi)
+    write_json(outs.classes, {"classes": str_keys(classes), "labelling": labelling})
     stems = [cap.frames[i].stem for i in held]
     write_json(outs.heldout, {"every": cfg.holdout_every, "views": held, "stems": stems})
     stats = {
@@ -130,60 +122,6 @@ def plan_bounds(xy: np.ndarray, cfg: ProjectConfig) -> tuple[np.ndarray, np.ndar
     """(lo [2], hi [2]): the box of points xy [N, 2] without the outer `bounds_pct` % a side."""
     lo = np.percentile(xy, cfg.bounds_pct, axis=0)  # [2]
     hi = np.percentile(xy, 100.0 - cfg.bounds_pct, axis=0)  # [2]
-    return lo, hi
-
-
-def read_points(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[int, str]]:
-    """Read points.npz. Returns (world xyz float64 [N, 3], label uint8 [N], view int32 [N],
-    classes). The file's float32 xyz are offsets from its float64 origin (0 when absent)."""
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            xyz, label, view = z["xyz"], z["label"], z["view"]
-            origin = np.asarray(z["origin"] if "origin" in z.files else np.zeros(3), np.float64)
-            classes = {int(k): str(v) for k, v in json.loads(str(z["classes"])).items()}
-    except (OSError, KeyError, ValueError) as e:
-        raise BlunfError(f"{path}: not a points .npz ({e})") from None
-    if xyz.ndim != 2 or xyz.shape[1] != 3 or len(label) != len(xyz) or len(view) != len(xyz):
-        raise BlunfError(f"{path}: xyz, label and view disagree in length")
-    if origin.shape != (3,):
-        raise BlunfError(f"{path}: origin must be 3 numbers, got shape {origin.shape}")
-    return xyz.astype(np.float64) + origin, label, view, classes
-
-
-def read_instances(path: Path) -> np.ndarray:
-    """The object instance of every point of points.npz (0 = none): int32 [N], all 0 for a
-    file written before points carried instances."""
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            n = len(z["label"])
-            inst = z["instance"] if "instance" in z.files else np.zeros(n, np.int32)
-    except (OSError, KeyError, ValueError) as e:
-        raise BlunfError(f"{path}: not a points .npz ({e})") from None
-    if inst.shape != (n,):
-        raise BlunfError(f"{path}: instance and label disagree in length")
-    return inst.astype(np.int32)
-
-
-def read_grid(path: Path) -> Grid:
-    """Read grid.json."""
-    d = read_json(path)
-    try:
-        return Grid.from_json(d)
-    except (KeyError, TypeError, ValueError, IndexError) as e:
-        raise BlunfError(f"{path}: not a plan grid ({e})") from None
-
-
-def read_bounds(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
-    """(lo [2], hi [2]) of the points, from grid.json (None when it does not say)."""
-    b = read_json(path).get("bounds")
-    if b is None:
-        return None
-    try:
-        lo, hi = np.asarray(b[:2], np.float64), np.asarray(b[2:], np.float64)
-    except (TypeError, ValueError) as e:
-        raise BlunfError(f"{path}: bad bounds ({e})") from None
-    if lo.shape != (2,) or hi.shape != (2,) or not (lo <= hi).all():
-        raise BlunfError(f"{path}: bounds must be [xmin, ymin, xmax, ymax], got {b}")
     return lo, hi
 
 
@@ -334,11 +272,3 @@ def _check(cfg: ProjectConfig) -> None:
             f"project.floor_band ({cfg.floor_band}) must be below "
             f"project.ceiling_cut ({cfg.ceiling_cut})"
         )
-
-
-def _str_keys(classes: dict[int, str]) -> dict[str, str]:
-    return {str(k): v for k, v in sorted(classes.items())}
-
-
-def _classes_json(classes: dict[int, str]) -> str:
-    return json.dumps(_str_keys(classes))

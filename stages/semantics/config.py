@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 from stages.common.errors import BlunfError
 
@@ -87,6 +88,7 @@ class SemanticsInputs:
 
 @dataclass(frozen=True)
 class SemanticsOutputs:
+    STATS: ClassVar[str | None] = "semantics.json"  # its stats file: the report's facts
     frames: Path  # frames.json: the input frames with `label` at labels/<stem>.png and
     #               `instance` at instances/<stem>.png, classes
     #               {0: floor, 1: wall, 2: ceiling, 3: object}, ignore [2]

@@ -15,12 +15,11 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
-import open3d.core as o3c
 
 from stages.common.capture import UNKNOWN, Capture, Frame
 from stages.common.errors import BlunfError
 from stages.common.io import write_depth_npy, write_json, write_label_png
-from stages.fusion.tsdf import o3d_extrinsic, o3d_intrinsic
+from stages.common.o3d import o3d_extrinsic, o3d_intrinsic
 from stages.semantics.config import (
     CLASSES,
     FLOOR,
@@ -35,13 +34,12 @@ from stages.semantics.segment import Segmentation, segment, triangles
 
 log = logging.getLogger(__name__)
 
-CPU = o3c.Device("CPU:0")
 MISS = np.iinfo(np.uint32).max  # Open3D's INVALID_ID: the ray hit nothing
 
 
 def run(cfg: SemanticsConfig, inputs: SemanticsInputs, out: Path) -> SemanticsOutputs:
     """Segment the fused mesh and write a class map and an instance map for every view."""
-    log.info("semantics geometry: %s", cfg)
+    log.debug("semantics geometry: %s", cfg)  # the full config: meta.json
     t0 = time.perf_counter()
     cap = Capture.load(inputs.frames)
     if not cap.frames:

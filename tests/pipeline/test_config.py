@@ -73,6 +73,8 @@ def _valid_other(cfg, name, value):
         "top",
         "pe",
         "unknown",
+        "field",
+        "sqrt",
     ):
         if cand == value:
             continue
@@ -139,3 +141,30 @@ def test_shipped_configs_load(name):
     if name == "edit.yaml":
         assert cfg["nerf"].edge_batch == 0.5 and default_config()["nerf"].edge_batch == 0.0
         assert cfg["nerf"].max_steps == 1000 and cfg["nerf"].time_budget == 0
+
+
+@pytest.mark.parametrize(
+    "sets, named",
+    [
+        (["run.methods=[]"], "run.methods"),
+        (["run.methods=blunf,blunf"], "run.methods"),
+        (["blueprint.blunf.steps=-5"], "blueprint.blunf.steps"),
+        (["blueprint.blunf.encoding=fourier"], "blueprint.blunf.encoding"),
+        (["blueprint.blunf.balance=even"], "blueprint.blunf.balance"),
+        (["blueprint.mvr.min_votes=0"], "blueprint.mvr.min_votes"),
+    ],
+)
+def test_settings_no_stage_could_use_fail_at_load(sets, named):
+    """Checked where the config is built, not after ingest, fusion and training."""
+    with pytest.raises(BlunfError, match=named.replace(".", r"\.")):
+        load_config(None, sets)
+
+
+def test_no_methods_fails_before_the_run_folder_is_made(tmp_path, capsys):
+    from pipeline.cli import main
+
+    out = tmp_path / "run"
+    assert main(["run", str(tmp_path), "--out", str(out), "--set", "run.methods=[]"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("blunf: error: run.methods"), err
+    assert not out.exists()

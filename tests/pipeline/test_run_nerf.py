@@ -12,7 +12,7 @@ import yaml
 
 from pipeline.cli import main
 from stages.common.blueprint import Blueprint
-from stages.export.components import class_name, component_map
+from stages.common.components import class_name, component_map
 
 ROOT = Path(__file__).resolve().parents[2]
 FAST = ["--set", "blueprint.blunf.steps=300", "--set", "fusion.voxel=0.04"]

@@ -14,7 +14,7 @@ import torch
 from stages.blueprint import IMPLS, BlueprintConfig, BlueprintInputs, BlunfConfig
 from stages.blueprint.instances import cell_majority, instance_raster
 from stages.common.blueprint import Blueprint, Grid
-from stages.export.components import components
+from stages.common.components import components
 
 U, FLOOR, OBJ = 255, 0, 3
 # 2 rows x 6 columns of 1 m cells from (0, 0): row 0 holds y in [1, 2), row 1 y in [0, 1).

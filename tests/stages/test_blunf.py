@@ -16,7 +16,7 @@ from stages.blueprint.blunf import _sampler, auto_freqs, field_labels, shrink_ob
 from stages.blueprint.encoding import HashGrid2D
 from stages.common.blueprint import Blueprint, Grid
 from stages.common.errors import BlunfError
-from stages.evaluate.metrics import plan_metrics
+from stages.common.plan_metrics import plan_metrics
 
 # A 2 x 2 m floor (class 0) with a rug (class 1) and a table (class 3: ids need not be
 # contiguous), on 32 x 32 cells of 1/16 m. Every coordinate is a multiple of 2^-9 m so that

@@ -28,6 +28,7 @@ import trimesh
 
 from stages.common.blueprint import Blueprint, Grid
 from stages.common.camera import Intrinsics
+from stages.common.components import component_map
 from stages.common.errors import BlunfError
 from stages.edit.config import EditConfig
 from stages.edit.metrics import PSNR_CAP, EditScore, changed, match_instances, pooled_iou
@@ -41,7 +42,6 @@ from stages.edit.ops import (
 from stages.edit.render import look_at, orbit_poses, render_rays_edited, render_view_edited
 from stages.edit.select import _top, extent_of, select_cells
 from stages.edit.spec import Edit, EditSpec, Selector
-from stages.export.components import component_map
 from stages.nerf.config import NerfConfig
 from stages.nerf.render import camera_rays, render_view
 from stages.nerf.train import build_model

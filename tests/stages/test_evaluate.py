@@ -13,8 +13,9 @@ from stages.common.blueprint import Blueprint, Grid
 from stages.common.camera import Intrinsics
 from stages.common.capture import Capture, Frame
 from stages.common.errors import BlunfError
-from stages.evaluate import IMPLS, EvaluateConfig, EvaluateInputs, evaluate_plan
-from stages.evaluate.gt import FRAME_ALIGNED, FRAME_GT, FRAME_UNALIGNED, plan_frame
+from stages.common.gt_frame import FRAME_ALIGNED, FRAME_GT, FRAME_UNALIGNED, plan_frame
+from stages.common.plan_metrics import evaluate_plan
+from stages.evaluate import IMPLS, EvaluateConfig, EvaluateInputs
 
 CLASSES = {0: "floor", 1: "wall", 3: "table", 4: "chair"}
 CELL = 0.05

@@ -11,15 +11,15 @@ import pytest
 
 from stages.common.blueprint import Blueprint, Grid
 from stages.common.camera import Intrinsics
-from stages.common.capture import Capture, Frame
+from stages.common.capture import Capture, Frame, heldout_views
 from stages.common.errors import BlunfError
 from stages.common.io import write_depth_png, write_image, write_label_png
+from stages.common.points import read_points
 from stages.evaluate import IMPLS as EVALUATE
 from stages.evaluate import EvaluateConfig, EvaluateInputs
 from stages.evaluate.heldout import heldout_pacc
 from stages.project import IMPLS as PROJECT
 from stages.project import ProjectConfig, ProjectInputs, ProjectOutputs
-from stages.project.points import heldout_views, read_points
 
 # An 8x6 camera, fx = fy = 8, principal point (3.5, 2.5), 1 m above the floor at the world
 # origin, looking straight down (x_cam = +x, y_cam = -y, z_cam = -z). With depth 1 m, pixel

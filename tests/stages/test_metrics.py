@@ -7,7 +7,7 @@ import pytest
 
 from stages.common.blueprint import Blueprint, Grid
 from stages.common.errors import BlunfError
-from stages.evaluate import evaluate_plan, plan_metrics
+from stages.common.plan_metrics import evaluate_plan, plan_metrics
 
 CLASSES = {0: "floor", 1: "wall", 2: "chair", 3: "table"}
 GT = np.array([[0, 0, 1], [0, 2, 1], [255, 2, 2]], np.uint8)

@@ -13,14 +13,9 @@ from stages.common.camera import Intrinsics
 from stages.common.capture import Capture, Frame
 from stages.common.errors import BlunfError
 from stages.common.io import write_depth_png, write_image, write_label_png
+from stages.common.points import read_bounds, read_grid, read_instances, read_points
 from stages.project import IMPLS, ProjectConfig, ProjectInputs
-from stages.project.points import (
-    _undistort,
-    read_bounds,
-    read_grid,
-    read_instances,
-    read_points,
-)
+from stages.project.points import _undistort
 
 # An 8x6 camera with fx = fy = 4, cx = 3.5, cy = 2.5 (principal point between the central
 # pixels), 2 m above the floor at world (1, 2, 2), looking straight down. Its axes in the world:

@@ -6,7 +6,7 @@ import numpy as np
 from PIL import Image
 
 from stages.common.blueprint import Blueprint, Grid
-from stages.export.render import UNKNOWN_COLOR, class_color, plan_picture, plan_png
+from stages.common.plan_picture import UNKNOWN_COLOR, class_color, plan_picture, plan_png
 
 # 3 rows x 4 columns; row 0 is north (highest y). Class 7 appears only in the north-east
 # corner, so a picture drawn south up would show it bottom-right instead of top-right.
@@ -45,8 +45,9 @@ def test_colours_are_distinct_stable_and_the_legend_shows_them(tmp_path):
 
 
 def test_vector_writers_use_the_picture_colours():
-    # one colour function for the PNG, SVG and DXF: the vector module re-exports render's
-    from stages.export import components, vector
+    # one colour function for the PNG, SVG and DXF: the vector module uses the picture's
+    from stages.common import components
+    from stages.export import vector
 
     assert vector.class_color is class_color
     assert not hasattr(components, "class_color")

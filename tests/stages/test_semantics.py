@@ -326,7 +326,7 @@ def test_kitchen_plan_has_floor_walls_and_separate_objects(tmp_path):
     (4.6, 5.1, 2.2 m²; 4.1, 5.3, 2.2, 0.13 m²), MVR 3 (1.7-1.8, 2.4, 0.6 m²)."""
     from pipeline.cli import main
     from stages.common.blueprint import Blueprint
-    from stages.export.components import components
+    from stages.common.components import components
 
     src = shared_capture("7scenes-redkitchen")
     out = tmp_path / "run"
@@ -359,7 +359,7 @@ def test_floor_wall_object_plan_is_scored_against_a_furnished_gt_plan():
     """evaluate_plan coarsens the GT to the prediction's classes when it has a catch-all
     'object': GT floor and wall keep theirs, table and chair become object."""
     from stages.common.blueprint import Blueprint, Grid
-    from stages.evaluate import evaluate_plan
+    from stages.common.plan_metrics import evaluate_plan
 
     grid = Grid((0.0, 0.0), 1.0, (2, 3))
     gt = Blueprint(

@@ -163,6 +163,58 @@ def test_blank_images_do_not_register(tmp_path: Path) -> None:
         _run_sfm(Capture(tmp_path, frames), tmp_path, threads=1, scale_from="none")
 
 
+def _two_rooms(root: Path, views: int) -> Capture:
+    """Photos of two procedural rooms (seeds 2 and 4, `views` each, 160x120) in one capture,
+    named a_* and b_*. The generator's textures depend on the surface and its world
+    position, not on the seed, so two synthetic rooms look alike wherever their floors and
+    walls overlap and SfM rightly joins them; room b's photos are mirrored (as a mirrored
+    room would look; SIFT tells mirror images apart) so that the rooms share nothing."""
+    from stages.synth import make_room
+
+    (root / "images").mkdir(parents=True)
+    for tag, seed in (("a", 2), ("b", 4)):
+        room = make_room(root.parent / tag, views=views, seed=seed, size=(160, 120))
+        for p in sorted((room / "images").iterdir()):
+            im = Image.open(p)
+            if tag == "b":
+                im = im.transpose(Image.Transpose.FLIP_LEFT_RIGHT)  # cx = (W - 1) / 2 stays
+            im.save(root / "images" / f"{tag}_{p.name}")
+    cams = read_json(root.parent / "a" / "cameras.json")
+    (root / "cameras.json").write_text(json.dumps({"intrinsics": cams["intrinsics"]}))
+    return read_layout(root)
+
+
+def test_sfm_names_the_groups_when_photos_of_two_rooms_make_two_models(tmp_path: Path) -> None:
+    """Photos of two rooms with poses.min_registered_frac lowered: the run goes on with the
+    larger model, and sfm.json (the stage's record in report.json) says which photos went
+    into which model and warns. Measured: one model per room, 14 photos each (and a third of
+    3 of room a's photos), ~25 s on one thread."""
+    from pipeline.runner import _facts
+
+    cap = _two_rooms(tmp_path / "both", views=14)
+    got, facts = _run_sfm(
+        cap, tmp_path, threads=1, max_features=2048, min_registered_frac=0.3, scale_from="none"
+    )
+    assert facts["models"] >= 2
+    whole = {g["spans"][0] for g in facts["groups"] if g["frames"] >= 12 and len(g["spans"]) == 1}
+    rooms = {s[0] for s in whole}  # "a_0000..a_0013 (14)" -> "a"
+    assert rooms == {"a", "b"}, facts["groups"]
+    for span in whole:  # each room's model holds only that room's photos
+        assert span.split("..")[1].startswith(span[0]), span
+    kept = next(g for g in facts["groups"] if g["kept"])
+    assert kept["frames"] == len(got.frames) == facts["registered"]
+    room_kept = kept["spans"][0][0]
+    assert {f.stem[0] for f in got.frames} == {room_kept}
+    # the warnings name both rooms' photos, and what was left out
+    split = next(w for w in facts["warnings"] if w.startswith("SfM made"))
+    assert all(s in split for s in whole), split
+    other = ({"a", "b"} - {room_kept}).pop()
+    assert facts["left_out"] and all(s.startswith(other) for s in facts["left_out"])
+    assert any("left out of the model" in w for w in facts["warnings"])
+    # the facts reach the report: small enough for the runner to copy them
+    assert _facts(tmp_path / "out", "poses", "sfm")["warnings"] == facts["warnings"]
+
+
 @pytest.fixture(scope="module")
 def room(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """24 views (15 degrees apart on a loop) of a procedural room at 192x144, exact GT."""

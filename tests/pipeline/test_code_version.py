@@ -1,0 +1,90 @@
+"""The code version in a stage's cache key covers every project file the stage imports,
+transitively: editing a module a stage runs rekeys that stage, and only the stages that run it.
+Each test works on a copy of `stages/`, so that editing it leaves the project alone."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+
+from pipeline.cache import PROJECT_ROOT, code_version, stage_sources
+
+STAGES = (
+    "ingest",
+    "poses",
+    "align",
+    "fusion",
+    "semantics",
+    "nerf",
+    "project",
+    "blueprint",
+    "edit",
+    "evaluate",
+    "export",
+    "synth",
+)
+
+
+@pytest.fixture
+def tree(tmp_path) -> Path:
+    """A project root holding a copy of stages/."""
+    ignore = shutil.ignore_patterns("__pycache__", "*.pyc")
+    shutil.copytree(PROJECT_ROOT / "stages", tmp_path / "stages", ignore=ignore)
+    return tmp_path
+
+
+def _touch(path: Path) -> None:
+    with open(path, "a") as f:
+        f.write("# touched\n")
+
+
+def _versions(root: Path) -> dict[str, str]:
+    code_version.cache_clear()  # the memo would hide the edit
+    return {s: code_version(s, root) for s in STAGES}
+
+
+def test_touching_a_shared_module_rekeys_exactly_its_importers(tree):
+    before = _versions(tree)
+    assert before == {s: code_version(s) for s in STAGES}  # same files, same version
+    points = tree / "stages" / "common" / "points.py"  # the project stage's files' readers
+    users = {s for s in STAGES if points in stage_sources(s, tree)}
+    assert {"project", "blueprint"} <= users
+    assert users.isdisjoint({"ingest", "poses", "align", "fusion", "semantics", "evaluate"})
+    _touch(points)
+    after = _versions(tree)
+    assert {s for s in STAGES if after[s] != before[s]} == users
+
+
+def test_touching_a_stage_module_rekeys_that_stage_only(tree):
+    before = _versions(tree)
+    _touch(tree / "stages" / "export" / "vector.py")
+    after = _versions(tree)
+    assert {s for s in STAGES if after[s] != before[s]} == {"export"}
+
+
+@pytest.mark.parametrize(
+    "code",
+    [
+        "\nfrom stages.export.vector import write_svg\n",
+        "\n\ndef _late():\n    import stages.export.vector\n",
+        "\nfrom ..export import vector\n",
+        '\n_LAZY = {"svg": "stages.export.vector:write_svg"}\n',
+    ],
+    ids=["module-level", "in-function", "relative", "lazy-registry"],
+)
+def test_a_smuggled_import_makes_the_stage_depend_on_what_it_imports(tree, code):
+    vector = tree / "stages" / "export" / "vector.py"
+    assert vector not in stage_sources("blueprint", tree)
+    with open(tree / "stages" / "blueprint" / "mvr.py", "a") as f:
+        f.write(code)
+    sources = stage_sources("blueprint", tree)
+    assert vector in sources
+    assert tree / "stages" / "export" / "__init__.py" in sources  # run by importing it
+    assert tree / "stages" / "export" / "files.py" in sources  # ... which imports files
+    before = _versions(tree)
+    _touch(vector)
+    after = _versions(tree)
+    assert after["blueprint"] != before["blueprint"]
+    assert after["project"] == before["project"]  # upstream stays cached
