@@ -44,7 +44,8 @@ def detect(src: Path) -> str:
     src = Path(src)
     if src.is_file() and src.suffix == ".json":
         return "nerfstudio"
-    if src.is_file() and src.suffix.lower() in video.VIDEO_EXTS:
+    if src.suffix.lower() in video.VIDEO_EXTS and not src.is_dir():
+        check_exists(src, "video file")
         return "video"
     check_exists(src, "capture folder")
     if not src.is_dir():
@@ -83,7 +84,7 @@ def load(
         kind = detect(src)
     if kind not in READERS:
         raise BlunfError(f"capture kind {kind!r} unknown (known: auto, {', '.join(READERS)})")
-    check_exists(src, "capture folder")
+    check_exists(src, "video file" if kind == "video" else "capture folder")
     folder = src if src.is_dir() or kind == "video" else src.parent
     if work.resolve().is_relative_to(folder.resolve()):
         raise BlunfError(f"{work}: work folder inside the capture {src}, which is never written")
