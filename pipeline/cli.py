@@ -75,9 +75,11 @@ def parser() -> argparse.ArgumentParser:
     b.add_argument("--threads", type=_positive, default=1, help="CPU threads a run (default 1)")
 
     i = sub.add_parser("import", help="convert another layout into a blunf capture")
-    i.add_argument("kind", help="7scenes, replica-vmap, colmap, nerfstudio")
+    i.add_argument("kind", help="7scenes, replica-vmap, colmap, nerfstudio, photos, video")
     i.add_argument("src", type=Path)
     i.add_argument("out", type=Path)
+    i.add_argument("--frames", type=_positive, help="video: frames kept (default: by length)")
+    i.add_argument("--max-side", type=_positive, help="video: longer side of the frames written")
 
     c = sub.add_parser("clean", help="drop the cache entries the latest run did not use")
     c.add_argument("run_dir", type=Path)
@@ -181,8 +183,10 @@ def _dispatch(args: argparse.Namespace) -> int:
         return 0
     if args.cmd == "import":
         from stages.ingest import import_capture
+        from stages.ingest.video import VideoOptions
 
-        print(import_capture(args.kind, args.src, args.out))
+        opts = VideoOptions(args.frames or 0, args.max_side or 0)
+        print(import_capture(args.kind, args.src, args.out, opts))
         return 0
     if args.cmd == "bench":
         from pipeline.bench import bench

@@ -73,6 +73,12 @@ def make_plan(cap: Capture, cfg: Config, edits: Path | None = None) -> Plan:
     s: list[Step] = [Step("ingest", cfg["ingest"].impl, True)]
 
     pimpl = cfg["poses"].impl
+    guess = next((f for f in cap.frames if f.calib not in ("given", "self-calibrated")), None)
+    if guess is not None and cap.has_poses and pimpl in ("auto", "given"):
+        raise BlunfError(
+            f"{guess.image}: the capture gives poses but no intrinsics (only a {guess.calib} "
+            "guess): give intrinsics, or --set poses.impl=sfm to estimate both"
+        )
     if pimpl == "auto":
         if cap.has_poses:
             s.append(Step("poses", "given", False, "capture gives poses"))

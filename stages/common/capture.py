@@ -8,6 +8,7 @@ The project's own layout (DESIGN.md) is read by `read_layout` and written by `wr
 from __future__ import annotations
 
 import shutil
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -20,6 +21,8 @@ from stages.common.io import read_json, write_json
 IMAGE_EXTS = (".jpg", ".jpeg", ".png")
 DEPTH_EXTS = (".png", ".npy")
 UNKNOWN = 255  # blueprint / label value for unknown or unseen
+# intrinsics of images without any given: (intrinsics, calib, camera) per image
+GuessIntrinsics = Callable[[list[Path]], list[tuple[Intrinsics, str, str]]]
 FOV_DEG = (10.0, 170.0)  # plausible field of view of a camera, each image axis (degrees)
 MAX_PIXEL_ASPECT = 2.0  # fy / fx within [1/this, this] (anamorphic at most 2:1)
 PP_MARGIN = 0.25  # principal point at most this fraction of the image size outside it
@@ -36,6 +39,9 @@ class Frame:
     label: Path | None = None
     pose: np.ndarray | None = None
     instance: Path | None = None  # object instance id per pixel (0 = none), beside the label
+    calib: str = "given"  # where the intrinsics came from: given | exif | prior (a guess SfM
+    #                       refines) | self-calibrated (estimated by SfM)
+    camera: str = ""  # frames sharing one physical camera (device and image size), for SfM
 
 
 @dataclass(frozen=True)
@@ -95,6 +101,7 @@ class Capture:
                     "intrinsics": f.intrinsics.to_json(),
                     "pose": np.asarray(f.pose).tolist() if f.pose is not None else None,
                 }
+                | ({"calib": f.calib, "camera": f.camera} if f.calib != "given" else {})
                 for f in self.frames
             ],
         }
@@ -110,6 +117,8 @@ class Capture:
                 label=Path(f["label"]) if f.get("label") else None,
                 pose=np.asarray(f["pose"], np.float64) if f.get("pose") is not None else None,
                 instance=Path(f["instance"]) if f.get("instance") else None,
+                calib=f.get("calib", "given"),
+                camera=f.get("camera", ""),
             )
             for f in d["frames"]
         )
@@ -221,8 +230,9 @@ def _inside(root: Path, p: Path) -> Path:
     return p
 
 
-def read_layout(root: Path) -> Capture:
-    """Read a capture in the project's own layout (DESIGN.md)."""
+def read_layout(root: Path, guess: GuessIntrinsics | None = None) -> Capture:
+    """Read a capture in the project's own layout (DESIGN.md). Without intrinsics in
+    cameras.json, `guess` (when given) gives every image's from its file (EXIF or a prior)."""
     root = Path(root)
     img_dir = root / "images"
     if not img_dir.is_dir():
@@ -232,9 +242,9 @@ def read_layout(root: Path) -> Capture:
         raise BlunfError(f"{img_dir}: no .jpg or .png images")
     check_unique_stems([(p.stem, p) for p in images])
     where = str(root / "cameras.json")
-    if not (root / "cameras.json").exists():
+    if not (root / "cameras.json").exists() and guess is None:
         raise BlunfError(f"{where}: not found (it gives the camera intrinsics, see DESIGN.md)")
-    cams = read_json(root / "cameras.json")
+    cams = read_json(root / "cameras.json") if (root / "cameras.json").exists() else {}
     if not isinstance(cams, dict):
         raise BlunfError(f"{where}: must be a JSON object (intrinsics, frames, ...)")
     shared = cams.get("intrinsics")
@@ -242,6 +252,15 @@ def read_layout(root: Path) -> Capture:
     if not isinstance(per_frame, dict):
         raise BlunfError(f"{where}: 'frames' must map image stems to entries")
     frames = []
+    guessed = None
+    if (
+        guess is not None
+        and shared is None
+        and not any("intrinsics" in e for e in per_frame.values() if isinstance(e, dict))
+    ):
+        if any(isinstance(e, dict) and "pose" in e for e in per_frame.values()):
+            raise BlunfError(f"{where}: poses given but no intrinsics (give 'intrinsics' too)")
+        guessed = dict(zip(images, guess(images), strict=True))
     for img in images:
         _inside(root, img)
         stem = img.stem
@@ -249,12 +268,18 @@ def read_layout(root: Path) -> Capture:
         if not isinstance(entry, dict):
             raise BlunfError(f"{where}: the entry of frame {stem!r} must be an object")
         intr_d = entry.get("intrinsics", shared)
-        if intr_d is None:
+        if guessed is not None:
+            intr, calib, camera = guessed[img]
+        elif intr_d is None:
             raise BlunfError(
                 f"{where}: no intrinsics for {img.name} (give 'intrinsics' in cameras.json)"
             )
-        intr = Intrinsics.from_json(intr_d, f"{where} intrinsics of {stem}")
-        check_intrinsics(intr, f"{where} intrinsics" + ("" if intr_d is shared else f" of {stem}"))
+        else:
+            intr = Intrinsics.from_json(intr_d, f"{where} intrinsics of {stem}")
+            check_intrinsics(
+                intr, f"{where} intrinsics" + ("" if intr_d is shared else f" of {stem}")
+            )
+            calib, camera = "given", ""
         pose = entry.get("pose")
         pose_a = check_pose(pose, f"{where} pose of {stem}") if pose is not None else None
         depth = _find(root / "depth", stem, DEPTH_EXTS)
@@ -267,6 +292,8 @@ def read_layout(root: Path) -> Capture:
                 depth=_inside(root, depth) if depth else None,
                 label=_inside(root, label) if label else None,
                 pose=pose_a,
+                calib=calib,
+                camera=camera,
             )
         )
     has_pose = [f.pose is not None for f in frames]
@@ -323,7 +350,8 @@ def _unit(v: object, where: str) -> tuple[float, float, float]:
 def write_layout(cap: Capture, out: Path, with_poses: bool = True) -> Path:
     """Write a capture in the project's layout (copying files). Returns `out`.
 
-    Frames' intrinsics go to cameras.json (shared when all equal). Writes into a temp
+    Frames' intrinsics go to cameras.json (shared when all equal; left out when only guessed
+    from EXIF or a prior, which a reader makes again). Writes into a temp
     folder and renames it into place, so a failure leaves nothing half-written.
     """
     out = Path(out)
@@ -333,8 +361,9 @@ def write_layout(cap: Capture, out: Path, with_poses: bool = True) -> Path:
     shutil.rmtree(tmp, ignore_errors=True)
     (tmp / "images").mkdir(parents=True)
     intr = {f.intrinsics for f in cap.frames}
-    shared = len(intr) == 1
-    cams: dict = {"intrinsics": next(iter(intr)).to_json()} if shared else {}
+    known = all(f.calib in ("given", "self-calibrated") for f in cap.frames)  # else guesses,
+    shared = len(intr) == 1 or not known  # which a reader makes again from the images
+    cams: dict = {"intrinsics": next(iter(intr)).to_json()} if shared and known else {}
     cams["frames"] = {}
     for f in cap.frames:
         shutil.copyfile(f.image, tmp / "images" / f"{f.stem}{f.image.suffix.lower()}")

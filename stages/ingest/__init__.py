@@ -15,14 +15,15 @@ from pathlib import Path
 from stages.common.capture import Capture, read_layout, write_layout
 from stages.common.errors import BlunfError
 from stages.common.io import check_exists
-from stages.ingest import colmap, nerfstudio, replica, select, sevenscenes
+from stages.ingest import colmap, exif, nerfstudio, photos, replica, select, sevenscenes, video
 
 log = logging.getLogger(__name__)
 
 
 def _read_blunf(src: Path, work: Path) -> Capture:
-    """The project's own layout, read in place (`work` is not used)."""
-    return read_layout(src)
+    """The project's own layout, read in place (`work` is not used); without intrinsics in
+    cameras.json they come from the photos' EXIF or a prior, for SfM to refine."""
+    return read_layout(src, exif.guess_all)
 
 
 READERS: dict[str, Callable[[Path, Path], Capture]] = {
@@ -31,6 +32,8 @@ READERS: dict[str, Callable[[Path, Path], Capture]] = {
     "replica-vmap": replica.read,
     "nerfstudio": nerfstudio.read,
     "colmap": colmap.read,
+    "photos": photos.read,
+    "video": video.read,
 }
 
 IMPLS = {"auto": select.run}
@@ -41,6 +44,9 @@ def detect(src: Path) -> str:
     src = Path(src)
     if src.is_file() and src.suffix == ".json":
         return "nerfstudio"
+    if src.suffix.lower() in video.VIDEO_EXTS and not src.is_dir():
+        check_exists(src, "video file")
+        return "video"
     check_exists(src, "capture folder")
     if not src.is_dir():
         raise BlunfError(f"{src}: not a capture folder")
@@ -60,27 +66,35 @@ def detect(src: Path) -> str:
         return "colmap"  # a COLMAP project whose model is missing: its reader says so
     if (src / "images").is_dir():
         return "blunf"
-    raise BlunfError(f"{src}: not a known capture layout (known: {', '.join(READERS)})")
+    if photos.image_files(src):
+        return "photos"
+    raise BlunfError(
+        f"{src}: not a known capture layout (known: {', '.join(READERS)}) and no .jpg or "
+        f".png photos in it (a video: {', '.join(video.VIDEO_EXTS)})"
+    )
 
 
-def load(src: Path, work: Path, kind: str = "auto") -> Capture:
-    """Read the capture at src with the reader for `kind` ("auto" = detect it)."""
+def load(
+    src: Path, work: Path, kind: str = "auto", opts: video.VideoOptions | None = None
+) -> Capture:
+    """Read the capture at src with the reader for `kind` ("auto" = detect it); `opts`:
+    how a video's frames are taken."""
     src, work = Path(src), Path(work)
     if kind == "auto":
         kind = detect(src)
     if kind not in READERS:
         raise BlunfError(f"capture kind {kind!r} unknown (known: auto, {', '.join(READERS)})")
-    check_exists(src, "capture folder")
-    folder = src if src.is_dir() else src.parent
+    check_exists(src, "video file" if kind == "video" else "capture folder")
+    folder = src if src.is_dir() or kind == "video" else src.parent
     if work.resolve().is_relative_to(folder.resolve()):
         raise BlunfError(f"{work}: work folder inside the capture {src}, which is never written")
-    cap = READERS[kind](src, work)
+    cap = video.read(src, work, opts) if kind == "video" else READERS[kind](src, work)
     log.info("read %s capture %s: %d frames", kind, src, len(cap.frames))
     return cap
 
 
-def import_capture(kind: str, src: Path, out: Path) -> Path:
+def import_capture(kind: str, src: Path, out: Path, opts: video.VideoOptions | None = None) -> Path:
     """Read a capture of layout `kind` and write it in the project's layout at out."""
     with tempfile.TemporaryDirectory(prefix="blunf-import-") as tmp:
-        cap = load(src, Path(tmp), kind)
+        cap = load(src, Path(tmp), kind, opts)
         return write_layout(cap, Path(out))

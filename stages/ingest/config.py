@@ -11,4 +11,9 @@ class IngestConfig:
     kind: str = "auto"  # capture layout, a key of stages.ingest.READERS, or "auto" to detect
     frames: int = 0  # 0 = all; N = N views spread evenly, first and last included; 1 = middle
     max_side: int = 0  # 0 = keep; else downscale so the longer image side is <= this (pixels)
+    photo_max_side: int = 640  # photos without given intrinsics and video frames: longer side
+    #                            downscaled once to this working size (pixels; 0 = keep;
+    #                            max_side wins when set); their intrinsics scale with them
+    video_frames: int = 0  # video: frames kept, the sharpest of each of N equal windows;
+    #                        0 = by its length (2 a second, 20 to 100)
     check: str = "full"  # "full": decode every selected file; "quick": headers and paths only

@@ -25,11 +25,14 @@ from stages.common.io import (
     image_size,
     read_depth,
     read_image,
+    read_json,
     read_label,
     write_json,
     write_label_png,
 )
 from stages.ingest.config import IngestConfig
+from stages.ingest.photos import intrinsics_facts
+from stages.ingest.video import VideoOptions
 
 log = logging.getLogger(__name__)
 
@@ -75,8 +78,9 @@ def _check_config(cfg: IngestConfig) -> None:
         raise BlunfError(f"ingest.kind: {cfg.kind!r} unknown (known: auto, {', '.join(READERS)})")
     if cfg.frames < 0:
         raise BlunfError(f"ingest.frames: must be >= 0, got {cfg.frames}")
-    if cfg.max_side < 0:
-        raise BlunfError(f"ingest.max_side: must be >= 0, got {cfg.max_side}")
+    for name in ("max_side", "photo_max_side", "video_frames"):
+        if getattr(cfg, name) < 0:
+            raise BlunfError(f"ingest.{name}: must be >= 0, got {getattr(cfg, name)}")
     if cfg.check not in CHECKS:
         raise BlunfError(f"ingest.check: {cfg.check!r} unknown (use one of {CHECKS})")
 
@@ -221,7 +225,8 @@ def run(cfg: IngestConfig, inputs: IngestInputs, out: Path) -> IngestOutputs:
     out = Path(out)
     work = out / "import"
     t0 = time.perf_counter()
-    cap = load(Path(inputs.capture), work, cfg.kind)
+    side = cfg.max_side or cfg.photo_max_side
+    cap = load(Path(inputs.capture), work, cfg.kind, VideoOptions(cfg.video_frames, side))
     t_read = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -235,6 +240,13 @@ def run(cfg: IngestConfig, inputs: IngestInputs, out: Path) -> IngestOutputs:
     t0 = time.perf_counter()
     if cfg.max_side > 0:
         cap = cap.with_frames([resize_frame(f, cfg.max_side, out / "resized") for f in cap.frames])
+    elif cfg.photo_max_side > 0:  # photos without given intrinsics: to the working size
+        cap = cap.with_frames(
+            [
+                resize_frame(f, cfg.photo_max_side, out / "resized") if f.calib != "given" else f
+                for f in cap.frames
+            ]
+        )
     t_resize = time.perf_counter() - t0
 
     outputs = IngestOutputs.at(out)
@@ -254,7 +266,10 @@ def run(cfg: IngestConfig, inputs: IngestInputs, out: Path) -> IngestOutputs:
         "size": [f0.width, f0.height],
         "resized": (out / "resized").is_dir(),
         "seconds": {"read": t_read, "check": t_check, "resize": t_resize},
+        "intrinsics": intrinsics_facts(cap),
     }
+    if (work / "video" / "video.json").is_file():
+        facts["video"] = read_json(work / "video" / "video.json")
     write_json(out / "ingest.json", facts)
     log.info(
         "ingest: %d of %d frames (%s), %dx%d, depth=%s labels=%s poses=%s",

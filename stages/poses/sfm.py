@@ -21,6 +21,7 @@ from stages.common.camera import Intrinsics
 from stages.common.capture import Capture, Frame
 from stages.common.errors import BlunfError
 from stages.common.io import image_size, read_depth, write_depth_npy, write_json
+from stages.poses import calib
 from stages.poses import models as models_detail
 from stages.poses import scale as scale_mod
 from stages.poses.config import PosesConfig, PosesInputs, PosesOutputs
@@ -54,6 +55,8 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
     pycolmap.set_random_seed(cfg.seed)
     names = _link_images(cap.frames, img_dir)  # COLMAP image name of each frame
     facts: dict = {"impl": "sfm", "total": n, "threads": threads}
+    guessed = calib.unknown(cap.frames)  # intrinsics not given: SfM estimates them
+    refine = cfg.self_calibrate or guessed
 
     clock = [(time.perf_counter(), time.process_time())]  # (wall, CPU of all threads)
     with _colmap_log_level():
@@ -61,7 +64,7 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
         clock.append((time.perf_counter(), time.process_time()))
         facts["matching"], facts["matching_detail"] = _match(cfg, db, n, threads)
         clock.append((time.perf_counter(), time.process_time()))
-        recs = _map(cfg, db, img_dir, work / "models", threads)
+        recs = _map(cfg, db, img_dir, work / "models", threads, refine)
         clock.append((time.perf_counter(), time.process_time()))
     spans = list(zip(("extract", "match", "map"), clock[:-1], clock[1:], strict=True))
     facts["seconds"] = {k: b[0] - a[0] for k, a, b in spans}
@@ -92,9 +95,13 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
     if unregistered:
         log.warning("sfm: %d of %d images did not register: %s", n - k, n, unregistered)
     facts.update(registered=k, unregistered=unregistered)
-    if cfg.self_calibrate:
+    if refine:
         cams = sorted({rec.image(ids[names[i]]).camera_id for i in kept})
         facts["camera"]["estimated"] = [_intrinsics_of(rec.camera(c)).to_json() for c in cams]
+    if guessed:
+        facts["intrinsics"] = calib.report(rec, cap.frames, {i: ids[names[i]] for i in kept})
+    else:
+        facts["intrinsics"] = {"source": "self-calibrated" if refine else "given"}
 
     t4 = time.perf_counter()
     s, facts["scale_from"] = _scale(cfg, cap, rec, [ids[names[i]] for i in kept], kept)
@@ -111,12 +118,11 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
         im = rec.image(ids[names[i]])
         w2c = np.eye(4)
         w2c[:3] = im.cam_from_world().matrix()  # [3, 4]
-        intr = (
-            _intrinsics_of(rec.camera(im.camera_id))
-            if cfg.self_calibrate
-            else cap.frames[i].intrinsics
-        )
-        f = replace(cap.frames[i], pose=np.linalg.inv(w2c), intrinsics=intr)
+        f = replace(cap.frames[i], pose=np.linalg.inv(w2c))
+        if refine:
+            intr = _intrinsics_of(rec.camera(im.camera_id))
+            f = replace(f, intrinsics=intr, calib="self-calibrated")
+        intr = f.intrinsics
         if f.depth is None:  # photos only: the tracks' depths are all the depth there is
             sparse.mkdir(exist_ok=True)
             write_depth_npy(sparse / f"{f.stem}.npy", sparse_depth(rec, im, intr))
@@ -206,6 +212,9 @@ def _extract(
     eo.max_image_size = cfg.max_image_size
     eo.sift.max_num_features = cfg.max_features
     log.info("sfm: SIFT on %d images (%d threads)", len(frames), threads)
+    if calib.unknown(frames):
+        log.info("sfm: intrinsics not given: estimating them (%s)", SELF_CALIB_WARNING)
+        return calib.extract(frames, names, db, img_dir, eo) | {"warning": SELF_CALIB_WARNING}
     if cfg.self_calibrate:
         log.warning("sfm: %s", SELF_CALIB_WARNING)
         sizes = {image_size(f.image) for f in frames}
@@ -270,12 +279,13 @@ def _match(cfg: PosesConfig, db: Path, n: int, threads: int) -> tuple[str, str]:
 
 
 def _map(
-    cfg: PosesConfig, db: Path, img_dir: Path, models: Path, threads: int
+    cfg: PosesConfig, db: Path, img_dir: Path, models: Path, threads: int, refine: bool
 ) -> list[pycolmap.Reconstruction]:
-    """Run the chosen mapper; returns every model it made (possibly none)."""
+    """Run the chosen mapper; returns every model it made (possibly none). refine: estimate
+    the focal length and distortion too."""
     models.mkdir(parents=True)
     log.info("sfm: %s mapping", cfg.mapper)
-    fixed = not cfg.self_calibrate
+    fixed = not refine
     if cfg.mapper == "incremental":
         o = pycolmap.IncrementalPipelineOptions()
         o.num_threads = threads

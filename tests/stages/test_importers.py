@@ -326,7 +326,10 @@ def test_detect(tmp_path):
     assert detect(tmp_path / "blunf") == "blunf"
     (tmp_path / "odd").mkdir()
     (tmp_path / "odd" / "notes.txt").write_text("?")
-    msg = "not a known capture layout .known: blunf, 7scenes, replica-vmap, nerfstudio, colmap"
+    msg = (
+        "not a known capture layout .known: blunf, 7scenes, replica-vmap, nerfstudio, colmap, "
+        r"photos, video\) and no .jpg or .png photos in it"
+    )
     with pytest.raises(BlunfError, match=msg):
         detect(tmp_path / "odd")
     with pytest.raises(BlunfError, match="capture kind 'kinect' unknown"):
