@@ -1,0 +1,226 @@
+"""`blunf batch` on Dask: the same plans as runs one by one, whatever happens to a worker.
+
+Every batch here is a real `python -m pipeline batch` process (a LocalCluster of single-thread
+workers, or a scheduler and workers started as their own processes on 127.0.0.1); each test
+stops every process it starts. The reference is each capture run alone in this process, as
+`blunf run` does it, with one thread.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from pipeline.cli import main
+
+ROOT = Path(__file__).resolve().parents[2]
+RUN = [
+    "--config",
+    str(ROOT / "configs" / "fast.yaml"),
+    "--set",
+    "blueprint.blunf.steps=60",
+    "--set",
+    "blueprint.blunf.batch=4096",
+    "--set",
+    "fusion.voxel=0.05",
+]
+SCENES = ("room1", "room2", "room3")
+ENV = {**os.environ, "PYTHONPATH": str(ROOT), "BLUNF_THREADS": "1", "OMP_NUM_THREADS": "1"}
+
+
+@pytest.fixture(scope="module")
+def rooms(tmp_path_factory) -> dict[str, Path]:
+    """Three 6-view 64x48 rooms and a copy of the first with a corrupt image."""
+    from stages.synth import make_room
+
+    base = tmp_path_factory.mktemp("batch")
+    caps = {
+        s: make_room(base / s, views=6, seed=i + 1, size=(64, 48)) for i, s in enumerate(SCENES)
+    }
+    bad = base / "corrupt"
+    shutil.copytree(caps["room1"], bad)
+    (bad / "images" / "0002.png").write_bytes(b"\x89PNG\r\n\x1a\n not an image")
+    caps["corrupt"] = bad
+    return caps
+
+
+@pytest.fixture(scope="module")
+def alone(rooms, tmp_path_factory) -> dict[str, bytes]:
+    """blueprint.npz of each good room run alone (`blunf run`, one thread)."""
+    out = tmp_path_factory.mktemp("alone")
+    res = {}
+    for s in SCENES:
+        assert main(["run", str(rooms[s]), "--out", str(out / s), *RUN]) == 0
+        res[s] = (out / s / "blueprint.npz").read_bytes()
+    return res
+
+
+def start(args: list[str], **kw) -> subprocess.Popen:
+    """A process in its own group (so that teardown reaches its children too)."""
+    return subprocess.Popen(
+        args,
+        cwd=ROOT,
+        env=ENV,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        **kw,
+    )
+
+
+@pytest.fixture
+def procs():
+    """Processes a test starts: terminated (then killed) with their groups at the end."""
+    started: list[subprocess.Popen] = []
+    yield started
+    for p in reversed(started):
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGTERM)
+            try:
+                p.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                os.killpg(p.pid, signal.SIGKILL)
+                p.wait(timeout=15)
+
+
+def batch_cmd(caps: list[Path], out: Path, *extra: str) -> list[str]:
+    return [
+        sys.executable,
+        "-m",
+        "pipeline",
+        "batch",
+        *map(str, caps),
+        "--out",
+        str(out),
+        "--dashboard",
+        "none",
+        *extra,
+        *RUN,
+    ]
+
+
+def finish(p: subprocess.Popen, timeout: float = 240) -> tuple[int, str]:
+    try:
+        _, err = p.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(p.pid, signal.SIGKILL)
+        _, err = p.communicate()
+        raise AssertionError(f"the batch did not finish in {timeout} s:\n{err[-3000:]}") from None
+    return p.returncode, err
+
+
+def assert_same(out: Path, alone: dict[str, bytes], scenes=SCENES) -> None:
+    for s in scenes:
+        got = (out / s / "blueprint.npz").read_bytes()
+        assert got == alone[s], f"{s}: the batch's blueprint.npz differs from the run alone"
+        leftovers = list((out / s).glob("*/.tmp-*"))
+        assert not leftovers, f"{s}: temp folders left: {leftovers}"
+        for entry in (out / s).glob("*/*"):
+            if entry.is_dir() and not entry.name.startswith("."):
+                assert (entry / "meta.json").is_file(), f"{entry}: a cache entry without meta"
+
+
+def summary(out: Path) -> dict[str, dict]:
+    with open(out / "summary.csv") as f:
+        return {r["scene"]: r for r in csv.DictReader(f)}
+
+
+@pytest.fixture(scope="module")
+def local_batch(rooms, tmp_path_factory) -> tuple[Path, int, str]:
+    """The three rooms and the corrupt one on a LocalCluster of 2 single-thread workers."""
+    out = tmp_path_factory.mktemp("local") / "batch"
+    caps = [rooms[s] for s in (*SCENES, "corrupt")]
+    p = start(batch_cmd(caps, out, "--workers", "2"))
+    try:
+        rc, err = finish(p)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+    return out, rc, err
+
+
+def test_local_cluster_gives_the_plans_of_runs_alone(local_batch, alone):
+    out, rc, err = local_batch
+    assert rc == 1, err[-3000:]  # one capture failed
+    assert "local cluster of 2 workers" in err
+    assert_same(out, alone)
+    facts = json.loads((out / "batch.json").read_text())
+    assert facts["ok"] == 3 and facts["failed"] == 1
+    assert facts["wall_seconds"] > 0 and facts["speedup"] > 0
+    workers = {o["worker"] for o in facts["outcomes"] if o["ok"]}
+    assert len(workers) == 2, f"both workers should have run captures: {workers}"
+    assert "speedup" in (out / "index.html").read_text()
+
+
+def test_corrupt_capture_is_reported_and_the_others_finish(local_batch):
+    out, _, _ = local_batch
+    rows = summary(out)
+    assert [rows[s]["ok"] for s in SCENES] == ["True"] * 3
+    bad = rows["corrupt"]
+    assert bad["ok"] == "False"
+    assert "0002.png" in bad["error"] and "\n" not in bad["error"], bad["error"]
+    assert "blunf: error:" in (out / "corrupt.log").read_text()
+
+
+def test_worker_killed_mid_capture(rooms, alone, tmp_path, procs):
+    out = tmp_path / "batch"
+    scenes = ("room1", "room2")
+    p = start(batch_cmd([rooms[s] for s in scenes], out, "--workers", "2"))
+    procs.append(p)
+    victim = None
+    t0 = time.monotonic()
+    while victim is None and time.monotonic() - t0 < 180 and p.poll() is None:
+        for s in scenes:  # stages that last long enough (> 1 s here) to be caught running
+            for stage in ("fusion", "blueprint", "export"):
+                tmp = sorted((out / s / stage).glob(".tmp-*"))
+                if tmp:
+                    victim = (s, int(tmp[0].name.rsplit("-", 1)[-1]))
+                    os.kill(victim[1], signal.SIGKILL)
+                    break
+            if victim:
+                break
+        time.sleep(0.02)
+    assert victim is not None, "no capture was seen running a stage"
+    rc, err = finish(p)
+    assert rc == 0, err[-3000:]
+    assert_same(out, alone, scenes)
+    scene, pid = victim
+    attempts = (out / f"{scene}.log").read_text().count("batch: ")
+    assert attempts >= 2, f"{scene}: the killed capture was not run again"
+    outcome = {o["scene"]: o for o in json.loads((out / "batch.json").read_text())["outcomes"]}
+    assert not outcome[scene]["worker"].endswith(f":{pid}")
+
+
+def test_scheduler_and_workers_as_processes(rooms, alone, tmp_path, procs):
+    dask = str(Path(sys.executable).parent / "dask")
+    sched_file = tmp_path / "scheduler.json"
+    common = ["--no-dashboard", "--host", "127.0.0.1"]
+    procs.append(start([dask, "scheduler", "--scheduler-file", str(sched_file), *common]))
+    t0 = time.monotonic()
+    while not sched_file.is_file() and time.monotonic() - t0 < 60:
+        assert procs[0].poll() is None, procs[0].stderr.read()
+        time.sleep(0.1)
+    address = json.loads(sched_file.read_text())["address"]
+    assert address.startswith("tcp://127.0.0.1:")
+    for _ in range(2):
+        w = [dask, "worker", "--scheduler-file", str(sched_file), "--nthreads", "1", *common]
+        procs.append(start(w))
+    out = tmp_path / "batch"
+    scenes = ("room2", "room3")
+    p = start(batch_cmd([rooms[s] for s in scenes], out, "--scheduler", address))
+    procs.append(p)
+    rc, err = finish(p)
+    assert rc == 0, err[-3000:]
+    assert address in err
+    assert_same(out, alone, scenes)
+    assert all(summary(out)[s]["ok"] == "True" for s in scenes)
