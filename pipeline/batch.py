@@ -221,7 +221,8 @@ def _drive(client, jobs: list[Job], opts: BatchOptions) -> list[Outcome]:
         for j in jobs
     }
     results: dict[str, Outcome] = {}
-    last, shown, seen = 0.0, "", {}
+    last, shown = 0.0, ""
+    seen: dict[str, str] = {}
     try:
         while len(results) < len(futs):
             for f, j in futs.items():

@@ -64,7 +64,7 @@ def alone(rooms, tmp_path_factory) -> dict[str, bytes]:
     return res
 
 
-def start(args: list[str], **kw) -> subprocess.Popen:
+def start(args: list[str]) -> subprocess.Popen:
     """A process in its own group (so that teardown reaches its children too)."""
     return subprocess.Popen(
         args,
@@ -74,8 +74,30 @@ def start(args: list[str], **kw) -> subprocess.Popen:
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,
-        **kw,
+        # a session started in the background inherits SIGINT ignored: give the default back
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
+
+
+def wait_for_stage(p: subprocess.Popen, out: Path, scenes, timeout: float = 180) -> tuple:
+    """(scene, pid) of the first worker seen running a stage that lasts > 1 s here."""
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout and p.poll() is None:
+        for s in scenes:
+            for stage in ("fusion", "blueprint", "export"):
+                tmp = sorted((out / s / stage).glob(".tmp-*"))
+                if tmp:
+                    return s, int(tmp[0].name.rsplit("-", 1)[-1])
+        time.sleep(0.02)
+    raise AssertionError(f"no capture was seen running a stage ({p.poll()})")
+
+
+def alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
 
 
 @pytest.fixture
@@ -172,35 +194,24 @@ def test_corrupt_capture_is_reported_and_the_others_finish(local_batch):
     assert "blunf: error:" in (out / "corrupt.log").read_text()
 
 
+@pytest.mark.slow
 def test_worker_killed_mid_capture(rooms, alone, tmp_path, procs):
     out = tmp_path / "batch"
     scenes = ("room1", "room2")
     p = start(batch_cmd([rooms[s] for s in scenes], out, "--workers", "2"))
     procs.append(p)
-    victim = None
-    t0 = time.monotonic()
-    while victim is None and time.monotonic() - t0 < 180 and p.poll() is None:
-        for s in scenes:  # stages that last long enough (> 1 s here) to be caught running
-            for stage in ("fusion", "blueprint", "export"):
-                tmp = sorted((out / s / stage).glob(".tmp-*"))
-                if tmp:
-                    victim = (s, int(tmp[0].name.rsplit("-", 1)[-1]))
-                    os.kill(victim[1], signal.SIGKILL)
-                    break
-            if victim:
-                break
-        time.sleep(0.02)
-    assert victim is not None, "no capture was seen running a stage"
+    scene, pid = wait_for_stage(p, out, scenes)
+    os.kill(pid, signal.SIGKILL)  # the worker process, mid-stage
     rc, err = finish(p)
     assert rc == 0, err[-3000:]
     assert_same(out, alone, scenes)
-    scene, pid = victim
     attempts = (out / f"{scene}.log").read_text().count("batch: ")
     assert attempts >= 2, f"{scene}: the killed capture was not run again"
     outcome = {o["scene"]: o for o in json.loads((out / "batch.json").read_text())["outcomes"]}
     assert not outcome[scene]["worker"].endswith(f":{pid}")
 
 
+@pytest.mark.slow
 def test_scheduler_and_workers_as_processes(rooms, alone, tmp_path, procs):
     dask = str(Path(sys.executable).parent / "dask")
     sched_file = tmp_path / "scheduler.json"
@@ -224,3 +235,27 @@ def test_scheduler_and_workers_as_processes(rooms, alone, tmp_path, procs):
     assert address in err
     assert_same(out, alone, scenes)
     assert all(summary(out)[s]["ok"] == "True" for s in scenes)
+
+
+@pytest.mark.slow
+def test_ctrl_c_stops_the_batch_and_leaves_the_cache_consistent(rooms, alone, tmp_path, procs):
+    out = tmp_path / "batch"
+    p = start(batch_cmd([rooms["room3"]], out))
+    procs.append(p)
+    _, pid = wait_for_stage(p, out, ["room3"])
+    p.send_signal(signal.SIGINT)
+    rc, err = finish(p, timeout=60)
+    assert rc == 130, err[-3000:]
+    assert summary(out)["room3"]["error"] == "interrupted"
+    t0 = time.monotonic()
+    while alive(pid) and time.monotonic() - t0 < 10:
+        time.sleep(0.1)
+    assert not alive(pid), "the worker outlived its batch"
+    for entry in (out / "room3").glob("*/*"):  # what is under a key is complete
+        if entry.is_dir() and not entry.name.startswith("."):
+            assert (entry / "meta.json").is_file(), f"{entry}: a cache entry without meta"
+    p = start(batch_cmd([rooms["room3"]], out))  # and the next batch picks up from there
+    procs.append(p)
+    rc, err = finish(p)
+    assert rc == 0, err[-3000:]
+    assert_same(out, alone, ["room3"])
