@@ -240,9 +240,10 @@ def _drive(client, jobs: list[Job], opts: BatchOptions) -> list[Outcome]:
                     log.info("batch: %s done in %.1f s on %s", scene, r.seconds, r.worker)
                 else:
                     log.warning("batch: %s failed: %s", scene, r.error)
-            line = _progress(client, jobs, results, seen)
-            if line != shown and time.monotonic() - last >= opts.progress_every:
-                log.info("batch: %s", line)
+            if time.monotonic() - last >= opts.progress_every:
+                line = _progress(client, jobs, results, seen)
+                if line != shown:
+                    log.info("batch: %s", line)
                 shown, last = line, time.monotonic()
             time.sleep(0.2)
     except KeyboardInterrupt:

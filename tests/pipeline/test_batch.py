@@ -259,3 +259,19 @@ def test_ctrl_c_stops_the_batch_and_leaves_the_cache_consistent(rooms, alone, tm
     rc, err = finish(p)
     assert rc == 0, err[-3000:]
     assert_same(out, alone, ["room3"])
+
+
+def test_bad_arguments_fail_before_any_cluster(rooms, tmp_path, capsys):
+    out = tmp_path / "batch"
+    twin = tmp_path / "twin" / "room1"
+    shutil.copytree(rooms["room1"], twin)
+    cases = {
+        "missing": ([str(tmp_path / "nowhere")], "nowhere: capture folder not found"),
+        "twins": ([str(rooms["room1"]), str(twin)], "a second capture named 'room1'"),
+        "bad set": ([str(rooms["room1"]), "--set", "fusion.nope=1"], "fusion.nope"),
+    }
+    for name, (args, msg) in cases.items():
+        assert main(["batch", *args, "--out", str(out)]) == 2, name
+        err = capsys.readouterr().err
+        assert msg in err and err.count("\n") == 1, f"{name}: {err}"
+    assert not out.exists(), "nothing is made before the batch starts"
