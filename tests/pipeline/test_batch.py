@@ -162,7 +162,7 @@ def local_batch(rooms, tmp_path_factory) -> tuple[Path, int, str]:
     """The three rooms and the corrupt one on a LocalCluster of 2 single-thread workers."""
     out = tmp_path_factory.mktemp("local") / "batch"
     caps = [rooms[s] for s in (*SCENES, "corrupt")]
-    p = start(batch_cmd(caps, out, "--workers", "2"))
+    p = start(batch_cmd(caps, out, "--workers", "2", "--dashboard", "127.0.0.1:0"))
     try:
         rc, err = finish(p)
     finally:
@@ -175,6 +175,8 @@ def test_local_cluster_gives_the_plans_of_runs_alone(local_batch, alone):
     out, rc, err = local_batch
     assert rc == 1, err[-3000:]  # one capture failed
     assert "local cluster of 2 workers" in err
+    assert "Dask dashboard http://127.0.0.1:" in err
+    assert "running (room" in err, "no progress line named a running capture"
     assert_same(out, alone)
     facts = json.loads((out / "batch.json").read_text())
     assert facts["ok"] == 3 and facts["failed"] == 1
