@@ -114,7 +114,8 @@ def batch(captures: list[Path], opts: BatchOptions) -> dict:
     from distributed import Client, LocalCluster
 
     opts.out.mkdir(parents=True, exist_ok=True)
-    if logging.getLogger().getEffectiveLevel() > logging.DEBUG:  # Dask's chatter: with -v only
+    quiet = logging.getLogger().getEffectiveLevel() > logging.DEBUG  # Dask's chatter: with -v
+    if quiet:
         logging.getLogger("distributed").setLevel(logging.WARNING)
     cluster = None
     t0 = time.perf_counter()
@@ -136,6 +137,9 @@ def batch(captures: list[Path], opts: BatchOptions) -> dict:
     finally:
         client.close()
         if cluster is not None:
+            if quiet:  # a worker that imported torch outlives the nanny's 4 s wait and is killed:
+                # harmless once its tasks are over (every stage committed or cut short in a temp)
+                logging.getLogger("distributed.nanny").setLevel(logging.ERROR)
             cluster.close()
     wall = time.perf_counter() - t0
     return _finish(opts, outcomes, wall)
