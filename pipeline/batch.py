@@ -28,6 +28,7 @@ from pathlib import Path
 from pipeline.config import Config, load_config
 from pipeline.summary import summarise
 from stages.common.errors import BlunfError
+from stages.common.io import check_exists
 
 log = logging.getLogger(__name__)
 
@@ -160,8 +161,7 @@ def _jobs(captures: list[Path], opts: BatchOptions) -> list[Job]:
     seen: dict[str, Path] = {}
     jobs = []
     for c in captures:
-        if not c.exists():
-            raise BlunfError(f"{c}: capture folder not found")
+        check_exists(c, "capture folder")
         name = c.resolve().name
         if name in seen:
             raise BlunfError(f"{c}: a second capture named {name!r} (first: {seen[name]})")

@@ -147,7 +147,17 @@ def assert_same(out: Path, alone: dict[str, bytes], scenes=SCENES) -> None:
         assert got == alone[s], f"{s}: the batch's blueprint.npz differs from the run alone"
         leftovers = list((out / s).glob("*/.tmp-*"))
         assert not leftovers, f"{s}: temp folders left: {leftovers}"
-        for entry in (out / s).glob("*/*"):
+        assert_entries_complete(out / s)
+
+
+def assert_entries_complete(run: Path) -> None:
+    """Every cache entry `<stage>/<key>/` of a run folder holds its meta.json (the published
+    outputs, `.runs/` and the links to them, are not cache entries)."""
+    stages = [p for p in run.iterdir() if p.is_dir() and not p.is_symlink()]
+    for stage in stages:
+        if stage.name.startswith(".") or stage.name == "edits":
+            continue
+        for entry in stage.iterdir():
             if entry.is_dir() and not entry.name.startswith("."):
                 assert (entry / "meta.json").is_file(), f"{entry}: a cache entry without meta"
 
@@ -253,9 +263,7 @@ def test_ctrl_c_stops_the_batch_and_leaves_the_cache_consistent(rooms, alone, tm
     while alive(pid) and time.monotonic() - t0 < 10:
         time.sleep(0.1)
     assert not alive(pid), "the worker outlived its batch"
-    for entry in (out / "room3").glob("*/*"):  # what is under a key is complete
-        if entry.is_dir() and not entry.name.startswith("."):
-            assert (entry / "meta.json").is_file(), f"{entry}: a cache entry without meta"
+    assert_entries_complete(out / "room3")  # what is under a key is complete
     p = start(batch_cmd([rooms["room3"]], out))  # and the next batch picks up from there
     procs.append(p)
     rc, err = finish(p)
