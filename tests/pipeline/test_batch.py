@@ -217,7 +217,7 @@ def test_worker_killed_mid_capture(rooms, alone, tmp_path, procs):
     rc, err = finish(p)
     assert rc == 0, err[-3000:]
     assert_same(out, alone, scenes)
-    attempts = (out / f"{scene}.log").read_text().count("batch: ")
+    attempts = (out / f"{scene}.log").read_text().count(" on worker ")
     assert attempts >= 2, f"{scene}: the killed capture was not run again"
     outcome = {o["scene"]: o for o in json.loads((out / "batch.json").read_text())["outcomes"]}
     assert not outcome[scene]["worker"].endswith(f":{pid}")
