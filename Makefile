@@ -72,24 +72,16 @@ bench: setup  ## the full grid, 3 repeats (~1 h idle, 89 min measured on a loade
 bench-quick: setup  ## a small grid, 1 repeat (< 10 min): runs/bench-quick/
 	$(BIN)/blunf bench --quick --out runs/bench-quick
 
-# make batch CAPTURES="a b c" JOBS=2: one run per capture (1 thread each), per-scene logs,
-# then runs/batch/summary.csv and index.html. A failed capture does not stop the others.
+# make batch CAPTURES="a b c" JOBS=2: `blunf batch` on a local Dask cluster of JOBS workers (one
+# thread each): runs/batch/<scene>/, <scene>.log, summary.csv, index.html, batch.json. A failed
+# capture does not stop the others. RUNARGS: run options, e.g. RUNARGS="--config configs/fast.yaml".
 CAPTURES ?=
 JOBS    ?= 2
 BATCH   ?= runs/batch
-define RUN_ONE
-$(BATCH)/$(notdir $(1))/report.json: FORCE | setup
-	@mkdir -p $(BATCH)
-	@echo "run $(1) -> $(BATCH)/$(notdir $(1)) (log: $(BATCH)/$(notdir $(1)).log)"
-	@BLUNF_THREADS=1 $(BIN)/blunf run $(1) --out $(BATCH)/$(notdir $(1)) $(RUNARGS) \
-	  > $(BATCH)/$(notdir $(1)).log 2>&1 || (tail -n 1 $(BATCH)/$(notdir $(1)).log; exit 1)
-endef
-$(foreach c,$(CAPTURES),$(eval $(call RUN_ONE,$(c))))
 
 batch: setup
 	@test -n "$(CAPTURES)" || (echo 'usage: make batch CAPTURES="capA capB" [JOBS=2]'; exit 2)
-	-$(MAKE) -k -j$(JOBS) $(foreach c,$(CAPTURES),$(BATCH)/$(notdir $(c))/report.json)
-	$(PYTHON) -m pipeline.summary $(BATCH)
+	$(BIN)/blunf batch $(CAPTURES) --out $(BATCH) --workers $(JOBS) $(RUNARGS)
 
 FORCE:
 

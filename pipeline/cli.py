@@ -1,4 +1,4 @@
-"""`blunf` / `python -m pipeline`: run, synth, bench, import, clean.
+"""`blunf` / `python -m pipeline`: run, synth, batch, bench, import, clean.
 
 User errors (BlunfError, a bad argument, a missing file) end with one line naming the file or
 value at fault and exit status 2; nothing half-written is left in the cache.
@@ -73,6 +73,17 @@ def parser() -> argparse.ArgumentParser:
     b.add_argument("--quick", action="store_true", help="a small grid (minutes)")
     b.add_argument("--repeats", type=_positive, help="runs per variant (default 1 quick, 3 full)")
     b.add_argument("--threads", type=_positive, default=1, help="CPU threads a run (default 1)")
+
+    a = sub.add_parser("batch", help="run many captures as Dask tasks (local or a cluster)")
+    a.add_argument("captures", nargs="+", type=Path, metavar="CAPTURE")
+    a.add_argument("--out", type=Path, required=True, help="batch folder: OUT/<scene>/ per run")
+    a.add_argument("--scheduler", metavar="ADDRESS", help="tcp://host:8786 of a running cluster")
+    a.add_argument("--workers", type=_positive, help="local worker processes (default: cores)")
+    a.add_argument("--threads-per-worker", type=_positive, default=1, metavar="T")
+    a.add_argument("--dashboard", default="127.0.0.1:8787", help="local dashboard; 'none': off")
+    a.add_argument("--config", type=Path, help="YAML overriding the defaults (configs/*.yaml)")
+    a.add_argument("--set", dest="sets", action="append", default=[], metavar="STAGE.KEY=VALUE")
+    a.add_argument("--edits", type=Path, help="edit spec (YAML), for every capture")
 
     i = sub.add_parser("import", help="convert another layout into a blunf capture")
     i.add_argument("kind", help="7scenes, replica-vmap, colmap, nerfstudio, photos, video")
@@ -188,6 +199,22 @@ def _dispatch(args: argparse.Namespace) -> int:
         opts = VideoOptions(args.frames or 0, args.max_side or 0)
         print(import_capture(args.kind, args.src, args.out, opts))
         return 0
+    if args.cmd == "batch":
+        from pipeline.batch import BatchOptions, batch
+
+        opts = BatchOptions(
+            out=args.out,
+            scheduler=args.scheduler,
+            workers=args.workers or 0,
+            threads_per_worker=args.threads_per_worker,
+            config=args.config,
+            sets=tuple(args.sets),
+            edits=args.edits,
+            dashboard=None if args.dashboard.lower() == "none" else args.dashboard,
+        )
+        facts = batch(list(args.captures), opts)
+        print(json.dumps({k: v for k, v in facts.items() if k != "outcomes"}, indent=1))
+        return 0 if facts["failed"] == 0 else 1
     if args.cmd == "bench":
         from pipeline.bench import bench
 

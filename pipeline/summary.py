@@ -20,6 +20,7 @@ COLUMNS = [
     "mvr_fwiou",
     "ate_rmse_m",
     "components",
+    "error",
     "log",
 ]
 
@@ -51,10 +52,18 @@ def row(run: Path) -> dict:
     return r
 
 
-def summarise(runs_dir: Path) -> tuple[Path, Path]:
+def summarise(
+    runs_dir: Path, errors: dict[str, str] | None = None, scenes: list[str] | None = None
+) -> tuple[Path, Path]:
+    """summary.csv and index.html over the run folders in `runs_dir` and `scenes` (runs that
+    may have failed before making their folder); `errors`: scene -> its one-line error."""
     runs_dir = Path(runs_dir)
-    runs = sorted(p for p in runs_dir.iterdir() if p.is_dir() and not p.name.startswith("."))
-    rows = [row(p) for p in runs]
+    errors = errors or {}
+    names = {p.name for p in runs_dir.iterdir() if p.is_dir() and not p.name.startswith(".")}
+    rows = [row(runs_dir / n) for n in sorted(names | set(scenes or ()))]
+    for r in rows:
+        if r["scene"] in errors:  # this batch's word beats a report left by an earlier run
+            r.update(ok=False, error=errors[r["scene"]])
     csv_path, html_path = runs_dir / "summary.csv", runs_dir / "index.html"
     with open(csv_path, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=COLUMNS)
