@@ -1,0 +1,60 @@
+"""Layout stage, `walls`: the architectural plan read off the blueprint (plan.py), written as
+plan.json, plan.svg and plan.dxf (draw.py)."""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from stages.common.blueprint import Blueprint
+from stages.common.errors import BlunfError
+from stages.common.io import write_json
+from stages.layout.config import LayoutConfig, LayoutInputs, LayoutOutputs
+from stages.layout.draw import write_dxf, write_svg
+from stages.layout.plan import architecture, objects
+
+log = logging.getLogger(__name__)
+
+
+def build_plan(bp: Blueprint, cfg: LayoutConfig, mesh: Path | None = None) -> dict:
+    """plan.json's content: rooms, walls, openings and objects of the blueprint."""
+    verts = None
+    if mesh is not None:
+        try:
+            m = trimesh.load(mesh, process=False, force="mesh")
+            verts = np.asarray(m.vertices)  # type: ignore[attr-defined]
+        except (OSError, ValueError) as e:
+            raise BlunfError(f"{mesh}: cannot read the mesh ({e})") from None
+    plan = architecture(bp, cfg)
+    plan["objects"] = objects(bp, cfg, verts)
+    return plan
+
+
+def write_plan(plan: dict, outs: LayoutOutputs, title: str = "") -> None:
+    """The plan's three files (export may call this again after an edit)."""
+    write_json(outs.plan_json, plan)
+    write_svg(plan, outs.plan_svg, title)
+    write_dxf(plan, outs.plan_dxf)
+
+
+def run(cfg: LayoutConfig, inputs: LayoutInputs, out: Path) -> LayoutOutputs:
+    """Rooms, walls, openings and object footprints of the blueprint, as vectors in metres."""
+    t0 = time.perf_counter()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    plan = build_plan(Blueprint.load(inputs.blueprint), cfg, inputs.mesh)
+    outs = LayoutOutputs.at(out)
+    write_plan(plan, outs)
+    log.info(
+        "layout: %d rooms, %d walls, %d openings, %d objects in %.2f s",
+        len(plan["rooms"]),
+        len(plan["walls"]),
+        len(plan["openings"]),
+        len(plan["objects"]),
+        time.perf_counter() - t0,
+    )
+    return outs
