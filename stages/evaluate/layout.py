@@ -28,8 +28,8 @@ def interior_angles(poly: np.ndarray) -> np.ndarray:
     """Interior angle (degrees) at each vertex of a counter-clockwise polygon [N, 2]."""
     a = np.roll(poly, 1, axis=0) - poly
     b = np.roll(poly, -1, axis=0) - poly
-    ang = np.degrees(np.arctan2(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0], (a * b).sum(1)))
-    return ang % 360  # angle from the next edge round to the previous one, inside on the left
+    ang = np.degrees(np.arctan2(b[:, 0] * a[:, 1] - b[:, 1] * a[:, 0], (a * b).sum(1)))
+    return ang % 360  # counter-clockwise from the next edge to the previous one: the inside
 
 
 def _ccw(poly: np.ndarray) -> np.ndarray:

@@ -22,8 +22,9 @@ class LayoutConfig:
     #                         that direction; others keep their own (free) angle
     min_room_area: float = 1.0  # m²: a closed space smaller than this is no room
     min_object_area: float = 0.02  # m²: smaller object footprints are left out
-    box_fill: float = 0.8  # an object filling this share of its oriented rectangle is drawn
-    #                        as the rectangle, otherwise as its outline polygon
+    box_slack: float = 0.15  # an object leaving less than this share of its oriented
+    #                          rectangle empty is drawn as the rectangle, otherwise as its
+    #                          outline (a round plant leaves 21 %)
     default_thickness: float = 0.1  # metres: a wall whose thickness the plan does not show
 
     def __post_init__(self) -> None:
@@ -32,8 +33,8 @@ class LayoutConfig:
                 raise BlunfError(f"layout.{name}: must be > 0, got {getattr(self, name)}")
         if not 0 <= self.snap_deg < 45:
             raise BlunfError(f"layout.snap_deg: must be in [0, 45), got {self.snap_deg}")
-        if not 0 < self.box_fill <= 1:
-            raise BlunfError(f"layout.box_fill: must be in (0, 1], got {self.box_fill}")
+        if not 0 <= self.box_slack < 1:
+            raise BlunfError(f"layout.box_slack: must be in [0, 1), got {self.box_slack}")
         for name in ("min_room_area", "min_object_area"):
             if not getattr(self, name) >= 0:
                 raise BlunfError(f"layout.{name}: must be >= 0, got {getattr(self, name)}")

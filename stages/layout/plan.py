@@ -65,7 +65,11 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
     for k in np.argsort(-area):
         if area[k] < cfg.min_room_area:
             break
-        poly = outline(ndi.binary_fill_holes(region == k + 1), fr, cfg)
+        # the closing also fills the notches of a ragged wall face: one cell back, up to the
+        # wall cells themselves (measured: 1 cm inward on each side of a room 23 deg off axis)
+        mask = ndi.binary_fill_holes(region == k + 1)
+        mask |= ndi.binary_dilation(mask) & ~wall & (fr.labels != UNKNOWN)
+        poly = outline(mask, fr, cfg)
         if poly is None:
             continue
         ri = len(out["rooms"])
@@ -113,8 +117,10 @@ def _openings(
             t, s = (xy - a) @ d, (xy - a) @ nrm  # along the face, behind it
             depth = walls[wi]["thickness"] + 2 * cell
             on = (t > -cell) & (t < np.linalg.norm(b - a) + cell) & (s > -cell) & (s < depth)
-            if on.mean() > 0.5 and (best is None or on.mean() > best[0]):
-                best = (on.mean(), wi, a, d, t)
+            # the width is read in the wall's middle (the faces may be ragged off the axes)
+            mid = on & (np.abs(s - walls[wi]["thickness"] / 2) <= walls[wi]["thickness"] / 4)
+            if on.mean() > 0.5 and mid.any() and (best is None or on.mean() > best[0]):
+                best = (on.mean(), wi, a, d, t[mid])
         if best is None:
             continue
         _, wi, a, d, t = best
@@ -162,7 +168,7 @@ def objects(bp: Blueprint, cfg: LayoutConfig, verts: np.ndarray | None) -> list[
         )
         ang = math.degrees(math.atan2(major[1], major[0]))
         ang = (ang + 90) % 180 - 90
-        box_like = m.sum() * cell**2 >= cfg.box_fill * rect.area
+        box_like = m.sum() * cell**2 >= (1 - cfg.box_slack) * rect.area
         shape = rect if box_like else hull.simplify(cell)
         height = None
         if verts is not None:
