@@ -176,6 +176,8 @@ def test_l_shaped_room_and_two_rooms_meet_the_targets(angle):
         assert s["corner_f1"] == 1.0 and s["angle_f1"] == 1.0, s
         assert len(plan["rooms"]) == len(rooms)
         for r, g in zip(
-            sorted(plan["rooms"], key=lambda r: r["area"]), sorted(rooms, key=lambda r: r.area)
+            sorted(plan["rooms"], key=lambda r: r["area"]),
+            sorted(rooms, key=lambda r: r.area),
+            strict=True,
         ):
             assert r["area"] == pytest.approx(g.area, rel=0.01)
