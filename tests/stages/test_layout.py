@@ -22,6 +22,7 @@ from stages.common.capture import UNKNOWN
 from stages.evaluate.layout import interior_angles, score_layout
 from stages.layout import IMPLS, LayoutConfig, LayoutInputs
 from stages.layout.draw import write_svg
+from stages.layout.picture import overlay
 from stages.layout.walls import build_plan
 from stages.synth import make_room
 
@@ -100,26 +101,48 @@ def test_exact_room_with_doors_meets_the_targets(tmp_path, seed):
     )
     img = np.asarray(png.convert("L")).astype(int)
     assert max(img.shape) >= 1200
-    doors = [
-        Polygon([o["start"], o["end"], np.add(o["end"], 0.01), np.add(o["start"], 0.01)]).buffer(
-            0.3
-        )
-        for o in gt["openings"]
-    ]
-    for w in gt["walls"]:
-        a, b, t = np.asarray(w["start"]), np.asarray(w["end"]), w["thickness"]
-        d = (b - a) / np.linalg.norm(b - a)
-        n = np.array([d[1], -d[0]])
-        pts = a + np.linspace(0.02, 0.98, 60)[:, None] * (b - a) + n * t / 2
-        pts = np.array([p for p in pts if not any(contains_xy(g, *p) for g in doors)])
-        xy = page.px(pts).astype(int)
-        assert (img[xy[:, 1], xy[:, 0]] < 60).all(), w
+    walls = _wall_midlines(gt)
+    xy = page.px(walls).astype(int)
+    assert (img[xy[:, 1], xy[:, 0]] < 60).all()
     for o in gt["openings"]:
         mid = (np.asarray(o["start"]) + o["end"]) / 2
         w = gt["walls"][o["wall"]]
         d = np.subtract(w["end"], w["start"]) / w["length"]
         x, y = page.px(mid + np.array([d[1], -d[0]]) * w["thickness"] / 2)[0].astype(int)
         assert img[y, x] > 200
+
+    # the plan picture: classes in grey, the walls black over them, >= 1200 px
+    bp = Blueprint.load(cap / "gt" / "blueprint.npz")
+    pic = overlay(np.full((*bp.labels.shape, 3), 200, np.uint8), bp.grid, plan)
+    assert max(pic.size) >= 1200
+    grey = np.asarray(pic.convert("L"))
+    k = round(pic.size[0] / (bp.labels.shape[1] + 2 * math.ceil(0.8 / bp.grid.cell)))
+    top = bp.grid.origin[1] + (bp.labels.shape[0] + math.ceil(0.8 / bp.grid.cell)) * bp.grid.cell
+    left = bp.grid.origin[0] - math.ceil(0.8 / bp.grid.cell) * bp.grid.cell
+    for pts, black in ((walls, True), (_wall_midlines(gt, inside=0.04), False)):
+        col = ((pts[:, 0] - left) / bp.grid.cell * k).astype(int)
+        row = ((top - pts[:, 1]) / bp.grid.cell * k).astype(int)
+        assert ((grey[row, col] < 30) == black).all()  # object outlines are dark blue, not black
+
+
+def _wall_midlines(gt: dict, inside: float | None = None) -> np.ndarray:
+    """Points along the middle of every ground-truth wall, away from its doors [N, 2]; or
+    `inside` metres inside the room from its face."""
+    doors = [
+        Polygon([o["start"], o["end"], np.add(o["end"], 0.01), np.add(o["start"], 0.01)]).buffer(
+            0.3
+        )
+        for o in gt["openings"]
+    ]
+    out = []
+    for w in gt["walls"]:
+        a, b, t = np.asarray(w["start"]), np.asarray(w["end"]), w["thickness"]
+        d = (b - a) / np.linalg.norm(b - a)
+        n = np.array([d[1], -d[0]])
+        off = t / 2 if inside is None else -inside
+        pts = a + np.linspace(0.02, 0.98, 60)[:, None] * (b - a) + n * off
+        out += [p for p in pts if not any(contains_xy(g, *p) for g in doors)]
+    return np.array(out)
 
 
 def _raster(rooms: list[Polygon], t: float, gaps: list[Polygon], angle: float) -> Blueprint:
