@@ -15,9 +15,17 @@ class LayoutConfig:
     impl: str = "walls"  # registry key in stages.layout.IMPLS
     max_opening: float = 1.3  # metres: a gap in a wall line up to this wide is an opening
     #                           (the wall line runs through it); wider gaps split the walls
+    min_run: float = 0.3  # metres: only stretches of wall at least this long close a gap
+    max_thickness: float = 0.5  # metres: a wall band deeper than this (the plan calls all
+    #                             the space outside the room wall) gets default_thickness
+    notch: float = 0.3  # metres: the room outline closes notches narrower than this (stray
+    #                     wall cells along the face)
+    min_opening: float = 0.4  # metres: narrower gaps in a wall are no opening
     door_max: float = 1.2  # metres: an opening up to this wide is a door, wider a passage
     tolerance: float = 0.03  # metres: the room outline is simplified within this
     min_wall: float = 0.2  # metres: outline edges shorter than this are merged away
+    min_free_wall: float = 1.0  # metres: edges off the room's directions shorter than this
+    #                             are merged away too (ragged faces of a noisy plan)
     snap_deg: float = 10.0  # an edge within this angle of the room's two directions takes
     #                         that direction; others keep their own (free) angle
     min_room_area: float = 1.0  # m²: a closed space smaller than this is no room
@@ -28,7 +36,18 @@ class LayoutConfig:
     default_thickness: float = 0.1  # metres: a wall whose thickness the plan does not show
 
     def __post_init__(self) -> None:
-        for name in ("max_opening", "door_max", "tolerance", "min_wall", "default_thickness"):
+        for name in (
+            "max_opening",
+            "door_max",
+            "tolerance",
+            "min_wall",
+            "default_thickness",
+            "min_run",
+            "max_thickness",
+            "notch",
+            "min_free_wall",
+            "min_opening",
+        ):
             if not getattr(self, name) > 0:
                 raise BlunfError(f"layout.{name}: must be > 0, got {getattr(self, name)}")
         if not 0 <= self.snap_deg < 45:

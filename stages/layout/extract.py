@@ -79,13 +79,18 @@ def frame_of(bp: Blueprint, angle: float) -> Frame:
     return Frame(bp.sample(world).reshape(grid.shape), grid, angle)
 
 
-def close_lines(wall: np.ndarray, n: int) -> np.ndarray:
-    """Wall cells with gaps up to n cells along rows and columns filled."""
+def close_lines(wall: np.ndarray, n: int, run: int) -> np.ndarray:
+    """Wall cells with gaps up to n cells filled between wall runs of at least `run` cells
+    along rows and along columns (a doorway between two stretches of wall); stray wall
+    cells inside a room make no run, so they close nothing."""
     p = n + 1
     padded = np.pad(wall, p)
     out = padded.copy()
-    for st in (np.ones((1, n + 1), bool), np.ones((n + 1, 1), bool)):
-        out |= ndi.binary_closing(padded, st)
+    for gap, keep in (
+        (np.ones((1, n + 1), bool), np.ones((1, run), bool)),
+        (np.ones((n + 1, 1), bool), np.ones((run, 1), bool)),
+    ):
+        out |= ndi.binary_closing(ndi.binary_opening(padded, keep), gap)
     return out[p:-p, p:-p]
 
 
@@ -94,6 +99,7 @@ class Line:
     p: np.ndarray  # a point on the line (frame xy)
     d: np.ndarray  # unit direction (the outline's walking direction)
     weight: float  # support length (metres)
+    snapped: bool = True  # along one of the room's two directions
 
 
 def _intersect(a: Line, b: Line) -> np.ndarray | None:
@@ -122,7 +128,7 @@ def _merge(a: Line, b: Line) -> Line:
     """One line for two nearly parallel ones, by support-weighted offset along the normal."""
     n = np.array([-a.d[1], a.d[0]])
     off = (a.weight * (a.p @ n) + b.weight * (b.p @ n)) / (a.weight + b.weight)
-    return Line(a.p + (off - a.p @ n) * n, a.d, a.weight + b.weight)
+    return Line(a.p + (off - a.p @ n) * n, a.d, a.weight + b.weight, a.snapped and b.snapped)
 
 
 def _fit(a: np.ndarray, b: np.ndarray, pts: np.ndarray, cfg: LayoutConfig, cell: float) -> Line:
@@ -155,7 +161,7 @@ def _fit(a: np.ndarray, b: np.ndarray, pts: np.ndarray, cfg: LayoutConfig, cell:
     c = sel.mean(0)
     u = np.linalg.svd(sel - c)[2][0]
     u = u if u @ d > 0 else -u
-    return Line(c, u, length)
+    return Line(c, u, length, snapped=False)
 
 
 def outline(mask: np.ndarray, fr: Frame, cfg: LayoutConfig) -> np.ndarray | None:
@@ -183,8 +189,11 @@ def outline(mask: np.ndarray, fr: Frame, cfg: LayoutConfig) -> np.ndarray | None
         else:
             corners = _corners(lines)
             lens = np.linalg.norm(np.roll(corners, -1, axis=0) - corners, axis=1)
-            k = int(np.argmin(lens))
-            if lens[k] >= cfg.min_wall or len(lines) <= 3:
+            # a short edge, or an edge off the room's directions too short to be believed
+            short = np.array([ln.snapped for ln in lines]) * cfg.min_wall
+            short[short == 0] = cfg.min_free_wall
+            k = int(np.argmin(lens - short))
+            if lens[k] >= short[k] or len(lines) <= 3:
                 break
             del lines[k]
     if len(lines) < 3:

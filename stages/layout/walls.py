@@ -15,23 +15,40 @@ from stages.common.errors import BlunfError
 from stages.common.io import write_json
 from stages.layout.config import LayoutConfig, LayoutInputs, LayoutOutputs
 from stages.layout.draw import write_dxf, write_svg
+from stages.layout.openings import mesh_openings
 from stages.layout.plan import architecture, objects
 
 log = logging.getLogger(__name__)
 
 
 def build_plan(bp: Blueprint, cfg: LayoutConfig, mesh: Path | None = None) -> dict:
-    """plan.json's content: rooms, walls, openings and objects of the blueprint."""
-    verts = None
+    """plan.json's content: rooms, walls, openings and objects of the blueprint. With a mesh:
+    object heights, and the openings read off the mesh (openings.py) rather than the plan."""
+    verts = tris = None
     if mesh is not None:
         try:
             m = trimesh.load(mesh, process=False, force="mesh")
-            verts = np.asarray(m.vertices)  # type: ignore[attr-defined]
-        except (OSError, ValueError) as e:
+            verts = np.asarray(m.vertices, np.float64)  # type: ignore[attr-defined]
+            tris = np.asarray(m.faces, np.int64)  # type: ignore[attr-defined]
+        except (OSError, ValueError, AttributeError) as e:
             raise BlunfError(f"{mesh}: cannot read the mesh ({e})") from None
     plan = architecture(bp, cfg)
+    if verts is not None and tris is not None and len(tris):
+        plan["openings"] = _distinct(mesh_openings(plan["walls"], verts, tris, cfg))
+    else:
+        plan["openings"] = _distinct(plan["openings"])
     plan["objects"] = objects(bp, cfg, verts)
     return plan
+
+
+def _distinct(openings: list[dict], tol: float = 0.3) -> list[dict]:
+    """One opening where the two faces of a wall between rooms each found it."""
+    out: list[dict] = []
+    for o in openings:
+        c = (np.asarray(o["start"]) + o["end"]) / 2
+        if all(np.linalg.norm(c - (np.asarray(k["start"]) + k["end"]) / 2) > tol for k in out):
+            out.append(o)
+    return out
 
 
 def write_plan(plan: dict, outs: LayoutOutputs, title: str = "") -> None:
