@@ -28,6 +28,10 @@ class LayoutConfig:
     #                             are merged away too (ragged faces of a noisy plan)
     snap_deg: float = 10.0  # an edge within this angle of the room's two directions takes
     #                         that direction; others keep their own (free) angle
+    face_offset: float = 0.5  # cells: the traced faces move out by this much. A projected
+    #                           plan (BluNF, MVR) labels wall the cell the wall's surface falls
+    #                           in, whose centre is the face on average: 0.5; a plan of
+    #                           vertical rays through the cell centres (gt/blueprint.npz): 0
     min_room_area: float = 1.0  # m²: a closed space smaller than this is no room
     min_object_area: float = 0.02  # m²: smaller object footprints are left out
     box_slack: float = 0.15  # an object leaving less than this share of its oriented
@@ -54,7 +58,7 @@ class LayoutConfig:
             raise BlunfError(f"layout.snap_deg: must be in [0, 45), got {self.snap_deg}")
         if not 0 <= self.box_slack < 1:
             raise BlunfError(f"layout.box_slack: must be in [0, 1), got {self.box_slack}")
-        for name in ("min_room_area", "min_object_area"):
+        for name in ("min_room_area", "min_object_area", "face_offset"):
             if not getattr(self, name) >= 0:
                 raise BlunfError(f"layout.{name}: must be >= 0, got {getattr(self, name)}")
 

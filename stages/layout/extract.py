@@ -79,18 +79,25 @@ def frame_of(bp: Blueprint, angle: float) -> Frame:
     return Frame(bp.sample(world).reshape(grid.shape), grid, angle)
 
 
-def close_lines(wall: np.ndarray, n: int, run: int) -> np.ndarray:
+def close_lines(wall: np.ndarray, n: int, run: int, across: int) -> np.ndarray:
     """Wall cells with gaps up to n cells filled between wall runs of at least `run` cells
-    along rows and along columns (a doorway between two stretches of wall); stray wall
-    cells inside a room make no run, so they close nothing."""
+    along rows and along columns (a doorway between two stretches of wall). Stray wall cells
+    inside a room make no run; a filled piece wider than `across` cells across its direction
+    is no doorway (wall-labelled clutter facing a wall), nor one under 3 cells (the ragged
+    edge of such clutter), and stays open."""
     p = n + 1
     padded = np.pad(wall, p)
     out = padded.copy()
-    for gap, keep in (
-        (np.ones((1, n + 1), bool), np.ones((1, run), bool)),
-        (np.ones((n + 1, 1), bool), np.ones((run, 1), bool)),
+    for axis, gap, keep, join in (
+        (0, np.ones((1, n + 1), bool), np.ones((1, run), bool), np.ones((9, 1), bool)),
+        (1, np.ones((n + 1, 1), bool), np.ones((run, 1), bool), np.ones((1, 9), bool)),
     ):
-        out |= ndi.binary_closing(ndi.binary_opening(padded, keep), gap)
+        fill = ndi.binary_closing(ndi.binary_opening(padded, keep), gap) & ~padded
+        # pieces a few cells apart across are one (a ragged edge fills in strips)
+        lab, k = ndi.label(ndi.binary_dilation(fill, join))
+        for i, sl in enumerate(ndi.find_objects(lab), start=1):
+            if 3 + 8 <= sl[axis].stop - sl[axis].start <= across + 8:  # a wall is > 2 cells
+                out[sl] |= (lab[sl] == i) & fill[sl]
     return out[p:-p, p:-p]
 
 

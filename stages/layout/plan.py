@@ -15,6 +15,7 @@ import numpy as np
 import shapely
 from scipy import ndimage as ndi
 from shapely.geometry import MultiPoint, Polygon
+from shapely.geometry.polygon import orient
 
 from stages.common.blueprint import Blueprint
 from stages.common.capture import UNKNOWN
@@ -59,7 +60,8 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
     cell = fr.grid.cell
     wall = fr.labels == wid
     run = max(1, int(round(cfg.min_run / cell)))
-    closed = close_lines(wall, int(round(cfg.max_opening / cell)), run)
+    across = int(round(cfg.max_thickness / cell))
+    closed = close_lines(wall, int(round(cfg.max_opening / cell)), run, across)
     region, n = ndi.label((fr.labels != UNKNOWN) & ~closed)
     area = ndi.sum_labels(np.ones_like(region), region, np.arange(1, n + 1)) * cell**2
     faces: list[tuple[int, np.ndarray, np.ndarray]] = []
@@ -76,6 +78,11 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
         poly = outline(mask, fr, cfg)
         if poly is None:
             continue
+        if cfg.face_offset > 0:
+            grown = Polygon(poly).buffer(cfg.face_offset * cell, join_style="mitre", mitre_limit=10)
+            # kept as traced where the offset would change the outline's corners
+            if grown.geom_type == "Polygon" and len(grown.exterior.coords) - 1 == len(poly):
+                poly = np.asarray(orient(grown, 1.0).exterior.coords)[:-1]
         ri = len(out["rooms"])
         world = fr.to_world(poly)
         out["rooms"].append(

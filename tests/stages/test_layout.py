@@ -26,6 +26,7 @@ from stages.layout.picture import overlay
 from stages.layout.walls import build_plan
 from stages.synth import make_room
 
+GT_PLAN = LayoutConfig(face_offset=0.0)  # plans of vertical rays through the cell centres
 # sensor-depth targets of the layout scores
 TARGET = {"room_f1": 0.95, "corner_f1": 0.9, "angle_f1": 0.9}
 
@@ -75,7 +76,7 @@ def test_interior_angles_of_an_l():
 def test_exact_room_with_doors_meets_the_targets(tmp_path, seed):
     cap = make_room(tmp_path / "cap", views=1, seed=seed, size=(16, 12), doors=2)
     out = IMPLS["walls"](
-        LayoutConfig(),
+        GT_PLAN,
         LayoutInputs(cap / "gt" / "blueprint.npz", cap / "gt" / "mesh.ply"),
         tmp_path / "layout",
     )
@@ -181,7 +182,7 @@ def test_l_shaped_room_and_two_rooms_meet_the_targets(angle):
     ]
     for rooms, gaps, openings in cases:
         bp = _raster(rooms, t, gaps, angle)
-        plan = build_plan(bp, LayoutConfig())
+        plan = build_plan(bp, GT_PLAN)
         assert abs(plan["angle_deg"] - angle) < 0.5
         gt = {
             "rooms": [{"polygon": _turn(r.exterior.coords[:-1], angle)} for r in rooms],
