@@ -92,7 +92,10 @@ def close_lines(wall: np.ndarray, n: int, run: int, across: int) -> np.ndarray:
         (0, np.ones((1, n + 1), bool), np.ones((1, run), bool), np.ones((9, 1), bool)),
         (1, np.ones((n + 1, 1), bool), np.ones((run, 1), bool), np.ones((1, 9), bool)),
     ):
-        fill = ndi.binary_closing(ndi.binary_opening(padded, keep), gap) & ~padded
+        # runs one cell thicker across, so that a ragged band's rows still meet over a gap
+        thick = np.ones((3, 1) if axis == 0 else (1, 3), bool)
+        runs = ndi.binary_dilation(ndi.binary_opening(padded, keep), thick)
+        fill = ndi.binary_closing(runs, gap) & ~runs
         # pieces a few cells apart across are one (a ragged edge fills in strips)
         lab, k = ndi.label(ndi.binary_dilation(fill, join))
         for i, sl in enumerate(ndi.find_objects(lab), start=1):

@@ -71,6 +71,14 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
         # the closing also fills the notches of a ragged wall face: one cell back, up to the
         # wall cells themselves (measured: 1 cm inward on each side of a room 23 deg off axis)
         mask = ndi.binary_fill_holes(region == k + 1)
+        # pieces too small for a room inside the room's box are its own (floor cut off by
+        # wall-labelled clutter), with what closed them off
+        sl = ndi.find_objects(mask.astype(np.int32))[0]
+        small = np.isin(region[sl], 1 + np.nonzero(area < cfg.min_room_area)[0])
+        box = np.zeros_like(mask)
+        box[sl] = small | (closed[sl] & ~wall[sl])
+        lab, _ = ndi.label(box | mask)
+        mask = ndi.binary_fill_holes(lab == lab[np.nonzero(mask)][0]) & (mask | box)
         mask |= ndi.binary_dilation(mask) & ~wall & (fr.labels != UNKNOWN)
         r = max(1, int(round(cfg.notch / cell / 2)))
         disk = np.hypot(*np.mgrid[-r : r + 1, -r : r + 1]) <= r
