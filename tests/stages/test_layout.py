@@ -205,3 +205,26 @@ def test_l_shaped_room_and_two_rooms_meet_the_targets(angle):
             strict=True,
         ):
             assert r["area"] == pytest.approx(g.area, rel=0.01)
+
+
+def test_a_removed_object_leaves_the_plan(tmp_path):
+    room = box(0, 0, 4, 3)
+    bp = _raster([room], 0.12, [], 0.0)
+    c = bp.grid.centers()
+    labels = bp.labels.copy()
+    table = affinity.rotate(box(1.0, 1.0, 2.2, 1.8), 20)  # 1.2 x 0.8 m, turned 20 degrees
+    labels[contains_xy(table, c[..., 0], c[..., 1])] = 2
+    classes = {**bp.classes, 2: "table"}
+    plan = build_plan(Blueprint(labels, bp.grid, classes), GT_PLAN)
+    (obj,) = plan["objects"]
+    assert obj["class"] == "table" and obj["shape"] == "rect"
+    assert (obj["width"], obj["depth"]) == pytest.approx((1.2, 0.8), abs=0.03)
+    assert abs(obj["angle_deg"] - 20) < 2
+    write_svg(plan, tmp_path / "before.svg")
+    assert ">table<" in (tmp_path / "before.svg").read_text()
+    labels[labels == 2] = 0  # the edit stage's plan: the removed object's cells become floor
+    edited = build_plan(Blueprint(labels, bp.grid, classes), GT_PLAN)
+    assert edited["objects"] == []
+    write_svg(edited, tmp_path / "after.svg")
+    assert ">table<" not in (tmp_path / "after.svg").read_text()
+    assert edited["rooms"] == plan["rooms"]
