@@ -21,7 +21,7 @@ def _tensor(a: np.ndarray) -> o3d.core.Tensor:
     return o3d.core.Tensor.from_numpy(np.ascontiguousarray(a))
 
 
-def _scene(verts: np.ndarray, tris: np.ndarray) -> o3d.t.geometry.RaycastingScene:
+def scene_of(verts: np.ndarray, tris: np.ndarray) -> o3d.t.geometry.RaycastingScene:
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(_tensor(verts.astype(np.float32)), _tensor(tris.astype(np.uint32)))
     return scene
@@ -37,7 +37,7 @@ def mesh_openings(
     walls: list[dict], verts: np.ndarray, tris: np.ndarray, cfg: LayoutConfig
 ) -> list[dict]:
     """plan.json openings of `walls` (world metres) found in the mesh."""
-    scene = _scene(verts, tris)
+    scene = scene_of(verts, tris)
     out = []
     for wi, w in enumerate(walls):
         a, b, t = np.asarray(w["start"]), np.asarray(w["end"]), float(w["thickness"])
@@ -92,4 +92,34 @@ def mesh_openings(
                         "width": round(width, 4),
                     }
                 )
+    return out
+
+
+def ceiling(scene: o3d.t.geometry.RaycastingScene, floor_xy: np.ndarray) -> float | None:
+    """Height of the ceiling's underside: the median hit of rays cast up from floor points
+    [N, 2] (at least half must meet it), None when there is no ceiling."""
+    if len(floor_xy) == 0:
+        return None
+    rays = np.concatenate(
+        [floor_xy, np.full((len(floor_xy), 1), 0.05), np.tile([0, 0, 1.0], (len(floor_xy), 1))], 1
+    )
+    t = scene.cast_rays(_tensor(rays.astype(np.float32)))["t_hit"].numpy()
+    hit = t[np.isfinite(t)]
+    return float(0.05 + np.median(hit)) if len(hit) >= max(3, len(t) // 2) else None
+
+
+def heights(
+    scene: o3d.t.geometry.RaycastingScene, xys: list[np.ndarray], ceil: float | None
+) -> list[float | None]:
+    """Top of the surface over each set of floor points [N, 2]: the 98th percentile of the
+    first hits of rays cast down from just under the ceiling (from 5 m without one)."""
+    z0 = ceil - 0.02 if ceil is not None else 5.0
+    out: list[float | None] = []
+    for xy in xys:
+        rays = np.concatenate(
+            [xy, np.full((len(xy), 1), z0), np.tile([0, 0, -1.0], (len(xy), 1))], 1
+        )
+        t = scene.cast_rays(_tensor(rays.astype(np.float32)))["t_hit"].numpy()
+        t = t[np.isfinite(t)]
+        out.append(round(float(np.percentile(z0 - t, 98)), 4) if len(t) else None)
     return out

@@ -10,9 +10,9 @@ shape rect|polygon}]}.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
-import shapely
 from scipy import ndimage as ndi
 from shapely.geometry import MultiPoint, Polygon
 from shapely.geometry.polygon import orient
@@ -153,9 +153,9 @@ def _openings(
     return out
 
 
-def objects(bp: Blueprint, cfg: LayoutConfig, verts: np.ndarray | None) -> list[dict]:
+def objects(bp: Blueprint, cfg: LayoutConfig, top: Callable | None = None) -> list[dict]:
     """Each object's footprint: oriented rectangle (or outline polygon when not box-like),
-    width x depth, height from the mesh vertices over it (None without a mesh)."""
+    width x depth; `top` gives the height over floor points (openings.heights; None: no mesh)."""
     names = {k: v for k, v in bp.classes.items() if v not in STRUCTURE}
     obj = np.isin(bp.labels, list(names))
     if bp.instances is not None:
@@ -189,10 +189,8 @@ def objects(bp: Blueprint, cfg: LayoutConfig, verts: np.ndarray | None) -> list[
         ang = (ang + 90) % 180 - 90
         box_like = m.sum() * cell**2 >= (1 - cfg.box_slack) * rect.area
         shape = rect if box_like else hull.simplify(cell)
-        height = None
-        if verts is not None:
-            over = shapely.contains_xy(shape.buffer(cell), verts[:, 0], verts[:, 1])
-            height = round(float(verts[over, 2].max()), 4) if over.any() else None
+        inner = ndi.binary_erosion(m)
+        height = top([centres[inner if inner.sum() >= 4 else m]])[0] if top is not None else None
         name = bp.classes.get(cls, str(cls))
         counts[name] = counts.get(name, 0) + 1
         out.append(

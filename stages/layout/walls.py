@@ -15,7 +15,7 @@ from stages.common.errors import BlunfError
 from stages.common.io import write_json
 from stages.layout.config import LayoutConfig, LayoutInputs, LayoutOutputs
 from stages.layout.draw import write_dxf, write_svg
-from stages.layout.openings import mesh_openings
+from stages.layout.openings import ceiling, heights, mesh_openings, scene_of
 from stages.layout.plan import architecture, objects
 
 log = logging.getLogger(__name__)
@@ -37,7 +37,15 @@ def build_plan(bp: Blueprint, cfg: LayoutConfig, mesh: Path | None = None) -> di
         plan["openings"] = _distinct(mesh_openings(plan["walls"], verts, tris, cfg))
     else:
         plan["openings"] = _distinct(plan["openings"])
-    plan["objects"] = objects(bp, cfg, verts)
+    if verts is not None and tris is not None and len(tris):
+        scene = scene_of(verts, tris)
+        fid = [k for k, v in bp.classes.items() if v == "floor"]
+        floor = bp.grid.centers()[np.isin(bp.labels, fid)]
+        ceil = ceiling(scene, floor[:: max(1, len(floor) // 50)])
+        plan["objects"] = objects(bp, cfg, lambda xys: heights(scene, xys, ceil))
+        plan["ceiling_m"] = None if ceil is None else round(ceil, 4)
+    else:
+        plan["objects"] = objects(bp, cfg)
     return plan
 
 
