@@ -83,6 +83,8 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
         r = max(1, int(round(cfg.notch / cell / 2)))
         disk = np.hypot(*np.mgrid[-r : r + 1, -r : r + 1]) <= r
         mask = ndi.binary_closing(np.pad(mask, r + 1), disk)[r + 1 : -r - 1, r + 1 : -r - 1]
+        if not ndi.binary_erosion(mask, iterations=max(1, int(0.4 / cell))).any():
+            continue  # no room is narrower than 0.8 m: a strip of floor outside the walls
         poly = outline(mask, fr, cfg)
         if poly is None:
             continue
