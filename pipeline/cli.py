@@ -67,6 +67,7 @@ def parser() -> argparse.ArgumentParser:
         action="store_true",
         help="keep only images and intrinsics, as a phone gives (ground truth still in gt/)",
     )
+    s.add_argument("--doors", type=int, default=0, help="door gaps in distinct walls (0..4)")
 
     b = sub.add_parser("bench", help="run time against error: table, CSV and plots")
     b.add_argument("--out", type=Path, default=Path("runs/bench"))
@@ -189,6 +190,7 @@ def _dispatch(args: argparse.Namespace) -> int:
             seed=args.seed,
             size=args.size,
             photos_only=args.photos_only,
+            doors=args.doors,
         )
         print(out)
         return 0

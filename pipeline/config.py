@@ -45,6 +45,7 @@ def stage_configs() -> dict[str, type]:
     from stages.export.config import ExportConfig
     from stages.fusion.config import FusionConfig
     from stages.ingest.config import IngestConfig
+    from stages.layout.config import LayoutConfig
     from stages.nerf.config import NerfConfig
     from stages.poses.config import PosesConfig
     from stages.project.config import ProjectConfig
@@ -59,6 +60,7 @@ def stage_configs() -> dict[str, type]:
         "nerf": NerfConfig,
         "project": ProjectConfig,
         "blueprint": BlueprintConfig,
+        "layout": LayoutConfig,
         "edit": EditConfig,
         "evaluate": EvaluateConfig,
         "export": ExportConfig,

@@ -11,6 +11,7 @@ import numpy as np
 
 from stages.common.errors import BlunfError
 from stages.common.io import write_depth_png, write_image, write_json, write_label_png
+from stages.synth.layout import room_layout
 from stages.synth.render import Tracer, camera_path, intrinsics_for, render, top_down
 from stages.synth.room import CLASSES, IGNORE, build_room, scene_mesh
 
@@ -27,11 +28,13 @@ def make_room(
     size: tuple[int, int] = (320, 240),
     ceiling: bool = True,
     photos_only: bool = False,
+    doors: int = 0,
 ) -> Path:
     """Render a procedural room to a capture at `out`. Returns `out`.
 
     photos_only: the capture holds what a phone gives (images and intrinsics): no depth,
     labels, poses or gravity; the ground truth in gt/ is written all the same.
+    doors: that many door gaps in distinct walls (0..4); gt/layout.json holds them.
 
     Same (views, seed, size, ceiling) -> byte-identical files. Writes into a temp sibling
     folder renamed into place at the end, so a failure leaves nothing behind.
@@ -45,6 +48,8 @@ def make_room(
         raise BlunfError(f"--views must be a positive integer, got {views!r}")
     if not _is_int(seed) or seed < 0:
         raise BlunfError(f"--seed must be a non-negative integer, got {seed!r}")
+    if not _is_int(doors) or not 0 <= doors <= 4:
+        raise BlunfError(f"doors must be a whole number in 0..4, got {doors!r}")
     w, h = size
     if not (_is_int(w) and _is_int(h) and w >= 8 and h >= 8):
         raise BlunfError(f"--size must be whole pixels, at least 8x8, got {w}x{h}")
@@ -52,7 +57,7 @@ def make_room(
     tmp = out.parent / f".{out.name}.synth-tmp"
     shutil.rmtree(tmp, ignore_errors=True)
     try:
-        _write(tmp, views, seed, (w, h), ceiling, photos_only)
+        _write(tmp, views, seed, (w, h), ceiling, photos_only, doors)
         if out.exists():
             out.rmdir()
         tmp.rename(out)
@@ -66,7 +71,13 @@ def _is_int(x: object) -> bool:
 
 
 def _write(
-    root: Path, views: int, seed: int, size: tuple[int, int], ceiling: bool, photos_only: bool
+    root: Path,
+    views: int,
+    seed: int,
+    size: tuple[int, int],
+    ceiling: bool,
+    photos_only: bool,
+    doors: int = 0,
 ) -> None:
     """The capture's files; photos_only: without what a phone capture lacks (depth, labels,
     poses and gravity), the ground truth in gt/ all the same."""
@@ -76,7 +87,7 @@ def _write(
     )
     for sub in subs:
         (root / sub).mkdir(parents=True)
-    room = build_room(seed, ceiling)
+    room = build_room(seed, ceiling, doors)
     tracer = Tracer(room.parts)
     intr = intrinsics_for(*size)
     poses = camera_path(room, views, seed)
@@ -144,6 +155,7 @@ def _write(
         },
     )
     scene_mesh(room).export(root / "gt" / "mesh.ply")
+    write_json(root / "gt" / "layout.json", room_layout(room))
     plan = root / "gt" / "blueprint.npz"
     top_down(room, PLAN_CELL, PLAN_MARGIN).save(plan)
     log.info(

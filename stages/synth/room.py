@@ -20,6 +20,8 @@ import trimesh
 from shapely import affinity
 from shapely.geometry import Point, Polygon, box
 
+from stages.synth.doors import Door, clearance, cut_doors, draw_doors
+
 log = logging.getLogger(__name__)
 
 FLOOR, WALL, CEILING, TABLE, CHAIR, SOFA, CABINET, BED, PLANT = range(9)
@@ -76,6 +78,7 @@ class Room:
     wall: float  # wall thickness (metres)
     parts: tuple[Part, ...]
     loop: tuple[float, float, float, float]  # camera ellipse (cx, cy, semi-axis x, semi-axis y)
+    doors: tuple[Door, ...] = ()  # openings in the walls (floor through them, no lintel)
 
     @property
     def furniture(self) -> tuple[Part, ...]:
@@ -242,13 +245,14 @@ def _yaw_facing(nx: float, ny: float) -> float:
 class _Layout:
     """Footprints placed so far, checked against the room, each other and the camera loop."""
 
-    def __init__(self, size: tuple[float, float], ring: Polygon) -> None:
+    def __init__(self, size: tuple[float, float], ring: Polygon, keep_out: list[Polygon]) -> None:
         self.inside = box(0.02, 0.02, size[0] - 0.02, size[1] - 0.02)
         self.ring = ring
         self.placed: list[_Placed] = []
+        self.keep_out = keep_out  # furniture-free floor, e.g. in front of a door
 
     def fits(self, group: list[_Placed]) -> bool:
-        taken = [p.foot.buffer(GAP) for p in self.placed]
+        taken = [p.foot.buffer(GAP) for p in self.placed] + self.keep_out
         for i, p in enumerate(group):
             if not self.inside.contains(p.foot):
                 return False
@@ -322,15 +326,16 @@ def _ellipse(cx: float, cy: float, a: float, b: float, n: int = 128) -> Polygon:
     return Polygon(np.stack([cx + a * np.cos(t), cy + b * np.sin(t)], axis=1))
 
 
-def build_room(seed: int, ceiling: bool = True) -> Room:
-    """The room of a seed: size, walls, furniture. Same seed -> same room."""
+def build_room(seed: int, ceiling: bool = True, doors: int = 0) -> Room:
+    """The room of a seed: size, walls, furniture, `doors` doors (stages/synth/doors.py)."""
     rng = np.random.default_rng([seed, 1])
     lx, ly = round(float(rng.uniform(4.0, 7.0)), 3), round(float(rng.uniform(3.5, 6.0)), 3)
     height, wall = round(float(rng.uniform(2.5, 2.8)), 3), round(float(rng.uniform(0.1, 0.15)), 3)
     a, b = max(0.6, lx / 2 - LOOP_WALL), max(0.5, ly / 2 - LOOP_WALL)
     loop = (lx / 2, ly / 2, a, b)
     ring = _ellipse(*loop).exterior.buffer(LOOP_CLEAR)
-    lay = _Layout((lx, ly), ring)
+    gaps = draw_doors(seed, doors, lx, ly)
+    lay = _Layout((lx, ly), ring, [clearance(d, lx, ly) for d in gaps])
     lay.placed += _table_group(rng, lay, (lx, ly))
     wish = [SOFA, CABINET, BED, PLANT, PLANT, CABINET]
     keep = [
@@ -342,6 +347,7 @@ def build_room(seed: int, ceiling: bool = True) -> Room:
             lay.placed.append(placed)
 
     parts = _room_parts(rng, lx, ly, height, wall, ceiling)
+    parts = cut_doors(parts, gaps, (lx, ly, wall, height)) if gaps else parts
     counts: dict[int, int] = {}
     for i, p in enumerate(lay.placed, start=1):
         counts[p.cls] = counts.get(p.cls, 0) + 1
@@ -351,7 +357,7 @@ def build_room(seed: int, ceiling: bool = True) -> Room:
             )
         )
     log.info("room %.2f x %.2f x %.2f m, %d pieces of furniture", lx, ly, height, len(lay.placed))
-    return Room((lx, ly), height, wall, tuple(parts), loop)
+    return Room((lx, ly), height, wall, tuple(parts), loop, tuple(gaps))
 
 
 def _jitter(rng: np.random.Generator, c: tuple[float, float, float]) -> tuple[float, float, float]:

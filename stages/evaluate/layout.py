@@ -1,0 +1,125 @@
+"""Scores of an architectural plan (plan.json) against the exact layout (gt/layout.json).
+
+MonteFloor's protocol as RoomFormer reports it: a predicted room matches a ground-truth room
+(one to one, Hungarian on IoU) when their IoU is at least 0.5; within matched rooms a corner
+matches (one to one, Hungarian on distance) within `corner_tol` metres, and its angle matches
+when, in addition, the interior angles at the two corners differ by at most `angle_tol`
+degrees. Precision divides by all predicted rooms / corners, recall by all ground-truth ones.
+A wall's length error compares each ground-truth wall of a matched room with the predicted
+wall of that room whose ends lie nearest its ends; a door is found when a predicted opening's
+centre lies within `door_tol` metres of its centre.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from shapely.geometry import Polygon
+
+
+def prf(tp: int, n_pred: int, n_gt: int) -> tuple[float, float, float]:
+    """(precision, recall, F1); 0 where a count is 0."""
+    p = tp / n_pred if n_pred else 0.0
+    r = tp / n_gt if n_gt else 0.0
+    return p, r, (2 * p * r / (p + r) if p + r > 0 else 0.0)
+
+
+def interior_angles(poly: np.ndarray) -> np.ndarray:
+    """Interior angle (degrees) at each vertex of a counter-clockwise polygon [N, 2]."""
+    a = np.roll(poly, 1, axis=0) - poly
+    b = np.roll(poly, -1, axis=0) - poly
+    ang = np.degrees(np.arctan2(b[:, 0] * a[:, 1] - b[:, 1] * a[:, 0], (a * b).sum(1)))
+    return ang % 360  # counter-clockwise from the next edge to the previous one: the inside
+
+
+def _ccw(poly: np.ndarray) -> np.ndarray:
+    x, y = poly[:, 0], poly[:, 1]
+    return poly if (x * np.roll(y, -1) - np.roll(x, -1) * y).sum() > 0 else poly[::-1]
+
+
+def match_rooms(pred: list[np.ndarray], gt: list[np.ndarray], min_iou: float = 0.5) -> list:
+    """(pred index, gt index) pairs, one to one, with IoU >= min_iou."""
+    if not pred or not gt:
+        return []
+    iou = np.zeros((len(pred), len(gt)))
+    for i, p in enumerate(pred):
+        for j, g in enumerate(gt):
+            pp, gg = Polygon(p).buffer(0), Polygon(g).buffer(0)
+            u = pp.union(gg).area
+            iou[i, j] = pp.intersection(gg).area / u if u > 0 else 0.0
+    rows, cols = linear_sum_assignment(-iou)
+    return [(int(i), int(j)) for i, j in zip(rows, cols, strict=True) if iou[i, j] >= min_iou]
+
+
+def _edges(poly: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    return [(poly[i], poly[(i + 1) % len(poly)]) for i in range(len(poly))]
+
+
+def score_layout(
+    pred: dict,
+    gt: dict,
+    corner_tol: float = 0.1,
+    angle_tol: float = 5.0,
+    door_tol: float = 0.3,
+) -> dict:
+    """metrics.layout: room / corner / angle precision, recall, F1; median wall-length error
+    (metres); doors found of the total and the largest width error of those found."""
+    pr = [_ccw(np.asarray(r["polygon"], np.float64)) for r in pred.get("rooms", [])]
+    gr = [_ccw(np.asarray(r["polygon"], np.float64)) for r in gt.get("rooms", [])]
+    pairs = match_rooms(pr, gr)
+    n_pc, n_gc = sum(len(p) for p in pr), sum(len(g) for g in gr)
+    tp_c = tp_a = 0
+    len_err: list[float] = []
+    for i, j in pairs:
+        p, g = pr[i], gr[j]
+        dist = np.linalg.norm(p[:, None] - g[None], axis=-1)
+        rows, cols = linear_sum_assignment(dist)
+        ok = dist[rows, cols] <= corner_tol
+        tp_c += int(ok.sum())
+        dang = np.abs(interior_angles(p)[rows] - interior_angles(g)[cols])
+        tp_a += int((ok & (np.minimum(dang, 360 - dang) <= angle_tol)).sum())
+        pe = _edges(p)
+        for a, b in _edges(g):
+            cost = [
+                min(
+                    np.linalg.norm(a - c) + np.linalg.norm(b - d),
+                    np.linalg.norm(a - d) + np.linalg.norm(b - c),
+                )
+                for c, d in pe
+            ]
+            k = int(np.argmin(cost))
+            len_err.append(abs(float(np.linalg.norm(pe[k][1] - pe[k][0]) - np.linalg.norm(b - a))))
+    out: dict = {}
+    for name, tp, n_p, n_g in (
+        ("room", len(pairs), len(pr), len(gr)),
+        ("corner", tp_c, n_pc, n_gc),
+        ("angle", tp_a, n_pc, n_gc),
+    ):
+        p_, r_, f_ = prf(tp, n_p, n_g)
+        out[f"{name}_precision"], out[f"{name}_recall"], out[f"{name}_f1"] = (
+            round(p_, 4),
+            round(r_, 4),
+            round(f_, 4),
+        )
+    out["wall_length_err_m"] = round(float(np.median(len_err)), 4) if len_err else None
+    out.update(_doors(pred.get("openings", []), gt.get("openings", []), door_tol))
+    return out
+
+
+def _doors(pred: list[dict], gt: list[dict], tol: float) -> dict:
+    """Ground-truth openings matched one to one to predicted ones by centre distance."""
+    found, werr = 0, []
+    if pred and gt:
+        pc = np.array([(np.add(o["start"], o["end"]) / 2) for o in pred])
+        gc = np.array([(np.add(o["start"], o["end"]) / 2) for o in gt])
+        dist = np.linalg.norm(pc[:, None] - gc[None], axis=-1)
+        rows, cols = linear_sum_assignment(dist)
+        for i, j in zip(rows, cols, strict=True):
+            if dist[i, j] <= tol:
+                found += 1
+                werr.append(abs(float(pred[i]["width"]) - float(gt[j]["width"])))
+    return {
+        "doors_found": found,
+        "doors_total": len(gt),
+        "door_width_err_m": round(max(werr), 4) if werr else None,
+    }

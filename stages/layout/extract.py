@@ -1,0 +1,214 @@
+"""Rooms, walls and openings read off the blueprint raster.
+
+The wall cells are closed along the room's two directions over gaps up to `max_opening`
+(the wall line runs through a doorway); each closed space left is a room, its outline traced
+on cell edges (skimage's marching squares), simplified, each edge snapped to the room's
+directions and refitted on the traced points, short edges merged away and neighbouring edges
+intersected at the corners. A wall is an outline edge (its interior face) with the thickness
+of the wall cells behind it; an opening is floor inside the closed wall line.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage as ndi
+from skimage.measure import approximate_polygon, find_contours
+
+from stages.common.blueprint import Blueprint, Grid
+from stages.layout.config import LayoutConfig
+
+
+@dataclass(frozen=True)
+class Frame:
+    """The blueprint resampled on a grid turned by `angle` (rad): rows and columns run along
+    the room's two directions. World xy = rot(angle) @ frame xy."""
+
+    labels: np.ndarray  # uint8 [H, W]
+    grid: Grid  # in the turned frame
+    angle: float
+
+    def to_world(self, xy: np.ndarray) -> np.ndarray:
+        c, s = math.cos(self.angle), math.sin(self.angle)
+        xy = np.asarray(xy, np.float64).reshape(-1, 2)
+        return np.stack([c * xy[:, 0] - s * xy[:, 1], s * xy[:, 0] + c * xy[:, 1]], axis=1)
+
+    def xy(self, rc: np.ndarray) -> np.ndarray:
+        """Frame xy of fractional (row, col) positions [N, 2] (cell centres at integers)."""
+        rc = np.asarray(rc, np.float64).reshape(-1, 2)
+        (ox, oy), h = self.grid.origin, self.grid.shape[0]
+        return np.stack(
+            [ox + (rc[:, 1] + 0.5) * self.grid.cell, oy + (h - rc[:, 0] - 0.5) * self.grid.cell], 1
+        )
+
+
+def class_id(bp: Blueprint, name: str) -> int | None:
+    ids = [k for k, v in bp.classes.items() if v == name]
+    return ids[0] if ids else None
+
+
+def dominant_angle(mask: np.ndarray) -> float:
+    """The direction (rad, in [-pi/4, pi/4)) the mask's edges run along, modulo 90 degrees."""
+    f = ndi.gaussian_filter(mask.astype(np.float64), 1.0)
+    gy, gx = ndi.sobel(f, 0), ndi.sobel(f, 1)
+    mag = np.hypot(gx, gy)
+    keep = mag > 0.1 * mag.max() if mag.max() > 0 else mag > 0
+    if not keep.any():
+        return 0.0
+    ang = np.arctan2(-gy[keep], gx[keep])  # rows grow downwards: y = -row
+    # angles modulo 90 degrees as a doubled-doubled circular mean (4 theta)
+    z = (mag[keep] * np.exp(4j * ang)).sum()
+    return float(np.angle(z) / 4)
+
+
+def frame_of(bp: Blueprint, angle: float) -> Frame:
+    """The blueprint on a grid turned by `angle` (nearest cell; identity when angle is ~0)."""
+    if abs(angle) < math.radians(0.5):
+        return Frame(bp.labels, bp.grid, 0.0)
+    (ox, oy), cell, (h, w) = bp.grid.origin, bp.grid.cell, bp.grid.shape
+    corners = np.array(
+        [[ox, oy], [ox + w * cell, oy], [ox, oy + h * cell], [ox + w * cell, oy + h * cell]]
+    )
+    c, s = math.cos(angle), math.sin(angle)
+    fr = corners @ np.array([[c, -s], [s, c]])  # world -> frame: rot(-angle)
+    grid = Grid.covering(fr.min(0), fr.max(0), cell)
+    tmp = Frame(np.zeros(grid.shape, np.uint8), grid, angle)
+    world = tmp.to_world(grid.centers().reshape(-1, 2))
+    return Frame(bp.sample(world).reshape(grid.shape), grid, angle)
+
+
+def close_lines(wall: np.ndarray, n: int, run: int, across: int) -> np.ndarray:
+    """Wall cells with gaps up to n cells filled between wall runs of at least `run` cells
+    along rows and along columns (a doorway between two stretches of wall). Stray wall cells
+    inside a room make no run; a filled piece wider than `across` cells across its direction
+    is no doorway (wall-labelled clutter facing a wall), nor one under 3 cells (the ragged
+    edge of such clutter), and stays open."""
+    p = n + 1
+    padded = np.pad(wall, p)
+    out = padded.copy()
+    for axis, gap, keep, join in (
+        (0, np.ones((1, n + 1), bool), np.ones((1, run), bool), np.ones((9, 1), bool)),
+        (1, np.ones((n + 1, 1), bool), np.ones((run, 1), bool), np.ones((1, 9), bool)),
+    ):
+        # runs one cell thicker across, so that a ragged band's rows still meet over a gap
+        thick = np.ones((3, 1) if axis == 0 else (1, 3), bool)
+        runs = ndi.binary_dilation(ndi.binary_opening(padded, keep), thick)
+        fill = ndi.binary_closing(runs, gap) & ~runs
+        # pieces a few cells apart across are one (a ragged edge fills in strips)
+        lab, k = ndi.label(ndi.binary_dilation(fill, join))
+        for i, sl in enumerate(ndi.find_objects(lab), start=1):
+            if 3 + 8 <= sl[axis].stop - sl[axis].start <= across + 8:  # a wall is > 2 cells
+                out[sl] |= (lab[sl] == i) & fill[sl]
+    return out[p:-p, p:-p]
+
+
+@dataclass
+class Line:
+    p: np.ndarray  # a point on the line (frame xy)
+    d: np.ndarray  # unit direction (the outline's walking direction)
+    weight: float  # support length (metres)
+    snapped: bool = True  # along one of the room's two directions
+
+
+def _intersect(a: Line, b: Line) -> np.ndarray | None:
+    m = np.array([a.d, -b.d]).T
+    if abs(np.linalg.det(m)) < 1e-6:
+        return None
+    t = np.linalg.solve(m, b.p - a.p)
+    return a.p + t[0] * a.d
+
+
+def _corners(lines: list[Line]) -> np.ndarray:
+    """Where each line meets the one before it [N, 2] (neighbours are never parallel here:
+    those were merged; a pair that still is meets halfway between their points)."""
+    out = []
+    for i in range(len(lines)):
+        c = _intersect(lines[i - 1], lines[i])
+        out.append((lines[i - 1].p + lines[i].p) / 2 if c is None else c)
+    return np.array(out)
+
+
+def _parallel(a: Line, b: Line) -> bool:
+    return abs(a.d[0] * b.d[1] - a.d[1] * b.d[0]) < math.sin(math.radians(3))
+
+
+def _merge(a: Line, b: Line) -> Line:
+    """One line for two nearly parallel ones, by support-weighted offset along the normal."""
+    n = np.array([-a.d[1], a.d[0]])
+    off = (a.weight * (a.p @ n) + b.weight * (b.p @ n)) / (a.weight + b.weight)
+    return Line(a.p + (off - a.p @ n) * n, a.d, a.weight + b.weight, a.snapped and b.snapped)
+
+
+def _fit(a: np.ndarray, b: np.ndarray, pts: np.ndarray, cfg: LayoutConfig, cell: float) -> Line:
+    """The line of the edge a->b, snapped to the frame's axes when near them, refitted on the
+    traced points along its inner 80 %."""
+    d = b - a
+    length = float(np.linalg.norm(d))
+    d = d / length
+    ang = math.degrees(math.atan2(d[1], d[0])) % 90
+    if min(ang, 90 - ang) <= cfg.snap_deg:
+        k = round(math.degrees(math.atan2(d[1], d[0])) / 90) % 4
+        d = np.array([[1, 0], [0, 1], [-1, 0], [0, -1]][k], np.float64)
+        snapped = True
+    else:
+        snapped = False
+    n = np.array([-d[1], d[0]])
+    t = (pts - a) @ d
+    near = (
+        (np.abs((pts - a) @ n) < max(2 * cfg.tolerance, 2 * cell))
+        & (t > 0.1 * length)
+        & (t < 0.9 * length)
+    )
+    sel = pts[near]
+    if len(sel) < 2:
+        return Line(a.astype(np.float64), d, length)
+    if snapped:
+        off = float(np.median(sel @ n))
+        p = a + (off - a @ n) * n
+        return Line(p, d, length)
+    c = sel.mean(0)
+    u = np.linalg.svd(sel - c)[2][0]
+    u = u if u @ d > 0 else -u
+    return Line(c, u, length, snapped=False)
+
+
+def outline(mask: np.ndarray, fr: Frame, cfg: LayoutConfig) -> np.ndarray | None:
+    """The room's corners (frame xy, counter-clockwise) from its cell mask."""
+    cs = find_contours(np.pad(mask, 1).astype(np.float64), 0.5)
+    if not cs:
+        return None
+    c = max(cs, key=len) - 1.0  # back to unpadded (row, col)
+    pts = fr.xy(c)
+    cell = fr.grid.cell
+    simple = approximate_polygon(pts, cfg.tolerance)
+    if len(simple) > 1 and np.allclose(simple[0], simple[-1]):
+        simple = simple[:-1]
+    lines = [
+        _fit(simple[i], simple[(i + 1) % len(simple)], pts, cfg, cell) for i in range(len(simple))
+    ]
+    while len(lines) >= 3:
+        # neighbouring parallel lines become one
+        for i in range(len(lines)):
+            j = (i + 1) % len(lines)
+            if len(lines) > 3 and _parallel(lines[i], lines[j]):
+                lines[i] = _merge(lines[i], lines[j])
+                del lines[j]
+                break
+        else:
+            corners = _corners(lines)
+            lens = np.linalg.norm(np.roll(corners, -1, axis=0) - corners, axis=1)
+            # a short edge, or an edge off the room's directions too short to be believed
+            short = np.array([ln.snapped for ln in lines]) * cfg.min_wall
+            short[short == 0] = cfg.min_free_wall
+            k = int(np.argmin(lens - short))
+            if lens[k] >= short[k] or len(lines) <= 3:
+                break
+            del lines[k]
+    if len(lines) < 3:
+        return None
+    poly = _corners(lines)
+    x, y = poly[:, 0], poly[:, 1]
+    area = 0.5 * float((x * np.roll(y, -1) - np.roll(x, -1) * y).sum())
+    return poly if area > 0 else poly[::-1]

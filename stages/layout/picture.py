@@ -1,0 +1,67 @@
+"""The plan picture with the architecture over it: the blueprint's class colours (given by the
+caller, e.g. the export stage's PNG colours) drawn at least `long_px` on the long side, the
+walls black over them, openings as gaps, objects outlined, each wall's length written."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from PIL import Image, ImageDraw
+
+from stages.common.blueprint import Grid
+from stages.layout.draw import PAD_M, dimension, wall_shapes
+
+
+def overlay(rgb: np.ndarray, grid: Grid, plan: dict, long_px: int = 1400) -> Image.Image:
+    """rgb uint8 [H, W, 3] on `grid` (row 0 at the highest y), upscaled by a whole factor to at
+    least long_px on the long side, with plan.json's walls, openings and objects drawn on it."""
+    pad = math.ceil(PAD_M / grid.cell)  # white paper round the raster: the dimension lines
+    rgb = np.pad(np.asarray(rgb, np.uint8), ((pad, pad), (pad, pad), (0, 0)), constant_values=255)
+    grid = Grid(
+        (grid.origin[0] - pad * grid.cell, grid.origin[1] - pad * grid.cell),
+        grid.cell,
+        rgb.shape[:2],
+    )
+    h, w = rgb.shape[:2]
+    k = max(1, math.ceil(long_px / max(h, w)))
+    img = Image.fromarray(np.asarray(rgb, np.uint8)).resize(
+        (w * k, h * k), Image.Resampling.NEAREST
+    )
+    px_per_m = k / grid.cell
+    (ox, oy) = grid.origin
+    top = oy + h * grid.cell
+
+    def px(xy: np.ndarray) -> list[tuple[float, float]]:
+        xy = np.asarray(xy, np.float64).reshape(-1, 2)
+        return [((x - ox) * px_per_m, (top - y) * px_per_m) for x, y in xy]
+
+    walls = wall_shapes(plan)
+    mask = Image.new("L", img.size, 0)
+    md = ImageDraw.Draw(mask)
+    for poly in getattr(walls, "geoms", [walls]):
+        if poly.is_empty or poly.geom_type != "Polygon":
+            continue
+        md.polygon(px(np.asarray(poly.exterior.coords)), fill=255)
+        for ring in poly.interiors:  # the room inside its walls
+            md.polygon(px(np.asarray(ring.coords)), fill=0)
+    img.paste((0, 0, 0), mask=mask)
+    draw = ImageDraw.Draw(img)
+    for o in plan.get("objects", []):
+        ring = px(np.asarray(o["polygon"]))
+        draw.line([*ring, ring[0]], fill=(20, 40, 120), width=max(1, k // 2))
+        cx, cy = px(np.asarray(o["center"]))[0]
+        draw.text(
+            (cx, cy),
+            f"{o['class']}\n{o['width']:.2f} x {o['depth']:.2f}",
+            fill=(0, 0, 0),
+            anchor="mm",
+        )
+    for wl in plan.get("walls", []):
+        a, b, t = dimension(wl)
+        draw.line(px(np.array([a, b])), fill=(60, 60, 60), width=1)
+        draw.text(px(t)[0], f"{wl['length']:.2f} m", fill=(0, 0, 0), anchor="mm")
+    for r in plan.get("rooms", []):
+        c = np.asarray(r["polygon"]).mean(0)
+        draw.text(px(c)[0], f"{r['name']}  {r['area']:.2f} m2", fill=(0, 0, 0), anchor="mm")
+    return img

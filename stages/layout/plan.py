@@ -1,0 +1,212 @@
+"""The plan as vectors: rooms, walls, openings (extract.py) and object footprints, in metres.
+
+plan.json: {"units": "m", "angle_deg": the room's direction, "rooms": [{name, polygon
+(counter-clockwise interior outline), area}], "walls": [{start, end (interior face, room on
+the left), length, thickness, room}], "openings": [{kind door|passage, wall, start, end,
+width}], "objects": [{instance, class, name, polygon, center, width, depth, angle_deg, height,
+shape rect|polygon}]}.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+from scipy import ndimage as ndi
+from shapely.geometry import MultiPoint, Polygon
+from shapely.geometry.polygon import orient
+
+from stages.common.blueprint import Blueprint
+from stages.common.capture import UNKNOWN
+from stages.layout.config import LayoutConfig
+from stages.layout.extract import Frame, class_id, close_lines, dominant_angle, frame_of, outline
+
+STRUCTURE = ("floor", "wall", "ceiling")
+
+
+def _r(x: np.ndarray | float) -> list | float:
+    return np.round(np.asarray(x, np.float64), 4).tolist()
+
+
+def _thickness(
+    fr: Frame, closed: np.ndarray, a: np.ndarray, b: np.ndarray, cfg: LayoutConfig
+) -> float:
+    """Median run of closed wall cells behind the face a->b (frame xy), along its outward
+    normal; `default_thickness` where none is seen."""
+    cell = fr.grid.cell
+    d = (b - a) / np.linalg.norm(b - a)
+    n = np.array([d[1], -d[0]])  # right of the walk: outside a counter-clockwise outline
+    length = float(np.linalg.norm(b - a))
+    ts = np.arange(0.1 * length, 0.9 * length, cell)
+    steps = np.arange(0.5, cfg.max_thickness / cell + 1, 1.0) * cell
+    pts = a + ts[:, None, None] * d + steps[None, :, None] * n  # [T, S, 2]
+    row, col, inside = fr.grid.cell_of(pts.reshape(-1, 2))
+    hit = (closed[row, col] & inside).reshape(len(ts), len(steps))
+    runs = np.argmin(hit, axis=1)  # 0 where the band runs past max_thickness: unknown
+    runs = runs[runs > 0]
+    return float(np.median(runs) * cell) if len(runs) else cfg.default_thickness
+
+
+def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
+    """Rooms, walls and openings of the blueprint (world metres)."""
+    wid, fid = class_id(bp, "wall"), class_id(bp, "floor")
+    out: dict = {"units": "m", "angle_deg": 0.0, "rooms": [], "walls": [], "openings": []}
+    if wid is None:
+        return out
+    angle = dominant_angle(bp.labels == wid)
+    fr = frame_of(bp, angle)
+    out["angle_deg"] = round(math.degrees(angle), 3)
+    cell = fr.grid.cell
+    wall = fr.labels == wid
+    run = max(1, int(round(cfg.min_run / cell)))
+    across = int(round(cfg.max_thickness / cell))
+    closed = close_lines(wall, int(round(cfg.max_opening / cell)), run, across)
+    region, n = ndi.label((fr.labels != UNKNOWN) & ~closed)
+    area = ndi.sum_labels(np.ones_like(region), region, np.arange(1, n + 1)) * cell**2
+    faces: list[tuple[int, np.ndarray, np.ndarray]] = []
+    for k in np.argsort(-area):
+        if area[k] < cfg.min_room_area:
+            break
+        # the closing also fills the notches of a ragged wall face: one cell back, up to the
+        # wall cells themselves (measured: 1 cm inward on each side of a room 23 deg off axis)
+        mask = ndi.binary_fill_holes(region == k + 1)
+        # pieces too small for a room inside the room's box are its own (floor cut off by
+        # wall-labelled clutter), with what closed them off
+        sl = ndi.find_objects(mask.astype(np.int32))[0]
+        small = np.isin(region[sl], 1 + np.nonzero(area < cfg.min_room_area)[0])
+        box = np.zeros_like(mask)
+        box[sl] = small | (closed[sl] & ~wall[sl])
+        lab, _ = ndi.label(box | mask)
+        mask = ndi.binary_fill_holes(lab == lab[np.nonzero(mask)][0]) & (mask | box)
+        mask |= ndi.binary_dilation(mask) & ~wall & (fr.labels != UNKNOWN)
+        r = max(1, int(round(cfg.notch / cell / 2)))
+        disk = np.hypot(*np.mgrid[-r : r + 1, -r : r + 1]) <= r
+        mask = ndi.binary_closing(np.pad(mask, r + 1), disk)[r + 1 : -r - 1, r + 1 : -r - 1]
+        if not ndi.binary_erosion(mask, iterations=max(1, int(0.4 / cell))).any():
+            continue  # no room is narrower than 0.8 m: a strip of floor outside the walls
+        poly = outline(mask, fr, cfg)
+        if poly is None:
+            continue
+        if cfg.face_offset > 0:
+            grown = Polygon(poly).buffer(cfg.face_offset * cell, join_style="mitre", mitre_limit=10)
+            # kept as traced where the offset would change the outline's corners
+            if grown.geom_type == "Polygon" and len(grown.exterior.coords) - 1 == len(poly):
+                poly = np.asarray(orient(grown, 1.0).exterior.coords)[:-1]
+        ri = len(out["rooms"])
+        world = fr.to_world(poly)
+        out["rooms"].append(
+            {"name": f"room {ri + 1}", "polygon": _r(world), "area": round(Polygon(world).area, 4)}
+        )
+        for i in range(len(poly)):
+            a, b = poly[i], poly[(i + 1) % len(poly)]
+            t = _thickness(fr, closed, a, b, cfg)
+            faces.append((ri, a, b))
+            w = fr.to_world(np.array([a, b]))
+            out["walls"].append(
+                {
+                    "start": _r(w[0]),
+                    "end": _r(w[1]),
+                    "length": round(float(np.linalg.norm(b - a)), 4),
+                    "thickness": round(t, 4),
+                    "room": ri,
+                }
+            )
+    if fid is not None and faces:
+        out["openings"] = _openings(
+            fr, closed & ~wall & (fr.labels == fid), faces, out["walls"], cfg
+        )
+    return out
+
+
+def _openings(
+    fr: Frame, gap: np.ndarray, faces: list, walls: list[dict], cfg: LayoutConfig
+) -> list[dict]:
+    """Floor in the closed wall line: each piece on the wall face it lies behind."""
+    cell = fr.grid.cell
+    lab, n = ndi.label(gap)
+    out = []
+    for k in range(1, n + 1):
+        rows, cols = np.nonzero(lab == k)
+        if len(rows) * cell**2 < 0.01:
+            continue
+        xy = fr.xy(np.stack([rows, cols], 1))
+        best = None
+        for wi, (_, a, b) in enumerate(faces):
+            d = (b - a) / np.linalg.norm(b - a)
+            nrm = np.array([d[1], -d[0]])
+            t, s = (xy - a) @ d, (xy - a) @ nrm  # along the face, behind it
+            depth = walls[wi]["thickness"] + 2 * cell
+            on = (t > -cell) & (t < np.linalg.norm(b - a) + cell) & (s > -cell) & (s < depth)
+            # the width is read in the wall's middle (the faces may be ragged off the axes)
+            mid = on & (np.abs(s - walls[wi]["thickness"] / 2) <= walls[wi]["thickness"] / 4)
+            if on.mean() > 0.5 and mid.any() and (best is None or on.mean() > best[0]):
+                best = (on.mean(), wi, a, d, t[mid])
+        if best is None:
+            continue
+        _, wi, a, d, t = best
+        t0, t1 = float(t.min() - cell / 2), float(t.max() + cell / 2)
+        p, q = fr.to_world(np.array([a + t0 * d, a + t1 * d]))
+        width = t1 - t0
+        kind = "door" if width <= cfg.door_max else "passage"
+        out.append(
+            {"kind": kind, "wall": wi, "start": _r(p), "end": _r(q), "width": round(width, 4)}
+        )
+    return out
+
+
+def objects(bp: Blueprint, cfg: LayoutConfig, top: Callable | None = None) -> list[dict]:
+    """Each object's footprint: oriented rectangle (or outline polygon when not box-like),
+    width x depth; `top` gives the height over floor points (openings.heights; None: no mesh)."""
+    names = {k: v for k, v in bp.classes.items() if v not in STRUCTURE}
+    obj = np.isin(bp.labels, list(names))
+    if bp.instances is not None:
+        ids = np.where(obj, bp.instances, 0)
+    else:
+        ids = np.zeros(bp.labels.shape, np.int64)
+        for c in names:
+            lab, n = ndi.label(bp.labels == c)
+            ids[lab > 0] = lab[lab > 0] + ids.max()
+    cell, out = bp.grid.cell, []
+    centres = bp.grid.centers()
+    counts: dict[str, int] = {}
+    for inst in np.unique(ids[ids > 0]):
+        m = ids == inst
+        if m.sum() * cell**2 < cfg.min_object_area:
+            continue
+        cls = int(np.bincount(bp.labels[m]).argmax())
+        xy = centres[m]
+        h = cell / 2
+        corners = (xy[:, None, :] + np.array([[-h, -h], [h, -h], [h, h], [-h, h]])).reshape(-1, 2)
+        hull = MultiPoint(corners).convex_hull
+        rect = hull.minimum_rotated_rectangle
+        rc = np.asarray(rect.exterior.coords)[:4]
+        e0, e1 = rc[1] - rc[0], rc[2] - rc[1]
+        major = e0 if np.linalg.norm(e0) >= np.linalg.norm(e1) else e1
+        width, depth = (
+            float(np.linalg.norm(major)),
+            float(min(np.linalg.norm(e0), np.linalg.norm(e1))),
+        )
+        ang = math.degrees(math.atan2(major[1], major[0]))
+        ang = (ang + 90) % 180 - 90
+        box_like = m.sum() * cell**2 >= (1 - cfg.box_slack) * rect.area
+        shape = rect if box_like else hull.simplify(cell)
+        inner = ndi.binary_erosion(m)
+        height = top([centres[inner if inner.sum() >= 4 else m]])[0] if top is not None else None
+        name = bp.classes.get(cls, str(cls))
+        counts[name] = counts.get(name, 0) + 1
+        out.append(
+            {
+                "instance": int(inst),
+                "class": name,
+                "name": f"{name}_{counts[name]}",
+                "shape": "rect" if box_like else "polygon",
+                "polygon": _r(np.asarray(shape.exterior.coords)[:-1]),
+                "center": _r(np.asarray(rect.centroid.coords)[0]),
+                "width": round(width, 4),
+                "depth": round(depth, 4),
+                "angle_deg": round(ang, 3),
+                "height": height,
+            }
+        )
+    return out

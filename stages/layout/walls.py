@@ -1,0 +1,85 @@
+"""Layout stage, `walls`: the architectural plan read off the blueprint (plan.py), written as
+plan.json, plan.svg and plan.dxf (draw.py)."""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from stages.common.blueprint import Blueprint
+from stages.common.errors import BlunfError
+from stages.common.io import write_json
+from stages.layout.config import LayoutConfig, LayoutInputs, LayoutOutputs
+from stages.layout.draw import write_dxf, write_svg
+from stages.layout.openings import ceiling, heights, mesh_openings, scene_of
+from stages.layout.plan import architecture, objects
+
+log = logging.getLogger(__name__)
+
+
+def build_plan(bp: Blueprint, cfg: LayoutConfig, mesh: Path | None = None) -> dict:
+    """plan.json's content: rooms, walls, openings and objects of the blueprint. With a mesh:
+    object heights, and the openings read off the mesh (openings.py) rather than the plan."""
+    verts = tris = None
+    if mesh is not None:
+        try:
+            m = trimesh.load(mesh, process=False, force="mesh")
+            verts = np.asarray(m.vertices, np.float64)  # type: ignore[attr-defined]
+            tris = np.asarray(m.faces, np.int64)  # type: ignore[attr-defined]
+        except (OSError, ValueError, AttributeError) as e:
+            raise BlunfError(f"{mesh}: cannot read the mesh ({e})") from None
+    plan = architecture(bp, cfg)
+    if verts is not None and tris is not None and len(tris):
+        plan["openings"] = _distinct(mesh_openings(plan["walls"], verts, tris, cfg))
+    else:
+        plan["openings"] = _distinct(plan["openings"])
+    if verts is not None and tris is not None and len(tris):
+        scene = scene_of(verts, tris)
+        fid = [k for k, v in bp.classes.items() if v == "floor"]
+        floor = bp.grid.centers()[np.isin(bp.labels, fid)]
+        ceil = ceiling(scene, floor[:: max(1, len(floor) // 50)])
+        plan["objects"] = objects(bp, cfg, lambda xys: heights(scene, xys, ceil))
+        plan["ceiling_m"] = None if ceil is None else round(ceil, 4)
+    else:
+        plan["objects"] = objects(bp, cfg)
+    return plan
+
+
+def _distinct(openings: list[dict], tol: float = 0.3) -> list[dict]:
+    """One opening where the two faces of a wall between rooms each found it."""
+    out: list[dict] = []
+    for o in openings:
+        c = (np.asarray(o["start"]) + o["end"]) / 2
+        if all(np.linalg.norm(c - (np.asarray(k["start"]) + k["end"]) / 2) > tol for k in out):
+            out.append(o)
+    return out
+
+
+def write_plan(plan: dict, outs: LayoutOutputs, title: str = "") -> None:
+    """The plan's three files (export may call this again after an edit)."""
+    write_json(outs.plan_json, plan)
+    write_svg(plan, outs.plan_svg, title)
+    write_dxf(plan, outs.plan_dxf)
+
+
+def run(cfg: LayoutConfig, inputs: LayoutInputs, out: Path) -> LayoutOutputs:
+    """Rooms, walls, openings and object footprints of the blueprint, as vectors in metres."""
+    t0 = time.perf_counter()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    plan = build_plan(Blueprint.load(inputs.blueprint), cfg, inputs.mesh)
+    outs = LayoutOutputs.at(out)
+    write_plan(plan, outs)
+    log.info(
+        "layout: %d rooms, %d walls, %d openings, %d objects in %.2f s",
+        len(plan["rooms"]),
+        len(plan["walls"]),
+        len(plan["openings"]),
+        len(plan["objects"]),
+        time.perf_counter() - t0,
+    )
+    return outs

@@ -1,0 +1,119 @@
+"""Doors of the procedural room: full-height gaps in the walls with the floor running through.
+
+A door is drawn from its own random stream (seed, 2), so adding doors leaves the rest of a
+seed's room (size, furniture, colours) as it was. The floor in front of a door (a door-wide
+square) is kept free of furniture.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Any, TypeVar
+
+import numpy as np
+import trimesh
+from shapely.geometry import Polygon, box
+
+WALLS = ("wall_north", "wall_south", "wall_east", "wall_west")
+WIDTH = (0.8, 1.0)  # door width range (metres)
+CORNER = 0.3  # a door keeps this far from the room's corners (metres)
+
+P = TypeVar("P")  # a room part: a dataclass with `mesh` and `name`
+Bounds = tuple[float, float, float, float, float, float]  # x0, x1, y0, y1, z0, z1
+
+
+@dataclass(frozen=True)
+class Door:
+    """A full-height gap in one wall, the floor continuing through it (a door or passage)."""
+
+    wall: str  # one of WALLS
+    start: float  # along the wall's interior face: x for north/south, y for east/west (m)
+    end: float  # start < end (metres)
+
+    @property
+    def width(self) -> float:
+        return self.end - self.start
+
+
+def draw_doors(seed: int, n: int, lx: float, ly: float) -> list[Door]:
+    """`n` (0..4) doors in distinct walls of the room [0, lx] x [0, ly]."""
+    if not 0 <= n <= len(WALLS):
+        raise ValueError(f"doors must be in 0..4, got {n}")
+    rng = np.random.default_rng([seed, 2])
+    out = []
+    for k in rng.permutation(len(WALLS))[:n]:
+        name = WALLS[int(k)]
+        span = lx if name in ("wall_north", "wall_south") else ly
+        w = round(float(rng.uniform(*WIDTH)), 3)
+        a = round(float(rng.uniform(CORNER, span - CORNER - w)), 3)
+        out.append(Door(name, a, round(a + w, 3)))
+    return out
+
+
+def clearance(d: Door, lx: float, ly: float) -> Polygon:
+    """The floor in front of the door, a door-wide square inside the room."""
+    w = d.width
+    if d.wall == "wall_north":
+        return box(d.start, ly - w, d.end, ly)
+    if d.wall == "wall_south":
+        return box(d.start, 0.0, d.end, w)
+    if d.wall == "wall_east":
+        return box(lx - w, d.start, lx, d.end)
+    return box(0.0, d.start, w, d.end)
+
+
+def wall_bounds(name: str, lx: float, ly: float, t: float, h: float) -> Bounds:
+    """The box of a whole wall (as the room builder makes it)."""
+    return {
+        "wall_north": (-t, lx + t, ly, ly + t, 0.0, h),
+        "wall_south": (-t, lx + t, -t, 0.0, 0.0, h),
+        "wall_east": (lx, lx + t, 0.0, ly, 0.0, h),
+        "wall_west": (-t, 0.0, 0.0, ly, 0.0, h),
+    }[name]
+
+
+def wall_pieces(name: str, doors: list[Door], bounds: Bounds) -> list[Bounds]:
+    """The wall's box cut by its doors into the pieces between them."""
+    x0, x1, y0, y1, z0, z1 = bounds
+    along_x = name in ("wall_north", "wall_south")
+    lo, hi = (x0, x1) if along_x else (y0, y1)
+    cuts = sorted((d.start, d.end) for d in doors if d.wall == name)
+    out = []
+    for a, b in zip([lo] + [c[1] for c in cuts], [c[0] for c in cuts] + [hi], strict=True):
+        if b - a > 1e-9:
+            out.append((a, b, y0, y1, z0, z1) if along_x else (x0, x1, a, b, z0, z1))
+    return out
+
+
+def threshold(d: Door, lx: float, ly: float, t: float) -> Bounds:
+    """The floor slab under the door's gap (the floor's thickness, 5 cm)."""
+    x0, x1, y0, y1, _, _ = wall_bounds(d.wall, lx, ly, t, 0.0)
+    if d.wall in ("wall_north", "wall_south"):
+        return (d.start, d.end, y0, y1, -0.05, 0.0)
+    return (x0, x1, d.start, d.end, -0.05, 0.0)
+
+
+def _box(b: Bounds) -> trimesh.Trimesh:
+    x0, x1, y0, y1, z0, z1 = b
+    t = np.eye(4)
+    t[:3, 3] = [(x0 + x1) / 2, (y0 + y1) / 2, (z0 + z1) / 2]
+    return trimesh.creation.box(extents=[x1 - x0, y1 - y0, z1 - z0], transform=t)
+
+
+def cut_doors(
+    parts: list[P], doors: list[Door], dims: tuple[float, float, float, float]
+) -> list[P]:
+    """The room's parts with the walls cut by the doors and the floor run through them (same
+    names and colours). dims: (lx, ly, wall thickness, wall height)."""
+    lx, ly, t, h = dims
+    out = []
+    for p in parts:
+        q: Any = p
+        if q.name in WALLS and any(d.wall == q.name for d in doors):
+            pieces = wall_pieces(q.name, doors, wall_bounds(q.name, lx, ly, t, h))
+            q = replace(q, mesh=trimesh.util.concatenate([_box(b) for b in pieces]))
+        elif q.name == "floor":
+            slabs = [_box(threshold(d, lx, ly, t)) for d in doors]
+            q = replace(q, mesh=trimesh.util.concatenate([q.mesh, *slabs]))
+        out.append(q)
+    return out

@@ -1,0 +1,230 @@
+"""The layout stage: walls, rooms, openings and objects read off a blueprint, scored against
+exact layouts (the procedural room's gt/layout.json, and hand-built L-shaped and two-room
+plans turned off the axes); plan.dxf holds its layers, plan.svg draws the walls black."""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+
+import ezdxf
+import numpy as np
+import pytest
+import resvg_py
+from PIL import Image
+from shapely import affinity, contains_xy
+from shapely.geometry import Polygon, box
+from shapely.ops import unary_union
+
+from stages.common.blueprint import Blueprint, Grid
+from stages.common.capture import UNKNOWN
+from stages.evaluate.layout import interior_angles, score_layout
+from stages.layout import IMPLS, LayoutConfig, LayoutInputs
+from stages.layout.draw import write_svg
+from stages.layout.picture import overlay
+from stages.layout.walls import build_plan
+from stages.synth import make_room
+
+GT_PLAN = LayoutConfig(face_offset=0.0)  # plans of vertical rays through the cell centres
+# sensor-depth targets of the layout scores
+TARGET = {"room_f1": 0.95, "corner_f1": 0.9, "angle_f1": 0.9}
+
+
+def _meets_targets(s: dict, doors: int) -> None:
+    for k, v in TARGET.items():
+        assert s[k] >= v, (k, s)
+    assert s["wall_length_err_m"] <= 0.03, s
+    assert s["doors_found"] == s["doors_total"] == doors, s
+    if doors:
+        assert s["door_width_err_m"] <= 0.05, s
+
+
+def test_scores_by_hand():
+    gt = {
+        "rooms": [{"polygon": [[0, 0], [4, 0], [4, 3], [0, 3]]}],
+        "openings": [
+            {"start": [1, 0], "end": [1.9, 0], "width": 0.9},
+            {"start": [4, 1], "end": [4, 2], "width": 1.0},
+        ],
+    }
+    pred = {
+        "rooms": [  # one corner 15 cm off (no match), one 5 cm off; a room that is not there
+            {"polygon": [[0.05, 0], [4, 0], [4, 3], [0, 3.15]]},
+            {"polygon": [[10, 10], [11, 10], [11, 11], [10, 11]]},
+        ],
+        "openings": [{"start": [1.05, 0], "end": [1.9, 0], "width": 0.85}],
+    }
+    s = score_layout(pred, gt)
+    assert (s["room_precision"], s["room_recall"]) == (0.5, 1.0)
+    assert s["room_f1"] == pytest.approx(2 / 3, abs=1e-4)
+    # 3 of 4 corners match; precision counts the other room's 4 corners too
+    assert (s["corner_precision"], s["corner_recall"], s["corner_f1"]) == (0.375, 0.75, 0.5)
+    # the matched corners' angles: 90.9, 90 and 87.9 degrees: all within 5
+    assert (s["angle_precision"], s["angle_recall"]) == (0.375, 0.75)
+    # wall errors 0.05, 0, 0.0028, 0.1504: median (0.0028 + 0.05) / 2
+    assert s["wall_length_err_m"] == pytest.approx(0.0264, abs=1e-4)
+    assert (s["doors_found"], s["doors_total"], s["door_width_err_m"]) == (1, 2, 0.05)
+
+
+def test_interior_angles_of_an_l():
+    ell = np.array([[0, 0], [4, 0], [4, 2], [2, 2], [2, 4], [0, 4]], float)
+    np.testing.assert_allclose(interior_angles(ell), [90, 90, 90, 270, 90, 90])
+
+
+@pytest.mark.parametrize("seed", [3, 5])
+def test_exact_room_with_doors_meets_the_targets(tmp_path, seed):
+    cap = make_room(tmp_path / "cap", views=1, seed=seed, size=(16, 12), doors=2)
+    out = IMPLS["walls"](
+        GT_PLAN,
+        LayoutInputs(cap / "gt" / "blueprint.npz", cap / "gt" / "mesh.ply"),
+        tmp_path / "layout",
+    )
+    plan = json.loads(out.plan_json.read_text())
+    gt = json.loads((cap / "gt" / "layout.json").read_text())
+    _meets_targets(score_layout(plan, gt), doors=2)
+    assert all(abs(w["thickness"] - gt["walls"][0]["thickness"]) <= 0.02 for w in plan["walls"])
+    inst = json.loads((cap / "gt" / "instances.json").read_text())
+    heights = sorted(o["height"] for o in plan["objects"])
+    assert len(plan["objects"]) == len(inst)
+    np.testing.assert_allclose(heights, sorted(v["bbox"][5] for v in inst.values()), atol=0.01)
+
+    layers = {layer.dxf.name for layer in ezdxf.readfile(out.plan_dxf).layers}
+    kinds = {"WALLS", "OPENINGS", "OBJECTS", "DIMENSIONS", "TEXT"}
+    assert kinds <= layers
+    used = {e.dxf.layer for e in ezdxf.readfile(out.plan_dxf).modelspace()}
+    assert kinds <= used
+
+    # the SVG, drawn: black along the middle of every wall, not black in the doorways
+    page = write_svg(plan, tmp_path / "plan.svg")
+    png = Image.open(
+        io.BytesIO(bytes(resvg_py.svg_to_bytes(svg_string=(tmp_path / "plan.svg").read_text())))
+    )
+    img = np.asarray(png.convert("L")).astype(int)
+    assert max(img.shape) >= 1200
+    walls = _wall_midlines(gt)
+    xy = page.px(walls).astype(int)
+    assert (img[xy[:, 1], xy[:, 0]] < 60).all()
+    for o in gt["openings"]:
+        mid = (np.asarray(o["start"]) + o["end"]) / 2
+        w = gt["walls"][o["wall"]]
+        d = np.subtract(w["end"], w["start"]) / w["length"]
+        x, y = page.px(mid + np.array([d[1], -d[0]]) * w["thickness"] / 2)[0].astype(int)
+        assert img[y, x] > 200
+
+    # the plan picture: classes in grey, the walls black over them, >= 1200 px
+    bp = Blueprint.load(cap / "gt" / "blueprint.npz")
+    pic = overlay(np.full((*bp.labels.shape, 3), 200, np.uint8), bp.grid, plan)
+    assert max(pic.size) >= 1200
+    grey = np.asarray(pic.convert("L"))
+    k = round(pic.size[0] / (bp.labels.shape[1] + 2 * math.ceil(0.8 / bp.grid.cell)))
+    top = bp.grid.origin[1] + (bp.labels.shape[0] + math.ceil(0.8 / bp.grid.cell)) * bp.grid.cell
+    left = bp.grid.origin[0] - math.ceil(0.8 / bp.grid.cell) * bp.grid.cell
+    for pts, black in ((walls, True), (_wall_midlines(gt, inside=0.04), False)):
+        col = ((pts[:, 0] - left) / bp.grid.cell * k).astype(int)
+        row = ((top - pts[:, 1]) / bp.grid.cell * k).astype(int)
+        assert ((grey[row, col] < 30) == black).all()  # object outlines are dark blue, not black
+
+
+def _wall_midlines(gt: dict, inside: float | None = None) -> np.ndarray:
+    """Points along the middle of every ground-truth wall, away from its doors [N, 2]; or
+    `inside` metres inside the room from its face."""
+    doors = [
+        Polygon([o["start"], o["end"], np.add(o["end"], 0.01), np.add(o["start"], 0.01)]).buffer(
+            0.3
+        )
+        for o in gt["openings"]
+    ]
+    out = []
+    for w in gt["walls"]:
+        a, b, t = np.asarray(w["start"]), np.asarray(w["end"]), w["thickness"]
+        d = (b - a) / np.linalg.norm(b - a)
+        n = np.array([d[1], -d[0]])
+        off = t / 2 if inside is None else -inside
+        pts = a + np.linspace(0.02, 0.98, 60)[:, None] * (b - a) + n * off
+        out += [p for p in pts if not any(contains_xy(g, *p) for g in doors)]
+    return np.array(out)
+
+
+def _raster(rooms: list[Polygon], t: float, gaps: list[Polygon], angle: float) -> Blueprint:
+    """A blueprint of rooms (interiors) with walls `t` thick round them, the floor running
+    through the gaps, everything turned by `angle` degrees about the origin."""
+    inside = unary_union(rooms)
+    walls = unary_union([r.buffer(t, join_style="mitre") for r in rooms]).difference(inside)
+    gap = unary_union(gaps).intersection(walls)
+    walls, inside = walls.difference(gap), inside.union(gap)
+    walls, inside = (affinity.rotate(g, angle, origin=(0, 0)) for g in (walls, inside))
+    lo, hi = np.array(walls.bounds[:2]), np.array(walls.bounds[2:])
+    grid = Grid.covering(lo, hi, 0.02, pad=0.2)
+    c = grid.centers()
+    labels = np.full(grid.shape, UNKNOWN, np.uint8)
+    labels[contains_xy(inside, c[..., 0], c[..., 1])] = 0
+    labels[contains_xy(walls, c[..., 0], c[..., 1])] = 1
+    return Blueprint(labels, grid, {0: "floor", 1: "wall"})
+
+
+def _turn(xy, angle: float) -> list:
+    c, s = math.cos(math.radians(angle)), math.sin(math.radians(angle))
+    x, y = np.asarray(xy, float).T
+    return np.stack([c * x - s * y, s * x + c * y], -1).tolist()
+
+
+@pytest.mark.parametrize("angle", [0.0, 23.0])
+def test_l_shaped_room_and_two_rooms_meet_the_targets(angle):
+    t = 0.12
+    ell = Polygon([(0, 0), (5, 0), (5, 2.5), (2.4, 2.5), (2.4, 4.5), (0, 4.5)])
+    door = box(1.0, -0.2, 1.85, 0.05)  # 0.85 m in the south wall
+    a, b = box(0, 0, 3, 4), box(3 + t, 0, 7, 4)
+    passage = box(2.9, 1.5, 3.3, 2.4)  # 0.9 m through the wall between a and b
+    cases = [
+        ([ell], [door], [[(1.0, 0), (1.85, 0)]]),
+        ([a, b], [passage], [[(3, 1.5), (3, 2.4)]]),
+    ]
+    for rooms, gaps, openings in cases:
+        bp = _raster(rooms, t, gaps, angle)
+        plan = build_plan(bp, GT_PLAN)
+        assert abs(plan["angle_deg"] - angle) < 0.5
+        gt = {
+            "rooms": [{"polygon": _turn(r.exterior.coords[:-1], angle)} for r in rooms],
+            "openings": [
+                {
+                    "start": _turn([p], angle)[0],
+                    "end": _turn([q], angle)[0],
+                    "width": math.dist(p, q),
+                }
+                for p, q in openings
+            ],
+        }
+        s = score_layout(plan, gt)
+        _meets_targets(s, doors=1)
+        assert s["corner_f1"] == 1.0 and s["angle_f1"] == 1.0, s
+        assert len(plan["rooms"]) == len(rooms)
+        for r, g in zip(
+            sorted(plan["rooms"], key=lambda r: r["area"]),
+            sorted(rooms, key=lambda r: r.area),
+            strict=True,
+        ):
+            assert r["area"] == pytest.approx(g.area, rel=0.01)
+
+
+def test_a_removed_object_leaves_the_plan(tmp_path):
+    room = box(0, 0, 4, 3)
+    bp = _raster([room], 0.12, [], 0.0)
+    c = bp.grid.centers()
+    labels = bp.labels.copy()
+    table = affinity.rotate(box(1.0, 1.0, 2.2, 1.8), 20)  # 1.2 x 0.8 m, turned 20 degrees
+    labels[contains_xy(table, c[..., 0], c[..., 1])] = 2
+    classes = {**bp.classes, 2: "table"}
+    plan = build_plan(Blueprint(labels, bp.grid, classes), GT_PLAN)
+    (obj,) = plan["objects"]
+    assert obj["class"] == "table" and obj["shape"] == "rect"
+    assert (obj["width"], obj["depth"]) == pytest.approx((1.2, 0.8), abs=0.03)
+    assert abs(obj["angle_deg"] - 20) < 2
+    write_svg(plan, tmp_path / "before.svg")
+    assert ">table<" in (tmp_path / "before.svg").read_text()
+    labels[labels == 2] = 0  # the edit stage's plan: the removed object's cells become floor
+    edited = build_plan(Blueprint(labels, bp.grid, classes), GT_PLAN)
+    assert edited["objects"] == []
+    write_svg(edited, tmp_path / "after.svg")
+    assert ">table<" not in (tmp_path / "after.svg").read_text()
+    assert edited["rooms"] == plan["rooms"]
