@@ -198,8 +198,8 @@ def _dispatch(args: argparse.Namespace) -> int:
         from stages.ingest import import_capture
         from stages.ingest.video import VideoOptions
 
-        opts = VideoOptions(args.frames or 0, args.max_side or 0)
-        print(import_capture(args.kind, args.src, args.out, opts))
+        video = VideoOptions(args.frames or 0, args.max_side or 0)
+        print(import_capture(args.kind, args.src, args.out, video))
         return 0
     if args.cmd == "batch":
         from pipeline.batch import BatchOptions, batch

@@ -148,6 +148,7 @@ def make_plan(cap: Capture, cfg: Config, edits: Path | None = None) -> Plan:
         s.append(Step("edit", "nerf", False, "no edit spec given"))
     else:
         s.append(Step("edit", "nerf", True, f"edit spec {edits}"))
+    s.append(Step("layout", cfg["layout"].impl, True))
     gt = gt_files(cap)
     scores = ["ground truth: " + ", ".join(sorted(gt))] if gt else []
     held = heldout(cap, cfg)

@@ -21,6 +21,7 @@ from stages.evaluate import EvaluateInputs
 from stages.export.files import ExportInputs
 from stages.fusion import FusionInputs
 from stages.ingest.select import IngestInputs
+from stages.layout import LayoutInputs, LayoutOutputs
 from stages.nerf.config import NerfInputs
 from stages.poses import PosesInputs
 from stages.project import ProjectInputs
@@ -112,9 +113,18 @@ def _recipe(r: Runner, pub: Publication, capture: Path, cfg: Config, spec: EditS
             textures=spec.textures if spec else (),
         ),
     )
+    # the plan as an architect draws it: walls, rooms, openings, object footprints
+    lay = r.step(plan.get("layout"), LayoutInputs(blueprint=product, mesh=fused.mesh))
+    _publish_layout(lay, pub, "")
+    for f in (lay.plan_json, lay.plan_svg, lay.plan_dxf):
+        report.outputs[f.name] = str(r.out / f.name)
     if ed is not None:
         report.metrics.update(read_json(ed.stats).get("metrics", {}))
         _publish_edits(ed, pub)
+        # the edited plan drawn again, so that a removed object leaves plan.svg too
+        step = plan.get("layout")
+        edited = r.stage("layout", step.impl, LayoutInputs(blueprint=ed.blueprint, mesh=ed.mesh))
+        _publish_layout(edited, pub, "edits/")
         report.outputs["edits"] = str(r.out / "edits")
 
     ev = r.step(
@@ -126,6 +136,7 @@ def _recipe(r: Runner, pub: Publication, capture: Path, cfg: Config, spec: EditS
             methods=tuple(plans),
             poses_estimated=plan.runs("poses"),
             heldout=pts.heldout if plan.heldout else None,
+            layout=lay.plan_json,
         ),
     )
     if ev is not None:
@@ -149,6 +160,12 @@ def _nerf_metrics(stats: dict) -> dict:
     """metrics.nerf: the fixed names, plus how training ended."""
     keys = ("psnr_heldout", "depth_absrel", "steps", "seconds", "stop_reason")
     return {k: stats[k] for k in keys if stats.get(k) is not None}
+
+
+def _publish_layout(lay: LayoutOutputs, pub: Publication, prefix: str) -> None:
+    """plan.json / .svg / .dxf into the run folder (or its edits/ folder)."""
+    for f in (lay.plan_json, lay.plan_svg, lay.plan_dxf):
+        pub.add(f, f"{prefix}{f.name}")
 
 
 def _publish_edits(ed: EditOutputs, pub: Publication) -> None:

@@ -15,6 +15,7 @@ from stages.common.io import read_json, write_json
 from stages.common.plan_metrics import evaluate_plan
 from stages.evaluate.config import EvaluateConfig
 from stages.evaluate.heldout import heldout_pixels, score_pixels
+from stages.evaluate.layout import layout_to_frame, score_layout
 from stages.evaluate.poses import pose_metrics
 
 
@@ -27,6 +28,7 @@ class EvaluateInputs:
     methods: tuple[str, ...]  # the method name of each blueprint
     poses_estimated: bool  # score poses only when a stage estimated them
     heldout: Path | None = None  # the project stage's heldout.json (None: no held-out score)
+    layout: Path | None = None  # the layout stage's plan.json (scored against gt/layout.json)
 
 
 @dataclass(frozen=True)
@@ -65,6 +67,10 @@ def run(cfg: EvaluateConfig, inputs: EvaluateInputs, out: Path) -> EvaluateOutpu
             m: {**evaluate_plan(Blueprint.load(p), gt, pred_to_gt), "frame": frame}
             for m, p in zip(inputs.methods, inputs.blueprints, strict=True)
         }
+        gt_layout = gt_dir / "layout.json" if gt_dir is not None else None
+        if inputs.layout is not None and gt_layout is not None and gt_layout.is_file():
+            pred = layout_to_frame(read_json(inputs.layout), pred_to_gt)
+            metrics["layout"] = score_layout(pred, read_json(gt_layout))
     if gtp and inputs.poses_estimated and cfg.poses:
         metrics["poses"] = pose_metrics(est, gtp)
     if inputs.heldout is not None and cfg.heldout:

@@ -123,3 +123,29 @@ def _doors(pred: list[dict], gt: list[dict], tol: float) -> dict:
         "doors_total": len(gt),
         "door_width_err_m": round(max(werr), 4) if werr else None,
     }
+
+
+def layout_to_frame(plan: dict, pred_to_gt: np.ndarray | None) -> dict:
+    """plan.json's rooms and openings moved through a 4x4 similarity (e.g. estimated poses to
+    the ground truth's frame; None: unchanged). Widths scale with it."""
+    if pred_to_gt is None:
+        return plan
+    m = np.asarray(pred_to_gt, np.float64)
+    scale = float(np.cbrt(abs(np.linalg.det(m[:3, :3]))))
+
+    def xy(points: list) -> list:
+        p = np.asarray(points, np.float64).reshape(-1, 2)
+        p3 = np.c_[p, np.zeros(len(p))] @ m[:3, :3].T + m[:3, 3]
+        return p3[:, :2].tolist()
+
+    rooms = [{**r, "polygon": xy(r["polygon"])} for r in plan.get("rooms", [])]
+    openings = [
+        {
+            **o,
+            "start": xy([o["start"]])[0],
+            "end": xy([o["end"]])[0],
+            "width": float(o["width"]) * scale,
+        }
+        for o in plan.get("openings", [])
+    ]
+    return {**plan, "rooms": rooms, "openings": openings}
