@@ -21,49 +21,46 @@ from stages.common.blueprint import Blueprint
 from stages.common.capture import Capture, read_layout
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth, read_image, read_json, read_label
-from stages.nerf import IMPLS, NerfConfig, NerfInputs, NerfOutputs, load_model, top_view_labels
-from stages.nerf.field import EXP_CLAMP, NerfModel
-from stages.nerf.grid import depth_absrel, upsample_depth
-from stages.nerf.occupancy import OccupancyGrid
-from stages.nerf.render import render_model, render_view
-from stages.nerf.train import (
+from stages.common.radiance.field import EXP_CLAMP, RadianceField, load_field, save_field
+from stages.common.radiance.occupancy import OccupancyGrid
+from stages.common.radiance.render import FieldRender, render_field, render_view, top_view_labels
+from stages.nerf import IMPLS, NerfConfig, NerfInputs, NerfOutputs
+from stages.nerf.depths import upsample_depth
+from stages.nerf.evaluate import depth_absrel
+from stages.nerf.losses import depth_pixels, edge_loss, geometry_loss, surface_loss
+from stages.nerf.scene import build_model, scene_box
+from stages.nerf.train import _batch, _progress, train
+from stages.nerf.views import (
     Rays,
-    _batch,
-    _depth_pixels,
-    _edge_loss,
-    _geometry_loss,
-    _progress,
-    _surface_loss,
-    build_model,
     depth_points,
     gather_rays,
     load_views,
     nearer_neighbour,
-    scene_box,
     seed_points,
     split,
-    train,
 )
 from stages.synth import make_room
 from stages.synth.room import FLOOR
+from tests.conftest import tune
 
 torch.set_num_threads(1)
 
 # A small field (2^14 x 8 hash entries, up to 128 cells across; a 64 x 61 x 23 occupancy grid;
 # 256 samples across the box) and small batches: ~0.05 CPU-s a step on one thread. max_steps
 # makes runs reproducible (a time budget would not be).
-FAST = NerfConfig(
+FAST = tune(
+    NerfConfig(),
     threads=1,
-    time_budget=0.0,
-    eval_every=0,
+    train__time_budget=0.0,
+    train__eval_every=0,
     hash_log2_size=14,
-    hash_max_res=128,
-    occ_res=64,
-    batch_rays=128,
-    surface_rays=512,
-    geo_rays=512,
-    edge_rays=512,
-    samples_across=256,
+    field__hash_max_res=128,
+    occupancy__res=64,
+    train__batch_rays=128,
+    losses__surface_rays=512,
+    losses__geo_rays=512,
+    losses__edge_rays=512,
+    sampling__samples_across=256,
 )
 DENSE_STEPS = 80
 
@@ -99,7 +96,7 @@ def dense_run(room8, tmp_path_factory) -> tuple[Capture, NerfOutputs]:
     tmp = tmp_path_factory.mktemp("dense")
     cap = read_layout(room8)
     (tmp / "out").mkdir()
-    cfg = replace(FAST, max_steps=DENSE_STEPS)
+    cfg = tune(FAST, train__max_steps=DENSE_STEPS)
     return cap, IMPLS["grid"](cfg, NerfInputs(_frames(cap, tmp)), tmp / "out")
 
 
@@ -137,10 +134,10 @@ def test_dense_depth_renders_the_held_out_view(dense_run):
     # the corners), an unfitted field scores 1.
     assert stats["depth_absrel"] < 0.05, stats["depth_absrel"]
     # the same, rendered here from the saved model against the exact depth of view 4
-    model = load_model(outs.model)
+    model = load_field(outs.model)
     f = cap.frames[4]
     v = render_view(model, np.asarray(f.pose), f.intrinsics)
-    d = np.where(v["acc"] >= model.cfg.acc_threshold, v["depth"], 0.0)
+    d = np.where(v["acc"] >= model.sampling.acc_threshold, v["depth"], 0.0)
     assert depth_absrel(d, read_depth(f.depth)) < 0.05
     assert np.isfinite(v["rgb"]).all() and v["rgb"].shape == (72, 96, 3)
     # the held-out view sees some floor that no training view saw: the occupancy grid is the
@@ -153,7 +150,14 @@ def test_dense_grid_is_the_seeded_cells():
     # floor(1.1 / 0.2) = 5 along each axis; dilated by 1 that is cells 4-6: 27 cells, and
     # nothing else. Training on dense depth leaves the grid as it is (occ_seeded_only).
     model, rays = _tiny_model(-3.0, True)
-    cfg = replace(model.cfg, occ_res=10, occ_dilate=1, occ_every=1, max_steps=2, batch_rays=16)
+    cfg = tune(
+        _tiny_cfg(True),
+        occupancy__res=10,
+        occupancy__dilate=1,
+        occupancy__every=1,
+        train__max_steps=2,
+        train__batch_rays=16,
+    )
     lo, hi = -torch.ones(3), torch.ones(3)
     pts = np.array([[0.1, 0.1, 0.1]])
     model = build_model(cfg, lo, hi, [], [pts], dense=True)
@@ -176,7 +180,7 @@ def test_sparse_depth_renders_every_view(tmp_path):
     room = make_room(tmp_path / "room", views=5, seed=3, size=(48, 36))
     cap = _sparse_copy(read_layout(room), tmp_path / "sparse", keep=0.01)
     (tmp_path / "out").mkdir()
-    cfg = replace(FAST, max_steps=10)
+    cfg = tune(FAST, train__max_steps=10)
     outs = IMPLS["grid"](cfg, NerfInputs(_frames(cap, tmp_path)), tmp_path / "out")
     stats = read_json(outs.stats)
     assert not stats["depth_dense"] and stats["depth_supervised"]
@@ -197,14 +201,14 @@ def test_sparse_depth_renders_every_view(tmp_path):
         # metres, inside the scene box (diagonal < 8 m for this 5 m x 5 m room)
         assert raw.max() < 8.0
         np.testing.assert_array_equal(read_depth(f.depth, got.depth_scale), raw)
-    assert not load_model(outs.model).surface_color  # sparse: colours are composited
+    assert not load_field(outs.model).surface_color  # sparse: colours are composited
     # with the multi-view check: the same (seeded) renders, minus the unconfirmed readings
     # (every pixel's depth kept, acc_threshold 0: ten steps leave the field nearly empty)
     runs = {}
     for check in (False, True):
         folder = tmp_path / f"check_{check}"
         folder.mkdir()
-        c = replace(cfg, depth_check=check, acc_threshold=0.0, stereo_check=0)
+        c = tune(cfg, depth_check__enabled=check, sampling__acc_threshold=0.0, stereo__check=0)
         runs[check] = IMPLS["grid"](c, NerfInputs(_frames(cap, tmp_path)), folder)
     kept = read_json(runs[True].stats)["depth_check_kept"]
     assert read_json(runs[False].stats)["depth_check_kept"] is None and 0 <= kept < 1
@@ -225,20 +229,20 @@ def test_same_seed_same_weights(room8, dense):
     # the whole training (init, batches, jitter, occupancy updates) is seeded: two runs give
     # bit-identical weights and occupancy grids; another seed gives other weights. The sparse
     # setting (dense=False) also exercises the occupancy updates (the dense grid is frozen).
-    cfg = replace(
+    cfg = tune(
         FAST,
-        max_steps=6,
-        batch_rays=64,
-        surface_rays=128,
-        geo_rays=128,
-        occ_every=3,
-        occ_cells=4096,
-        occ_res=32,
+        train__max_steps=6,
+        train__batch_rays=64,
+        losses__surface_rays=128,
+        losses__geo_rays=128,
+        occupancy__every=3,
+        occupancy__cells=4096,
+        occupancy__res=32,
     )
     cap = read_layout(room8)
     views = load_views(cap, cfg.semantics)
-    tr, _ = split(len(cap.frames), cfg.holdout_every)
-    pts = depth_points(cap, views, tr, cfg.depth_stride)
+    tr, _ = split(len(cap.frames), cfg.train.holdout_every)
+    pts = depth_points(cap, views, tr, cfg.box.depth_stride)
     lo, hi = scene_box(cap.poses()[:, :3, 3], pts, cfg)
     rays = gather_rays(cap, views, tr)
 
@@ -298,11 +302,11 @@ def test_gather_rays_edge_distances(room8):
     assert torch.all(rays.t_edge[rays.edges] < rays.t_depth[rays.edges] - 0.1)
 
 
-def _weight_in_front(model: NerfModel, rays: Rays, idx: Tensor, gap: float) -> float:
+def _weight_in_front(model: RadianceField, rays: Rays, idx: Tensor, gap: float) -> float:
     """Mean rendered weight of rays idx in front of (their reading - gap / 2)."""
     with torch.no_grad():
-        out = render_model(model, rays.origins[idx], rays.dirs[idx], semantics=False,
-                           return_samples=True)  # fmt: skip
+        out = render_field(model, rays.origins[idx], rays.dirs[idx], model.fns(semantics=False),
+                           FieldRender(return_samples=True))  # fmt: skip
     front = out["t"] < rays.t_depth[idx][out["ray"]] - 0.5 * gap
     w = torch.zeros(len(idx)).index_add(0, out["ray"][front], out["weights"][front])
     return float(w.mean())
@@ -316,21 +320,25 @@ def test_edges_clear_the_halo_beside_silhouettes(room8):
     # (0.69 -> 0.44 when written).
     cap = read_layout(room8)
     views = load_views(cap, False)
-    tr, _ = split(len(cap.frames), FAST.holdout_every)
-    pts = depth_points(cap, views, tr, FAST.depth_stride)
+    tr, _ = split(len(cap.frames), FAST.train.holdout_every)
+    pts = depth_points(cap, views, tr, FAST.box.depth_stride)
     lo, hi = scene_box(cap.poses()[:, :3, 3], pts, FAST)
     rays = gather_rays(cap, views, tr, 2, 0.1)
     probe = rays.edges[torch.randperm(len(rays.edges), generator=torch.Generator().manual_seed(1))]
     probe = probe[:2000]
 
     def halo(edge_rays: int, edge_batch: float) -> float:
-        cfg = replace(
-            FAST, max_steps=120, semantics=False, edge_rays=edge_rays, edge_batch=edge_batch
+        cfg = tune(
+            FAST,
+            train__max_steps=120,
+            semantics=False,
+            losses__edge_rays=edge_rays,
+            train__edge_batch=edge_batch,
         )
         torch.manual_seed(0)
         model = build_model(cfg, lo, hi, [], seed_points(cap, views, tr), dense=True)
         train(cfg, model, rays, None, dense=True)
-        return _weight_in_front(model, rays, probe, cfg.edge_gap)
+        return _weight_in_front(model, rays, probe, cfg.losses.edge_gap)
 
     without, with_edges = halo(0, 0.0), halo(512, 0.5)
     assert with_edges < 0.75 * without, (without, with_edges)
@@ -342,26 +350,26 @@ def test_batch_draws_half_its_rays_beside_silhouettes():
     t_edge[100:110] = 1.0
     rays = Rays(z, z, z, torch.ones(1000), None, t_edge)
     gen = torch.Generator().manual_seed(0)
-    idx = _batch(replace(FAST, batch_rays=200, edge_batch=0.5), rays, gen)
+    idx = _batch(tune(FAST, train__batch_rays=200, train__edge_batch=0.5).train, rays, gen)
     assert len(idx) == 200 and bool(((idx[100:] >= 100) & (idx[100:] < 110)).all())
     assert int(((idx[:100] >= 100) & (idx[:100] < 110)).sum()) < 10  # the rest: any pixel
     plain = Rays(z, z, z, torch.ones(1000), None)  # no silhouettes known: all from anywhere
-    assert len(_batch(replace(FAST, batch_rays=200), plain, gen)) == 200
+    assert len(_batch(tune(FAST, train__batch_rays=200).train, plain, gen)) == 200
 
 
 @pytest.mark.parametrize(
     "bad",
     [
-        {"edge_batch": 1.5},
-        {"edge_batch": -0.1},
-        {"edge_rays": -1},
-        {"edge_gap": math.nan},
-        {"edge_gap": 0.0},
+        {"train__edge_batch": 1.5},
+        {"train__edge_batch": -0.1},
+        {"losses__edge_rays": -1},
+        {"losses__edge_gap": math.nan},
+        {"losses__edge_gap": 0.0},
     ],
 )
 def test_edge_settings_checked(bad):
-    with pytest.raises(BlunfError, match="nerf.edge_"):
-        NerfConfig(**bad)
+    with pytest.raises(BlunfError, match=r"nerf\.(train|losses)\.edge_"):
+        tune(NerfConfig(), **bad)
 
 
 def test_edge_loss_draws_at_the_nearer_depth():
@@ -372,15 +380,15 @@ def test_edge_loss_draws_at_the_nearer_depth():
     t_edge[3] = 0.49  # too close to its reading (0.5): drawn at 0.5 - gap / 2 at the latest
     rays = Rays(rays.origins, rays.dirs, rays.rgb, rays.t_depth, None, t_edge)
     seen: list[Tensor] = []
-    real = model.density
+    real = model.sigma
 
-    def density(x: Tensor) -> Tensor:
+    def sigma(x: Tensor) -> Tensor:
         seen.append(x.detach().clone())
         return real(x)
 
-    model.density = density  # type: ignore[method-assign]
-    cfg = replace(FAST, edge_rays=1000, edge_gap=0.1)
-    loss = _edge_loss(cfg, model, rays, torch.Generator().manual_seed(0))
+    model.sigma = sigma  # type: ignore[method-assign]
+    cfg = tune(FAST, losses__edge_rays=1000, losses__edge_gap=0.1)
+    loss = edge_loss(cfg.losses, model, rays, torch.Generator().manual_seed(0))
     assert torch.isfinite(loss) and loss.requires_grad
     t = seen[0].norm(dim=1)  # rays start at the origin with unit directions
     assert len(t) == 32 and len(seen) == 1  # as many draws as edge rays (< edge_rays)
@@ -392,24 +400,29 @@ def test_edge_loss_draws_at_the_nearer_depth():
 # ---- losses at extreme densities -----------------------------------------------------------
 
 
-def _tiny_model(bias: float, color_grid: bool) -> tuple[NerfModel, Rays]:
-    """A small hash field in [-1, 1]^3 whose density is exp(min(raw, 15)) with raw ~ bias, and
-    64 rays from the origin with depth readings at 0.5 m (every 4th ray has none)."""
-    cfg = replace(
+def _tiny_cfg(color_grid: bool) -> NerfConfig:
+    """A small hash field: 2 levels of 2^10 entries, 4 to 8 cells across, 16 wide."""
+    return tune(
         FAST,
-        hash_levels=2,
-        hash_log2_size=10,
-        hash_base_res=4,
-        hash_max_res=8,
-        width=16,
-        geo_features=3,
-        geo_rays=64,
-        surface_rays=64,
-        color_grid=color_grid,
+        field__hash_levels=2,
+        field__hash_log2_size=10,
+        field__hash_base_res=4,
+        field__hash_max_res=8,
+        field__width=16,
+        field__geo_features=3,
+        field__color_grid=color_grid,
+        losses__geo_rays=64,
+        losses__surface_rays=64,
     )
+
+
+def _tiny_model(bias: float, color_grid: bool) -> tuple[RadianceField, Rays]:
+    """The `_tiny_cfg` field in [-1, 1]^3 whose density is exp(min(raw, 15)) with raw ~ bias,
+    and 64 rays from the origin with depth readings at 0.5 m (every 4th ray has none)."""
+    cfg = _tiny_cfg(color_grid)
     lo, hi = -torch.ones(3), torch.ones(3)
     torch.manual_seed(0)
-    model = NerfModel(cfg, lo, hi, [], OccupancyGrid.for_box(lo, hi, 4))
+    model = RadianceField(cfg.field, cfg.sampling, lo, hi, [], OccupancyGrid.for_box(lo, hi, 4))
     with torch.no_grad():
         model.trunk[-1].bias[0] = bias
     dirs = torch.nn.functional.normalize(torch.randn(64, 3), dim=1)
@@ -425,16 +438,16 @@ def test_depth_losses_draw_only_pixels_with_depth():
     z = torch.zeros(1000, 3)
     few = torch.zeros(1000)
     few[[5, 500, 999]] = torch.tensor([1.0, 2.0, 3.0])
-    idx, td = _depth_pixels(Rays(z, z, z, few, None), 256, torch.Generator().manual_seed(0))
+    idx, td = depth_pixels(Rays(z, z, z, few, None), 256, torch.Generator().manual_seed(0))
     assert len(idx) == 3 and set(idx.tolist()) <= {5, 500, 999}
     assert torch.equal(td, few[idx])
     more = few.clone()
     more[10:410] = 4.0
-    idx, td = _depth_pixels(Rays(z, z, z, more, None), 256, torch.Generator().manual_seed(0))
+    idx, td = depth_pixels(Rays(z, z, z, more, None), 256, torch.Generator().manual_seed(0))
     assert len(idx) == 256 and (td > 0).all() and torch.equal(td, more[idx])
     assert len(set(idx.tolist())) > 150  # spread over the pool, not one pixel repeated
     empty = Rays(z, z, z, torch.zeros(1000), None)
-    assert len(_depth_pixels(empty, 256, torch.Generator())[0]) == 0
+    assert len(depth_pixels(empty, 256, torch.Generator())[0]) == 0
 
 
 @pytest.mark.parametrize(("color_grid", "dense"), [(True, True), (False, True), (True, False)])
@@ -443,8 +456,9 @@ def test_losses_stay_finite_at_extreme_densities(bias, color_grid, dense):
     # dense = False: the free-space point is drawn anywhere in front of the reading
     model, rays = _tiny_model(bias, color_grid)
     gen = torch.Generator().manual_seed(0)
-    geo = _geometry_loss(model.cfg, model, rays, gen, dense)
-    surf = _surface_loss(model.cfg, model, rays, gen)
+    lc = _tiny_cfg(color_grid).losses
+    geo = geometry_loss(lc, model, rays, gen, dense)
+    surf = surface_loss(lc, model, rays, gen)
     (geo + surf).backward()
     assert torch.isfinite(geo) and torch.isfinite(surf)
     for name, p in model.named_parameters():
@@ -473,7 +487,7 @@ def test_losses_stay_finite_at_extreme_densities(bias, color_grid, dense):
 def test_training_steps_stay_finite_at_extreme_densities(bias):
     # a few full steps (marching + both losses + Adam) from a field that is empty or solid
     model, rays = _tiny_model(bias, True)
-    cfg = replace(model.cfg, max_steps=3, batch_rays=32, trunc_steps=4)
+    cfg = tune(_tiny_cfg(True), train__max_steps=3, train__batch_rays=32, losses__trunc_steps=4)
     stats = train(cfg, model, rays, None, dense=True)
     assert stats["steps"] == 3 and math.isfinite(stats["final_loss"])
     for name, p in model.named_parameters():
@@ -487,15 +501,17 @@ def test_training_steps_stay_finite_at_extreme_densities(bias):
 def test_surface_color_is_set_by_dense_training(tmp_path, surface_color, dense, expect):
     # rendering colours rays at their expected depth only for a field trained on dense depth
     # with surface_color on; the flag is saved with the model
-    from stages.nerf.field import save_model
-
     model, rays = _tiny_model(-3.0, True)
-    cfg = replace(model.cfg, max_steps=1, batch_rays=16, surface_color=surface_color)
-    model.cfg = cfg
+    cfg = tune(
+        _tiny_cfg(True),
+        train__max_steps=1,
+        train__batch_rays=16,
+        train__surface_color=surface_color,
+    )
     train(cfg, model, rays, None, dense=dense)
     assert model.surface_color is expect
-    save_model(model, tmp_path / "model.pt")
-    assert load_model(tmp_path / "model.pt").surface_color is expect
+    save_field(model, tmp_path / "model.pt")
+    assert load_field(tmp_path / "model.pt").surface_color is expect
 
 
 # ---- learning-rate schedule ----------------------------------------------------------------
@@ -504,14 +520,29 @@ def test_surface_color_is_set_by_dense_training(tmp_path, surface_color, dense, 
 def test_progress_follows_the_nearest_limit():
     # by steps: 50 of 200 -> 0.25; by time: 30 s of 60 -> 0.5; both set -> the nearer, 0.5;
     # neither -> steps over lr_decay_steps (3000): 1500 -> 0.5, and never beyond 1
-    cfg = NerfConfig(max_steps=200, time_budget=0.0)
-    assert _progress(cfg, 50, 999.0) == 0.25
-    assert _progress(NerfConfig(max_steps=0, time_budget=60.0), 10**6, 30.0) == 0.5
-    assert _progress(NerfConfig(max_steps=200, time_budget=60.0), 50, 30.0) == 0.5
-    assert _progress(NerfConfig(max_steps=200, time_budget=60.0), 150, 30.0) == 0.75
-    free = NerfConfig(max_steps=0, time_budget=0.0, lr_decay_steps=3000)
+    cfg = tune(NerfConfig(), train__max_steps=200, train__time_budget=0.0)
+    assert _progress(cfg.train, 50, 999.0) == 0.25
+    assert (
+        _progress(
+            tune(NerfConfig(), train__max_steps=0, train__time_budget=60.0).train, 10**6, 30.0
+        )
+        == 0.5
+    )
+    assert (
+        _progress(tune(NerfConfig(), train__max_steps=200, train__time_budget=60.0).train, 50, 30.0)
+        == 0.5
+    )
+    assert (
+        _progress(
+            tune(NerfConfig(), train__max_steps=200, train__time_budget=60.0).train, 150, 30.0
+        )
+        == 0.75
+    )
+    free = tune(
+        NerfConfig(), train__max_steps=0, train__time_budget=0.0, train__lr_decay_steps=3000
+    ).train
     assert _progress(free, 1500, 0.0) == 0.5 and _progress(free, 9000, 0.0) == 1.0
-    assert _progress(cfg, 400, 0.0) == 1.0
+    assert _progress(cfg.train, 400, 0.0) == 1.0
 
 
 def test_learning_rate_decays_over_the_steps(monkeypatch):
@@ -527,7 +558,13 @@ def test_learning_rate_decays_over_the_steps(monkeypatch):
 
     monkeypatch.setattr(torch.optim, "Adam", Recording)
     model, rays = _tiny_model(-3.0, True)
-    cfg = replace(model.cfg, max_steps=4, batch_rays=16, lr=1e-2, lr_final=0.1)
+    cfg = tune(
+        _tiny_cfg(True),
+        train__max_steps=4,
+        train__batch_rays=16,
+        train__lr=1e-2,
+        train__lr_final=0.1,
+    )
     train(cfg, model, rays, None)
     expect = [1e-2 * 0.1 ** (k / 4) for k in range(4)]
     assert len(used) == 4 and all(len(g) == 2 for g in used)
@@ -542,7 +579,14 @@ def test_learning_rate_decays_over_the_steps(monkeypatch):
 # held-out PSNR 20.1 dB against a mean-colour baseline of 17.8 dB; view 0: AbsRel 0.0018,
 # 99 % of the pixels opaque, PSNR 23.7 dB (baseline 17.6), 73 % of the pixels labelled right;
 # from 1 m down, 54 % of the GT floor cells read floor (28 % read wall).
-TINY = NerfConfig(threads=1, max_steps=200, time_budget=0.0, eval_every=0, holdout_every=8)
+TINY = tune(
+    NerfConfig(),
+    threads=1,
+    train__max_steps=200,
+    train__time_budget=0.0,
+    train__eval_every=0,
+    train__holdout_every=8,
+)
 
 
 @pytest.fixture(scope="module")
@@ -575,7 +619,7 @@ def test_default_field_depth_and_psnr(trained):
 @pytest.mark.slow
 def test_default_field_training_view(trained):
     room, outs = trained
-    model = load_model(outs.model)
+    model = load_field(outs.model)
     f = read_layout(room).frames[0]
     v = render_view(model, np.asarray(f.pose), f.intrinsics)
     gt = read_depth(f.depth)
@@ -594,7 +638,7 @@ def test_default_field_training_view(trained):
 @pytest.mark.slow
 def test_top_view_labels_find_the_floor(trained):
     room, outs = trained
-    model = load_model(outs.model)
+    model = load_field(outs.model)
     plan = Blueprint.load(room / "gt" / "blueprint.npz")
     got = top_view_labels(model, plan.grid, [1.0])
     assert list(got) == [1.0]
@@ -616,12 +660,12 @@ def test_sparse_depth_accuracy(room8, tmp_path):
     cap = read_layout(room8)
     sparse = _sparse_copy(cap, tmp_path / "sparse", keep=0.01)
     (tmp_path / "out").mkdir()
-    cfg = replace(
+    cfg = tune(
         FAST,
-        max_steps=300,
-        batch_rays=256,
-        surface_rays=1024,
-        geo_rays=1024,
+        train__max_steps=300,
+        train__batch_rays=256,
+        losses__surface_rays=1024,
+        losses__geo_rays=1024,
         depth_render_scale=1,
     )
     outs = IMPLS["grid"](cfg, NerfInputs(_frames(sparse, tmp_path)), tmp_path / "out")
@@ -641,13 +685,13 @@ def test_stereo_gives_the_sparse_path_dense_depth(tiny_room, tmp_path):
     # out): room8's 7 training views overlap too little for readings two others confirm.
     cap = read_layout(tiny_room)
     sparse = _sparse_copy(cap, tmp_path / "sparse", keep=0.01)
-    cfg = replace(FAST, max_steps=DENSE_STEPS, depth_render_scale=1)
+    cfg = tune(FAST, train__max_steps=DENSE_STEPS, depth_render_scale=1)
     rels, stats = {}, {}
     for stereo in (True, False):
         folder = tmp_path / f"stereo_{stereo}"
         folder.mkdir()
         # the field's own render is scored: no stereo check of the rendered readings
-        c = replace(cfg, stereo=stereo, stereo_check=0)
+        c = tune(cfg, stereo__enabled=stereo, stereo__check=0)
         outs = IMPLS["grid"](c, NerfInputs(_frames(sparse, tmp_path)), folder)
         stats[stereo] = read_json(outs.stats)
         got = Capture.load(outs.frames)
