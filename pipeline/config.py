@@ -139,8 +139,11 @@ def _check_section(obj: Any, value: Any, where: str, prefix: str) -> dict:
         raise BlunfError(f"{where}: {prefix} must be a mapping, got {value!r}")
     hints = typing.get_type_hints(type(obj))
     names = {f.name for f in fields(obj)}
+    renamed: dict[str, str] = getattr(type(obj), "RENAMED", {})  # old flat key -> new path
     out = {}
     for k, v in value.items():
+        if k in renamed and (k not in names or not isinstance(v, dict)):
+            raise BlunfError(f"{where}: {prefix}.{k}: renamed to {prefix}.{renamed[k]}")
         if k not in names:
             raise BlunfError(
                 f"{where}: unknown key {prefix}.{k} (known: {', '.join(sorted(names))})"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from pathlib import Path
 
@@ -26,3 +27,19 @@ def tiny_room(tmp_path_factory) -> Path:
     from stages.synth import make_room
 
     return make_room(tmp_path_factory.mktemp("room") / "capture", views=16, seed=3, size=(96, 72))
+
+
+def tune(cfg, **changes):
+    """A copy of a (nested) config dataclass with `section__field=value` changes applied,
+    e.g. tune(NerfConfig(), train__max_steps=10, seed=1)."""
+    top: dict = {}
+    sub: dict[str, dict] = {}
+    for key, value in changes.items():
+        head, _, rest = key.partition("__")
+        if rest:
+            sub.setdefault(head, {})[rest] = value
+        else:
+            top[head] = value
+    for head, ch in sub.items():
+        top[head] = tune(getattr(cfg, head), **ch)
+    return dataclasses.replace(cfg, **top)

@@ -179,8 +179,8 @@ def nerf(field: str, budget: float, frames: int = 40, capture: str = "room") -> 
         capture,
         (
             "run.methods=[mvr,nerf_top]",
-            f"nerf.field={field}",
-            f"nerf.time_budget={budget}",
+            f"nerf.field.kind={field}",
+            f"nerf.train.time_budget={budget}",
             "nerf.threads=1",
         ),
         frames,

@@ -21,16 +21,16 @@ from skimage.morphology import disk
 from torch import Tensor, nn
 
 from stages.blueprint.config import BlueprintConfig, BlueprintInputs, BlueprintOutputs, BlunfConfig
-from stages.blueprint.encoding import (
+from stages.blueprint.instances import instance_raster
+from stages.common.blueprint import Blueprint, Grid
+from stages.common.capture import UNKNOWN
+from stages.common.encoding import (
     HashGrid2D,
     Identity,
     PositionalEncoding,
     relu_mlp,
     siren,
 )
-from stages.blueprint.instances import instance_raster
-from stages.common.blueprint import Blueprint, Grid
-from stages.common.capture import UNKNOWN
 from stages.common.errors import BlunfError
 from stages.common.io import write_json
 from stages.common.points import read_bounds, read_grid, read_instances, read_points

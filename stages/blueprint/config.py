@@ -9,7 +9,7 @@ from typing import ClassVar
 
 from stages.common.errors import BlunfError
 
-ENCODINGS = ("none", "pe", "hash", "siren")  # as stages.blueprint.encoding.ENCODINGS
+ENCODINGS = ("none", "pe", "hash", "siren")  # as stages.common.encoding.ENCODINGS
 BALANCES = ("none", "sqrt", "cell")
 OUTSIDES = ("clamp", "field")
 

@@ -28,7 +28,8 @@ log = logging.getLogger(__name__)
 
 def run(cfg: BlueprintConfig, inputs: NerfTopInputs, out: Path) -> BlueprintOutputs:
     """Render the semantic NeRF from above at each height; keep the best plan."""
-    from stages.nerf import load_model, top_view_labels  # torch: imported when needed
+    from stages.common.radiance.field import load_field  # torch: imported when needed
+    from stages.common.radiance.render import top_view_labels
 
     c = cfg.nerf_top
     if not c.heights or min(c.heights) <= 0:
@@ -36,7 +37,7 @@ def run(cfg: BlueprintConfig, inputs: NerfTopInputs, out: Path) -> BlueprintOutp
     t0 = time.perf_counter()
     grid = read_grid(inputs.grid)
     xyz, label, _, classes = read_points(inputs.points)
-    model = load_model(inputs.model)
+    model = load_field(inputs.model)
     if model.sem_head is None:
         raise BlunfError(f"{inputs.model}: the NeRF has no semantic head (no labels to learn)")
     plans = top_view_labels(model, grid, list(c.heights), c.chunk)

@@ -36,6 +36,7 @@ from stages.common.io import (
     write_label_png,
 )
 from stages.common.plan_picture import plan_png
+from stages.common.radiance.field import load_field
 from stages.common.threads import torch_threads
 from stages.edit.config import EditConfig, EditInputs, EditOutputs
 from stages.edit.metrics import EditScore, gt_instance_names, gt_instances
@@ -50,7 +51,6 @@ from stages.edit.ops import (
 from stages.edit.render import orbit_poses, render_view_edited
 from stages.edit.select import Extent, extent_of, select_cells
 from stages.edit.spec import Edit, EditSpec, check_views, load_spec
-from stages.nerf.field import load_model
 
 log = logging.getLogger(__name__)
 
@@ -89,8 +89,7 @@ def run(cfg: EditConfig, inputs: EditInputs, out: Path) -> EditOutputs:
         for e, sel in zip(spec.edits, cells, strict=True):
             ext, comps = extent_of(sel, bp, cmap, verts, cfg)
             inside = verts[ext.contains(verts)]  # [M, 3] fused surface inside the extent
-            ref_field = field_luminance(model.density, model.color, inside, REF_POINTS)
-            model.clear_cache()
+            ref_field = field_luminance(model.fns(semantics=False), inside, REF_POINTS)
             ref_mesh = None if colors is None else reference_luminance(ext, verts, colors)
             fill = _fill(cfg, e, ext, comps, verts, colors, model)
             edits.append(_field_edit(e, ext, ref_field, fill))
@@ -189,8 +188,8 @@ def _round(v: float | None) -> float | None:
 
 def _load_model(path: Path):
     try:
-        return load_model(path)
-    except pickle.UnpicklingError as e:  # load_model does not catch this one
+        return load_field(path)
+    except pickle.UnpicklingError as e:  # load_field does not catch this one
         raise BlunfError(f"{path}: not a NeRF model ({e.__class__.__name__})") from None
 
 
@@ -228,9 +227,7 @@ def _fill(
         return None
     if colors is not None:
         return torch.from_numpy(np.median(colors[on], axis=0).astype(np.float32))
-    fill = field_color(model.density, model.color, verts[on], REF_POINTS)
-    model.clear_cache()
-    return fill
+    return field_color(model.fns(semantics=False), verts[on], REF_POINTS)
 
 
 def _field_edit(

@@ -14,7 +14,7 @@ colour functions edit the mesh's vertices.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,14 +22,12 @@ import torch
 import trimesh
 from torch import Tensor
 
+from stages.common.radiance.field import FieldFns, FieldOut
 from stages.edit.select import Extent
 
 LUMA = (0.2126, 0.7152, 0.0722)  # Rec. 709 luminance weights
 MAX_SHADE = 4.0  # a sample at most this many times brighter than the reference
 NEUTRAL = 200  # grey level given to a mesh without vertex colours before a colour edit
-
-DensityFn = Callable[[Tensor], Tensor]  # [N, 3] -> [N]
-ColorFn = Callable[[Tensor, Tensor], Tensor]  # [N, 3], [N, 3] -> [N, 3]
 
 
 @dataclass(frozen=True)
@@ -63,32 +61,25 @@ def reference_luminance(extent: Extent, vertices: np.ndarray, colors: np.ndarray
 
 
 @torch.no_grad()
-def _field_colors(
-    density_fn: DensityFn, color_fn: ColorFn, points: np.ndarray, most: int
-) -> Tensor | None:
+def _field_colors(field: FieldFns, points: np.ndarray, most: int) -> Tensor | None:
     """The field's colour [M, 3] at surface points [N, 3] (at most `most`, evenly picked),
     seen from above; None without points."""
     if len(points) == 0:
         return None
     idx = np.linspace(0, len(points) - 1, min(len(points), most)).round().astype(int)
     x = torch.from_numpy(np.asarray(points)[idx].astype(np.float32))  # [M, 3]
-    density_fn(x)  # a NeRF model's colour reuses the features of this call
-    return color_fn(x, torch.tensor([0.0, 0.0, -1.0]).expand(len(x), 3))
+    return field.query(x, torch.tensor([0.0, 0.0, -1.0]).expand(len(x), 3)).rgb
 
 
-def field_luminance(
-    density_fn: DensityFn, color_fn: ColorFn, points: np.ndarray, most: int = 20000
-) -> float | None:
+def field_luminance(field: FieldFns, points: np.ndarray, most: int = 20000) -> float | None:
     """Median luminance of the field's colour at surface points [N, 3]; None without."""
-    c = _field_colors(density_fn, color_fn, points, most)
+    c = _field_colors(field, points, most)
     return None if c is None else float(luminance(c).median())
 
 
-def field_color(
-    density_fn: DensityFn, color_fn: ColorFn, points: np.ndarray, most: int = 20000
-) -> Tensor | None:
+def field_color(field: FieldFns, points: np.ndarray, most: int = 20000) -> Tensor | None:
     """Median RGB [3] of the field's colour at surface points [N, 3]; None without."""
-    c = _field_colors(density_fn, color_fn, points, most)
+    c = _field_colors(field, points, most)
     return None if c is None else c.median(dim=0).values.clamp(0.0, 1.0)
 
 
@@ -150,24 +141,28 @@ def _texture_at(e: FieldEdit, x: Tensor) -> Tensor:
     return tex[row, col]
 
 
-def wrap_field(
-    density_fn: DensityFn, color_fn: ColorFn, edits: Sequence[FieldEdit]
-) -> tuple[DensityFn, ColorFn]:
-    """The field's functions with the edits applied. The inner functions are called first, on
-    the very tensor they are given (a NeRF model caches features keyed on it)."""
+def wrap_field(field: FieldFns, edits: Sequence[FieldEdit]) -> FieldFns:
+    """The field's functions with the edits applied: `remove` zeroes the density inside its
+    extent, the colour ops change the colour there; the logits are left as they are."""
     removes = [e for e in edits if e.op == "remove"]
     paints = [e for e in edits if e.op in ("recolor", "retexture", "sketch")]
+    if not removes and not paints:
+        return field
 
-    def density(x: Tensor) -> Tensor:
-        sigma = density_fn(x)  # [N]
+    def removed(x: Tensor, sigma: Tensor) -> Tensor:
         for e in removes:
             sigma = torch.where(e.extent.contains(x), torch.zeros_like(sigma), sigma)  # type: ignore[arg-type]
         return sigma
 
-    def color(x: Tensor, dirs: Tensor) -> Tensor:
-        return edit_colors(paints, x, color_fn(x, dirs))
+    def sigma(x: Tensor) -> Tensor:
+        return removed(x, field.sigma(x))  # [N]
 
-    return (density if removes else density_fn), (color if paints else color_fn)
+    def query(x: Tensor, dirs: Tensor | None) -> FieldOut:
+        f = field.query(x, dirs)
+        rgb = f.rgb if f.rgb is None or not paints else edit_colors(paints, x, f.rgb)
+        return FieldOut(rgb, removed(x, f.sigma), f.logits)
+
+    return FieldFns(sigma, query)
 
 
 def vertex_colors(mesh: trimesh.Trimesh) -> np.ndarray | None:

@@ -9,59 +9,42 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import replace
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from stages.common.camera import Intrinsics
-from stages.edit.ops import ColorFn, DensityFn, FieldEdit, fill_ground, wrap_field
+from stages.common.radiance.compositing import RenderOut
+from stages.common.radiance.field import FieldFns, RadianceField
+from stages.common.radiance.rays import camera_rays
+from stages.common.radiance.render import FieldRender, RenderOptions, render_field, render_rays
+from stages.edit.ops import FieldEdit, fill_ground, wrap_field
 from stages.edit.select import Extent
-from stages.nerf.field import NerfModel
-from stages.nerf.render import RenderOut, camera_rays, render_model, render_rays
 
 
 @torch.no_grad()
 def render_rays_edited(
     origins: Tensor,
     dirs: Tensor,
-    density_fn: DensityFn,
-    color_fn: ColorFn,
+    field: FieldFns,
+    opts: RenderOptions,
     edits: Sequence[FieldEdit] = (),
     masks: Sequence[Extent] = (),
-    near: float | Tensor = 0.0,
-    far: float | Tensor = 1.0,
-    occupancy=None,
-    step: float = 0.01,
-    prune_eps: float = 1e-4,
-    surface_color: bool = False,
 ) -> dict[str, Tensor]:
     """`render_rays` on the field with `edits` applied.
 
     Args:
-        origins, dirs: [R, 3] world rays (unit directions). The rest as `render_rays`.
+        origins, dirs: [R, 3] world rays (unit directions). field, opts: as `render_rays`
+            (with opts.surface_color the edited colour is read at the expected depth).
         masks: extents whose per-ray weight to return.
-        surface_color: colour each ray at its expected depth (`render_rays`); the edited
-            colour function is then read there.
     Returns:
         rgb [R, 3], depth [R] (ray distance), acc [R], and masks [M, R]: the weight of each
         ray's samples inside each of `masks`.
     """
-    dens, col = wrap_field(density_fn, color_fn, edits)
-    out = render_rays(
-        origins,
-        dirs,
-        dens,
-        col,
-        None,
-        near=near,
-        far=far,
-        occupancy=occupancy,
-        step=step,
-        prune_eps=prune_eps,
-        return_samples=bool(masks),
-        surface_color=surface_color,
-    )
+    opts = replace(opts, return_samples=bool(masks))
+    out = render_rays(origins, dirs, wrap_field(field, edits), opts)
     res = _with_masks(out, origins, dirs, masks)
     res["rgb"], res["acc"] = fill_ground(edits, origins, dirs, res["rgb"], res["acc"])
     return res
@@ -87,34 +70,26 @@ def _with_masks(
 
 @torch.no_grad()
 def render_view_edited(
-    model: NerfModel,
+    model: RadianceField,
     pose: np.ndarray,
     intr: Intrinsics,
     edits: Sequence[FieldEdit] = (),
     chunk: int = 16384,
     masks: Sequence[Extent] = (),
 ) -> dict[str, np.ndarray]:
-    """A full view of the edited model, as `stages.nerf.render.render_view` renders it
-    (the model's box, near plane, occupancy grid, step, pruning and colouring mode).
+    """A full view of the edited field, as `stages.common.radiance.render.render_view`
+    renders it (the field's box, near plane, occupancy grid, step, pruning and colouring).
 
     Returns rgb [H, W, 3] in [0, 1], depth [H, W] (z along the optical axis, metres),
     acc [H, W] and masks [M, H, W] (weight inside each of `masks`).
     """
     o, d, zs = camera_rays(pose, intr)
-    dens, col = wrap_field(model.density, model.color, edits)
+    fns = wrap_field(model.fns(semantics=False), edits)
+    how = FieldRender(return_samples=bool(masks))
     parts: dict[str, list[Tensor]] = {"rgb": [], "depth": [], "acc": [], "masks": []}
     for i in range(0, len(o), chunk):
         oc, dc = o[i : i + chunk], d[i : i + chunk]
-        rendered = render_model(
-            model,
-            oc,
-            dc,
-            semantics=False,
-            return_samples=bool(masks),
-            density_fn=dens,
-            color_fn=col,
-        )
-        out = _with_masks(rendered, oc, dc, masks)
+        out = _with_masks(render_field(model, oc, dc, fns, how), oc, dc, masks)
         out["rgb"], out["acc"] = fill_ground(edits, oc, dc, out["rgb"], out["acc"])
         parts["rgb"].append(out["rgb"])
         parts["depth"].append(out["depth"] * zs[i : i + chunk])

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -29,6 +28,7 @@ from torch import Tensor
 
 from stages.common.camera import pixel_grid, unproject
 from stages.common.errors import BlunfError
+from stages.nerf.config import StereoConfig
 from stages.nerf.consistency import consistent_depth, overlap_order
 
 log = logging.getLogger(__name__)
@@ -36,39 +36,12 @@ log = logging.getLogger(__name__)
 GRAY = (0.299, 0.587, 0.114)  # luma weights of the matched grey image
 
 
-@dataclass(frozen=True)
-class SweepConfig:
-    """Plane sweep settings (NerfConfig's stereo_* fields)."""
-
-    planes: int = 64  # depth planes, even in inverse depth between the view's track bounds
-    refine: int = 16  # then per pixel this many planes across one coarse step either side
-    #                   (0 or 1 = no refinement): a plane step is ~10 cm at 3 m here
-    neighbours: int = 4  # views matched against each view (those overlapping it most)
-    window: int = 7  # pixels: side of the correlation window
-    max_cost: float = 0.4  # a reading needs 1 - ZNCC below this (ZNCC above 0.6)
-    min_std: float = 0.02  # ... and this much grey-level spread (0-1) in its window
-    tol: float = 0.02  # relative depth agreement for the multi-view check
-    agree: int = 2  # views that must confirm a reading
-
-    def __post_init__(self) -> None:
-        if self.planes < 3 or self.neighbours < 1 or self.refine == 2 or self.refine < 0:
-            raise BlunfError(
-                "nerf.stereo_planes must be >= 3, nerf.stereo_views >= 1 and "
-                "nerf.stereo_refine 0, 1 or >= 3, got "
-                f"{self.planes}, {self.neighbours}, {self.refine}"
-            )
-        if self.window < 3 or self.window % 2 == 0:
-            raise BlunfError(f"nerf.stereo_window must be odd and >= 3, got {self.window}")
-        if not 0 < self.max_cost <= 2:
-            raise BlunfError(f"nerf.stereo_max_cost must be in (0, 2], got {self.max_cost}")
-
-
 def sweep_depths(
     images: list[np.ndarray],
     Ks: list[np.ndarray],
     poses: list[np.ndarray],
     sparse: list[np.ndarray],
-    cfg: SweepConfig,
+    cfg: StereoConfig,
 ) -> tuple[list[np.ndarray], dict]:
     """Dense z-depth for every view, checked across views.
 
@@ -91,7 +64,7 @@ def sweep_depths(
     raw: list[np.ndarray] = []
     matched = 0
     for i in range(n):
-        nbrs = order[i][: cfg.neighbours]
+        nbrs = order[i][: cfg.views]
         own = sparse[i][sparse[i] > 0]
         lo, hi = _bounds(own if len(own) >= 20 else everything)
         if not nbrs or not hi > lo > 0:
@@ -103,7 +76,7 @@ def sweep_depths(
     total = sum(s.size for s in sparse)
     # agreement only: a stereo reading seen through by a neighbour is that neighbour's
     # occlusion as often as a floater, so the see-through count is not limited
-    checked, _ = consistent_depth(raw, Ks, poses, cfg.tol, cfg.agree, 10**6, 2 * cfg.neighbours)
+    checked, _ = consistent_depth(raw, Ks, poses, cfg.tol, cfg.agree, 10**6, 2 * cfg.views)
     facts = {
         "matched": round(matched / max(1, total), 4),
         "kept": round(sum(int((c > 0).sum()) for c in checked) / max(1, total), 4),
@@ -128,7 +101,7 @@ def _sweep(
     nbrs: list[int],
     lo: float,
     hi: float,
-    cfg: SweepConfig,
+    cfg: StereoConfig,
 ) -> np.ndarray:
     """One view's depth [H, W] (0 = no reading) from its neighbours `nbrs`."""
     ref = grays[i]

@@ -64,6 +64,7 @@ def _valid_other(cfg, name, value):
     """A different value the config accepts (for fields checked in __post_init__)."""
     for cand in (
         value * 2 if isinstance(value, int | float) and value else 1,
+        value + 2 if isinstance(value, int) and not isinstance(value, bool) else 1,  # odd stays odd
         "none",
         "sequential",
         "global",
@@ -139,8 +140,9 @@ def test_shipped_configs_load(name):
     assert path.is_file()
     cfg = load_config(path)
     if name == "edit.yaml":
-        assert cfg["nerf"].edge_batch == 0.5 and default_config()["nerf"].edge_batch == 0.0
-        assert cfg["nerf"].max_steps == 1000 and cfg["nerf"].time_budget == 0
+        assert cfg["nerf"].train.edge_batch == 0.5
+        assert default_config()["nerf"].train.edge_batch == 0.0
+        assert cfg["nerf"].train.max_steps == 1000 and cfg["nerf"].train.time_budget == 0
 
 
 @pytest.mark.parametrize(
@@ -168,3 +170,38 @@ def test_no_methods_fails_before_the_run_folder_is_made(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("blunf: error: run.methods"), err
     assert not out.exists()
+
+
+def test_nested_nerf_settings_and_renamed_keys(tmp_path):
+    # nerf's settings are nested: --set and YAML reach them by their path; the flat keys of
+    # earlier versions fail with one line naming the new key (also where an old key is now
+    # the name of a section: nerf.stereo was a bool, nerf.field a string)
+    cfg = load_config(None, ["nerf.stereo.planes=32", "nerf.train.max_steps=7"])
+    assert cfg["nerf"].stereo.planes == 32 and cfg["nerf"].train.max_steps == 7
+    assert cfg["nerf"].stereo.views == default_config()["nerf"].stereo.views
+    assert cfg.to_dict()["nerf"]["stereo"]["planes"] == 32
+    p = tmp_path / "nested.yaml"
+    p.write_text("nerf:\n  stereo:\n    planes: 32\n  field:\n    kind: pe\n")
+    cfg = load_config(p)
+    assert cfg["nerf"].stereo.planes == 32 and cfg["nerf"].field.kind == "pe"
+    # the cache key sees a nested value
+    a = stage_view(default_config()["nerf"], "grid")
+    assert stage_view(cfg["nerf"], "grid") != a and a["stereo"]["planes"] == 64
+    for old, new in [
+        ("nerf.stereo_planes=32", "nerf.stereo.planes"),
+        ("nerf.max_steps=10", "nerf.train.max_steps"),
+        ("nerf.stereo=false", "nerf.stereo.enabled"),
+        ("nerf.field=pe", "nerf.field.kind"),
+        ("nerf.occ_res=64", "nerf.occupancy.res"),
+    ]:
+        key = old.partition("=")[0]
+        with pytest.raises(BlunfError, match=rf"{key}: renamed to {new}$") as e:
+            load_config(None, [old])
+        assert "\n" not in str(e.value)
+    p.write_text("nerf:\n  stereo_planes: 32\n")
+    with pytest.raises(
+        BlunfError, match=r"nested.yaml: nerf.stereo_planes: renamed to nerf.stereo.planes"
+    ):
+        load_config(p)
+    with pytest.raises(BlunfError, match="unknown key nerf.stereo.plane "):
+        load_config(None, ["nerf.stereo.plane=3"])

@@ -16,7 +16,14 @@ from stages.common.components import class_name, component_map
 
 ROOT = Path(__file__).resolve().parents[2]
 FAST = ["--set", "blueprint.blunf.steps=300", "--set", "fusion.voxel=0.04"]
-NERF = ["--set", "nerf.time_budget=0", "--set", "nerf.max_steps=200", "--set", "nerf.threads=1"]
+NERF = [
+    "--set",
+    "nerf.train.time_budget=0",
+    "--set",
+    "nerf.train.max_steps=200",
+    "--set",
+    "nerf.threads=1",
+]
 
 
 def _run(capture: Path, out: Path, *extra: str) -> dict:
@@ -139,7 +146,7 @@ def test_photos_only_plan_is_within_5_of_the_plan_from_true_depth(tmp_path):
     cams = json.loads((with_depth / "cameras.json").read_text())
     cams["depth_scale"] = json.loads((full / "cameras.json").read_text())["depth_scale"]
     (with_depth / "cameras.json").write_text(json.dumps(cams))
-    steps = ["--set", "nerf.time_budget=0", "--set", "nerf.max_steps=250"]
+    steps = ["--set", "nerf.train.time_budget=0", "--set", "nerf.train.max_steps=250"]
     config = ["--config", str(ROOT / "configs" / "phone.yaml")]
     fwiou = {}
     for name, cap, extra in [("photos", phone, [*config, *steps]), ("depth", with_depth, [])]:

@@ -13,8 +13,8 @@ import torch
 
 from stages.blueprint import IMPLS, BlueprintConfig, BlueprintInputs, BlunfConfig, paper_recipe
 from stages.blueprint.blunf import _sampler, auto_freqs, field_labels, shrink_objects
-from stages.blueprint.encoding import HashGrid2D
 from stages.common.blueprint import Blueprint, Grid
+from stages.common.encoding import HashGrid2D
 from stages.common.errors import BlunfError
 from stages.common.plan_metrics import plan_metrics
 

@@ -23,13 +23,21 @@ from stages.nerf import IMPLS as NERF
 from stages.nerf import NerfConfig, NerfInputs
 from stages.synth import make_room
 from stages.synth.room import CHAIR, FLOOR
+from tests.conftest import tune
 
 # NeRF training (25-100 CPU-s, as the NeRF stage stands), fusion, ~20 renders of 96 x 72
 pytestmark = pytest.mark.slow
 
 torch.set_num_threads(1)
 
-NERF_CFG = NerfConfig(threads=1, max_steps=200, time_budget=0.0, batch_rays=1024, eval_every=0)
+NERF_CFG = tune(
+    NerfConfig(),
+    threads=1,
+    train__max_steps=200,
+    train__time_budget=0.0,
+    train__batch_rays=1024,
+    train__eval_every=0,
+)
 # seed 3: chair_2 (instance 3) at x 1.83..2.34, y 1.84..2.34; sofa_1 (7) x 0.07..0.90,
 # y 0.10..2.28; table_1 (1) x 2.32..3.42, y 1.83..3.29 (gt/instances.json). Frames 0 and 6
 # see chair_2, the sofa or the table, and chair_1 (another chair).

@@ -30,6 +30,9 @@ from stages.common.blueprint import Blueprint, Grid
 from stages.common.camera import Intrinsics
 from stages.common.components import component_map
 from stages.common.errors import BlunfError
+from stages.common.radiance.field import FieldFns, field_of
+from stages.common.radiance.rays import camera_rays
+from stages.common.radiance.render import RenderOptions, render_view
 from stages.edit.config import EditConfig
 from stages.edit.metrics import PSNR_CAP, EditScore, changed, match_instances, pooled_iou
 from stages.edit.ops import (
@@ -43,8 +46,8 @@ from stages.edit.render import look_at, orbit_poses, render_rays_edited, render_
 from stages.edit.select import _top, extent_of, select_cells
 from stages.edit.spec import Edit, EditSpec, Selector
 from stages.nerf.config import NerfConfig
-from stages.nerf.render import camera_rays, render_view
-from stages.nerf.train import build_model
+from stages.nerf.scene import build_model
+from tests.conftest import tune
 
 torch.set_num_threads(1)
 
@@ -150,9 +153,8 @@ def _edit(op: str, cells: np.ndarray, cfg: EditConfig = CFG, **kw) -> FieldEdit:
 
 def _render(edits=(), masks=(), surface: bool = False) -> dict:
     o, d, _ = camera_rays(POSE, INTR)
-    out = render_rays_edited(
-        o, d, density, color, edits, masks, near=19.0, far=20.2, step=0.01, surface_color=surface
-    )
+    opts = RenderOptions(near=19.0, far=20.2, step=0.01, surface_color=surface)
+    out = render_rays_edited(o, d, field_of(density, color), opts, edits, masks)
     return {
         "rgb": out["rgb"].view(20, 20, 3).numpy(),
         "masks": out["masks"].view(-1, 20, 20).numpy(),
@@ -274,7 +276,8 @@ def test_remove_fills_ground_no_view_saw(before):
     green = torch.tensor([0.0, 1.0, 0.0])
 
     def render(edits) -> np.ndarray:
-        out = render_rays_edited(o, d, holed, color, edits, near=19.0, far=20.2, step=0.01)
+        opts = RenderOptions(near=19.0, far=20.2, step=0.01)
+        out = render_rays_edited(o, d, field_of(holed, color), opts, edits)
         return out["rgb"].view(20, 20, 3).numpy()
 
     a = _edit("remove", _select("click", (0.6, 0.6)))
@@ -316,7 +319,7 @@ def test_fill_is_the_floor_colour_round_the_footprint():
     assert ring.sum() > 40
 
     class NoField:
-        def density(self, x):
+        def fns(self, semantics: bool = True) -> FieldFns:
             raise AssertionError("the mesh has colours: the field is not asked")
 
     e = Edit(0, "remove", Selector("click", (0.6, 0.6)))
@@ -331,13 +334,13 @@ def test_fill_is_the_floor_colour_round_the_footprint():
 
 
 class _FieldOf:
-    """A model-like object over the analytic field (density, color, clear_cache)."""
+    """A model-like object over the analytic field (what `_fill` asks of it: its functions)."""
 
     def __init__(self, density_fn, color_fn) -> None:
         self.density, self.color = density_fn, color_fn
 
-    def clear_cache(self) -> None:
-        pass
+    def fns(self, semantics: bool = True) -> FieldFns:
+        return field_of(self.density, self.color)
 
 
 def test_recolor_keeps_shading_and_touches_only_the_selection(before):
@@ -497,10 +500,16 @@ def test_mesh_edits():
 @pytest.mark.parametrize("surface", [False, True])
 def test_render_view_edited_without_edits_is_render_view(surface):
     # an untrained model: the same box, near plane, occupancy, step, pruning and colouring
-    # mode (composited, or read at the expected depth) as stages.nerf.render.render_view, so
-    # the same pixels bit for bit
+    # mode (composited, or read at the expected depth) as render_view (the shared
+    # renderer's), so the same pixels bit for bit
     torch.manual_seed(0)
-    cfg = NerfConfig(hash_log2_size=10, hash_levels=2, samples_across=64, width=16)
+    cfg = tune(
+        NerfConfig(),
+        field__hash_log2_size=10,
+        field__hash_levels=2,
+        field__width=16,
+        sampling__samples_across=64,
+    )
     model = build_model(cfg, torch.tensor([0.0, 0.0, 0.0]), torch.tensor([2.0, 2.0, 1.0]), [], [])
     model.surface.fill_(surface)
     intr = Intrinsics(8.0, 8.0, 3.5, 2.5, 8, 6)
@@ -516,7 +525,13 @@ def test_render_view_of_some_pixels_is_the_full_render_there(color):
     # the photos-only path renders only the pixels stereo left without depth: the same
     # values as the full view where asked, 0 (no opacity) elsewhere
     torch.manual_seed(0)
-    cfg = NerfConfig(hash_log2_size=10, hash_levels=2, samples_across=64, width=16)
+    cfg = tune(
+        NerfConfig(),
+        field__hash_log2_size=10,
+        field__hash_levels=2,
+        field__width=16,
+        sampling__samples_across=64,
+    )
     model = build_model(cfg, torch.tensor([0.0, 0.0, 0.0]), torch.tensor([2.0, 2.0, 1.0]), [], [])
     intr = Intrinsics(8.0, 8.0, 3.5, 2.5, 8, 6)
     pose = look_at(np.array([1.0, -0.5, 0.8]), np.array([1.0, 1.0, 0.2]))

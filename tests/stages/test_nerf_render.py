@@ -8,8 +8,10 @@ import numpy as np
 import torch
 
 from stages.common.camera import Intrinsics
-from stages.nerf.occupancy import OccupancyGrid
-from stages.nerf.render import camera_rays, ray_box, render_rays
+from stages.common.radiance.field import field_of
+from stages.common.radiance.occupancy import OccupancyGrid
+from stages.common.radiance.rays import camera_rays, ray_box
+from stages.common.radiance.render import RenderOptions, render_rays
 
 torch.set_num_threads(1)
 
@@ -39,7 +41,9 @@ def test_constant_slab_transmittance_and_opacity():
     # The slab boundaries fall on step boundaries (step 0.01), so the sum is exact.
     density, color = _slab(2.0, 1.0, 1.5)
     o, d = _rays()
-    out = render_rays(o, d, density, color, near=0.0, far=3.0, step=0.01, prune_eps=0.0)
+    out = render_rays(
+        o, d, field_of(density, color), RenderOptions(near=0.0, far=3.0, step=0.01, prune_eps=0.0)
+    )
     expect = 1.0 - math.exp(-1.0)
     torch.testing.assert_close(out["acc"], torch.full((4,), expect), atol=1e-4, rtol=0)
     torch.testing.assert_close(out["rgb"][:, 0], torch.full((4,), expect), atol=1e-4, rtol=0)
@@ -56,7 +60,7 @@ def test_step_density_puts_depth_at_the_step():
     # at its middle (2.005), so the expected depth is 2.005 and acc is 1.
     density, color = _slab(1e5, 2.0, 10.0)
     o, d = _rays()
-    out = render_rays(o, d, density, color, near=0.0, far=5.0, step=0.01)
+    out = render_rays(o, d, field_of(density, color), RenderOptions(near=0.0, far=5.0, step=0.01))
     torch.testing.assert_close(out["depth"], torch.full((4,), 2.005), atol=1e-4, rtol=0)
     torch.testing.assert_close(out["acc"], torch.ones(4), atol=1e-6, rtol=0)
 
@@ -65,10 +69,19 @@ def test_early_stop_changes_nothing_visible():
     # Pruning samples after transmittance 1e-4 changes the render by at most ~1e-4.
     density, color = _slab(3.0, 1.0, 6.0)
     o, d = _rays()
-    full = render_rays(o, d, density, color, near=0.0, far=8.0, step=0.01, prune_eps=0.0)
-    fast = render_rays(o, d, density, color, near=0.0, far=8.0, step=0.01, prune_eps=1e-4)
+    full = render_rays(
+        o, d, field_of(density, color), RenderOptions(near=0.0, far=8.0, step=0.01, prune_eps=0.0)
+    )
+    fast = render_rays(
+        o, d, field_of(density, color), RenderOptions(near=0.0, far=8.0, step=0.01, prune_eps=1e-4)
+    )
     with torch.no_grad():  # the block-wise marcher used for rendering views
-        blocks = render_rays(o, d, density, color, near=0.0, far=8.0, step=0.01, prune_eps=1e-4)
+        blocks = render_rays(
+            o,
+            d,
+            field_of(density, color),
+            RenderOptions(near=0.0, far=8.0, step=0.01, prune_eps=1e-4),
+        )
     for k in ("rgb", "acc", "depth"):
         torch.testing.assert_close(fast[k], full[k], atol=2e-3, rtol=0)
         torch.testing.assert_close(blocks[k], full[k], atol=2e-3, rtol=0)
@@ -80,12 +93,8 @@ def test_empty_field_gives_background():
     out = render_rays(
         o,
         d,
-        lambda x: torch.zeros(len(x)),
-        lambda x, v: RED.expand(len(x), 3),
-        near=0.1,
-        far=2.0,
-        step=0.01,
-        background=bg,
+        field_of(lambda x: torch.zeros(len(x)), lambda x, v: RED.expand(len(x), 3)),
+        RenderOptions(near=0.1, far=2.0, step=0.01, background=bg),
     )
     torch.testing.assert_close(out["rgb"], bg.expand(4, 3))
     assert torch.all(out["acc"] == 0)
@@ -100,6 +109,12 @@ class _Empty:
     def query(self, x: torch.Tensor) -> torch.Tensor:
         return torch.zeros(len(x), dtype=torch.bool)
 
+    def query_coarse(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.zeros(len(x), dtype=torch.bool)
+
+    def coarse_size(self) -> float:
+        return 0.04
+
 
 def _finite(out: dict) -> None:
     for k in ("rgb", "depth", "acc"):
@@ -111,25 +126,43 @@ def test_degenerate_inputs_stay_finite():
     o, d = _rays()
     density, color = _slab(2.0, 1.0, 1.5)
     # every sample skipped by the occupancy grid
-    out = render_rays(o, d, density, color, near=0.0, far=3.0, step=0.01, occupancy=_Empty())
+    out = render_rays(
+        o,
+        d,
+        field_of(density, color),
+        RenderOptions(near=0.0, far=3.0, step=0.01, occupancy=_Empty()),
+    )
     _finite(out)
     assert torch.all(out["acc"] == 0)
     with torch.no_grad():
-        out = render_rays(o, d, density, color, near=0.0, far=3.0, step=0.01, occupancy=_Empty())
+        out = render_rays(
+            o,
+            d,
+            field_of(density, color),
+            RenderOptions(near=0.0, far=3.0, step=0.01, occupancy=_Empty()),
+        )
     _finite(out)
     # huge density (clamped exponentials), zero density, near == far, far < near
     for dens in (lambda x: torch.full((len(x),), 3e38), lambda x: torch.zeros(len(x))):
-        _finite(render_rays(o, d, dens, color, near=0.0, far=3.0, step=0.01))
+        _finite(
+            render_rays(o, d, field_of(dens, color), RenderOptions(near=0.0, far=3.0, step=0.01))
+        )
         with torch.no_grad():
-            _finite(render_rays(o, d, dens, color, near=0.0, far=3.0, step=0.01))
-    _finite(render_rays(o, d, density, color, near=1.0, far=1.0, step=0.01))
-    out = render_rays(o, d, density, color, near=2.0, far=1.0, step=0.01)
+            _finite(
+                render_rays(
+                    o, d, field_of(dens, color), RenderOptions(near=0.0, far=3.0, step=0.01)
+                )
+            )
+    _finite(
+        render_rays(o, d, field_of(density, color), RenderOptions(near=1.0, far=1.0, step=0.01))
+    )
+    out = render_rays(o, d, field_of(density, color), RenderOptions(near=2.0, far=1.0, step=0.01))
     _finite(out)
     assert torch.all(out["acc"] == 0)
     # rays parallel to the slab faces (along y inside and outside the slab)
     o2 = torch.tensor([[1.2, 0.0, 0.0], [0.5, 0.0, 0.0]])
     d2 = torch.tensor([[0.0, 1.0, 0.0], [0.0, 1.0, 0.0]])
-    out = render_rays(o2, d2, density, color, near=0.0, far=2.0, step=0.01)
+    out = render_rays(o2, d2, field_of(density, color), RenderOptions(near=0.0, far=2.0, step=0.01))
     _finite(out)
     # inside the slab: optical depth 2 * 2 = 4 -> acc = 1 - e^-4; outside: nothing
     torch.testing.assert_close(
@@ -140,11 +173,8 @@ def test_degenerate_inputs_stay_finite():
     out = render_rays(
         o,
         d,
-        lambda x: torch.exp(raw.clamp(max=15)).expand(len(x)),
-        color,
-        near=0.0,
-        far=3.0,
-        step=0.01,
+        field_of(lambda x: torch.exp(raw.clamp(max=15)).expand(len(x)), color),
+        RenderOptions(near=0.0, far=3.0, step=0.01),
     )
     (out["rgb"].sum() + out["depth"].sum()).backward()
     assert raw.grad is not None and torch.isfinite(raw.grad)
@@ -167,8 +197,12 @@ def test_occupancy_skipping_matches_full_marching():
     ).reshape(-1, 3)
     occ.seed(pts, 1.0, 0)
     o, d = _rays()
-    ref = render_rays(o, d, density, color, near=0.0, far=3.0, step=0.01, prune_eps=0.0)
-    got = render_rays(o, d, density, color, near=0.0, far=3.0, step=0.01, occupancy=occ)
+    ref = render_rays(
+        o, d, field_of(density, color), RenderOptions(near=0.0, far=3.0, step=0.01, prune_eps=0.0)
+    )
+    got = render_rays(
+        o, d, field_of(density, color), RenderOptions(near=0.0, far=3.0, step=0.01, occupancy=occ)
+    )
     for k in ("rgb", "acc", "depth"):
         torch.testing.assert_close(got[k], ref[k], atol=1e-4, rtol=0)
 
@@ -187,8 +221,8 @@ def test_edit_hook_reveals_what_is_behind():
 
     o, d = _rays()
     color = lambda x, v: RED.expand(len(x), 3)  # noqa: E731
-    before = render_rays(o, d, scene, color, near=0.0, far=6.0, step=0.01)
-    after = render_rays(o, d, removed, color, near=0.0, far=6.0, step=0.01)
+    before = render_rays(o, d, field_of(scene, color), RenderOptions(near=0.0, far=6.0, step=0.01))
+    after = render_rays(o, d, field_of(removed, color), RenderOptions(near=0.0, far=6.0, step=0.01))
     torch.testing.assert_close(before["depth"], torch.full((4,), 2.005), atol=1e-4, rtol=0)
     torch.testing.assert_close(after["depth"], torch.full((4,), 4.005), atol=1e-4, rtol=0)
 
@@ -242,19 +276,26 @@ def test_surface_color_is_the_colour_at_the_expected_depth():
     expect = (acc * _at(depth) + (1.0 - acc) * bg).expand(4, 3)
     assert abs(float(expect[0, 0]) - 0.17625) < 1e-4  # the hand value above
     kw = dict(near=0.0, far=3.0, step=0.01, background=bg, surface_color=True)
-    surf = render_rays(o, d, density, _depth_colour, prune_eps=0.0, **kw)
+    surf = render_rays(o, d, field_of(density, _depth_colour), RenderOptions(prune_eps=0.0, **kw))
     # the depth is the midpoint-sample estimate (within ~1e-4 m of the exact mean, see above)
     # and the colour changes by < 2.5 per metre there: well within 2e-4
     torch.testing.assert_close(surf["rgb"], expect, atol=2e-4, rtol=0)
     torch.testing.assert_close(surf["acc"], torch.full((4,), acc), atol=1e-4, rtol=0)
     with torch.no_grad():  # the block-wise marcher of full-view renders gives the same
-        blocks = render_rays(o, d, density, _depth_colour, prune_eps=1e-4, **kw)
+        blocks = render_rays(
+            o, d, field_of(density, _depth_colour), RenderOptions(prune_eps=1e-4, **kw)
+        )
     torch.testing.assert_close(blocks["rgb"], expect, atol=2e-4, rtol=0)
     # compositing averages c over the slab's weights instead: red = acc E[(t/3)^2] =
     # acc (E[t]^2 + Var[t]) / 9. For the truncated exponential (rate 2 on [0, 0.5] past x = 1)
     # E[s^2] = 2/4 - (0.25 + 0.5) e^-1 / (1 - e^-1) = 0.06351, Var = 0.06351 - 0.20902^2 =
     # 0.01982: red = 0.63212 (1.46173 + 0.01982) / 9 = 0.10406, vs 0.10267 at the surface.
-    comp = render_rays(o, d, density, _depth_colour, prune_eps=0.0, near=0.0, far=3.0, step=0.01)
+    comp = render_rays(
+        o,
+        d,
+        field_of(density, _depth_colour),
+        RenderOptions(prune_eps=0.0, near=0.0, far=3.0, step=0.01),
+    )
     torch.testing.assert_close(comp["rgb"][:, 0], torch.full((4,), 0.10406), atol=2e-4, rtol=0)
     torch.testing.assert_close(
         surf["rgb"][:, 0] - (1.0 - acc) * bg[0], torch.full((4,), 0.10267), atol=2e-4, rtol=0
@@ -268,8 +309,10 @@ def test_surface_color_matches_compositing_for_a_sharp_step():
     o, d = _rays()
     bg = torch.tensor([0.2, 0.4, 0.6])
     kw = dict(near=0.0, far=5.0, step=0.01, background=bg)
-    comp = render_rays(o, d, density, _depth_colour, **kw)
-    surf = render_rays(o, d, density, _depth_colour, surface_color=True, **kw)
+    comp = render_rays(o, d, field_of(density, _depth_colour), RenderOptions(**kw))
+    surf = render_rays(
+        o, d, field_of(density, _depth_colour), RenderOptions(surface_color=True, **kw)
+    )
     torch.testing.assert_close(comp["rgb"], _at(2.005).expand(4, 3), atol=1e-5, rtol=0)
     torch.testing.assert_close(surf["rgb"], comp["rgb"], atol=1e-5, rtol=0)
     torch.testing.assert_close(surf["depth"], comp["depth"])
@@ -290,7 +333,10 @@ def test_surface_color_misses_give_the_background_and_gradients_flow():
         return gain * _depth_colour(x, v)
 
     out = render_rays(
-        o, d, density, colour, near=0.0, far=5.0, step=0.01, background=bg, surface_color=True
+        o,
+        d,
+        field_of(density, colour),
+        RenderOptions(near=0.0, far=5.0, step=0.01, background=bg, surface_color=True),
     )
     assert asked == [2]
     torch.testing.assert_close(out["rgb"][2:], bg.expand(2, 3))

@@ -20,9 +20,11 @@ from stages.common.camera import Intrinsics
 from stages.common.capture import Capture, Frame
 from stages.common.errors import BlunfError
 from stages.common.io import read_json, write_json
+from stages.common.radiance.config import FieldConfig, SamplingConfig
+from stages.common.radiance.field import RadianceField, save_field
+from stages.common.radiance.occupancy import OccupancyGrid
 from stages.nerf.config import NerfConfig
-from stages.nerf.field import NerfModel, save_model
-from stages.nerf.occupancy import OccupancyGrid
+from tests.conftest import tune
 
 torch.set_num_threads(1)
 
@@ -33,7 +35,7 @@ HEIGHTS = (2.0, 1.0, 1.5, 0.5)  # not sorted: the choice must not depend on the 
 GRID = Grid((0.0, 0.0), 0.1, (20, 20))
 
 
-def _analytic_model(with_semantics: bool = True) -> NerfModel:
+def _analytic_model(with_semantics: bool = True) -> RadianceField:
     """A NeRF (PE field without frequencies, one hidden layer) set by hand, in the box
     [0, 2] x [0, 2] x [-0.5, 1.5] (normalised u = world - (1, 1, 0.5)):
 
@@ -46,12 +48,12 @@ def _analytic_model(with_semantics: bool = True) -> NerfModel:
     So from 0.5 m or 1.0 m every vertical ray sees the floor / rug (rows 0-9 table, rows
     10-19 floor on GRID) and from 1.5 m or 2.0 m it sees the beam (wall everywhere).
     """
-    cfg = NerfConfig(field="pe", pe_freqs=0, pe_layers=1, pe_width=8, geo_features=2, width=4)
+    cfg = FieldConfig(kind="pe", pe_freqs=0, pe_layers=1, pe_width=8, geo_features=2, width=4)
     lo, hi = torch.tensor([0.0, 0.0, -0.5]), torch.tensor([2.0, 2.0, 1.5])
     occ = OccupancyGrid.for_box(lo, hi, 8)
     occ.fill(1.0)  # every cell occupied: the field alone decides
     ids = sorted(CLASSES) if with_semantics else []
-    model = NerfModel(cfg, lo, hi, ids, occ)
+    model = RadianceField(cfg, SamplingConfig(), lo, hi, ids, occ)
     with torch.no_grad():
         for p in model.parameters():
             p.zero_()
@@ -92,7 +94,7 @@ def _plan_floor_and_rug() -> np.ndarray:
 def _inputs(tmp: Path, reference: np.ndarray | None, with_semantics: bool = True) -> NerfTopInputs:
     """model.pt, points.npz (labelled like the floor / rug plan), grid.json, GT plan."""
     tmp.mkdir(parents=True, exist_ok=True)
-    save_model(_analytic_model(with_semantics), tmp / "model.pt")
+    save_field(_analytic_model(with_semantics), tmp / "model.pt")
     # one projected point per cell centre, at floor height, labelled as the floor / rug plan
     xy = GRID.centers().reshape(-1, 2)
     xyz = np.concatenate([xy, np.zeros((len(xy), 1))], axis=1).astype(np.float32)
@@ -228,19 +230,20 @@ def test_plan_takes_the_instances_of_the_projected_points(tmp_path):
 
 # 600 steps with the semantic loss weighted up (at 0.04, 100 steps of the tiny run label
 # everything "wall"): ~1.5 CPU-min on one thread.
-TRAINED = NerfConfig(
+TRAINED = tune(
+    NerfConfig(),
     threads=1,
-    max_steps=600,
-    time_budget=0.0,
-    eval_every=0,
-    semantic_weight=1.0,
-    hash_log2_size=14,
-    hash_max_res=128,
-    occ_res=64,
-    batch_rays=512,
-    surface_rays=2048,
-    geo_rays=2048,
-    samples_across=256,
+    train__max_steps=600,
+    train__time_budget=0.0,
+    train__eval_every=0,
+    losses__semantic_weight=1.0,
+    field__hash_log2_size=14,
+    field__hash_max_res=128,
+    occupancy__res=64,
+    train__batch_rays=512,
+    losses__surface_rays=2048,
+    losses__geo_rays=2048,
+    sampling__samples_across=256,
 )
 
 

@@ -288,7 +288,7 @@ def test_video_frames_are_cached_like_a_stage(inputs, tmp_path):
 @pytest.mark.slow
 @pytest.mark.parametrize("kind", ["exif", "plain", "video"])
 def test_photos_or_video_run_to_a_plan(inputs, tmp_path, kind):
-    fast = ["blueprint.blunf.steps=60", "fusion.voxel=0.05", "nerf.max_steps=20"]
+    fast = ["blueprint.blunf.steps=60", "fusion.voxel=0.05", "nerf.train.max_steps=20"]
     args = ["run", str(inputs[kind]), "--out", str(tmp_path / "run")]
     args += [x for s in fast + ["ingest.video_frames=16"] for x in ("--set", s)]
     assert main(args) == 0

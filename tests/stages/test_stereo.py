@@ -10,7 +10,8 @@ import torch
 from stages.common.capture import read_layout
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth, read_image
-from stages.nerf.stereo import SweepConfig, _box, sweep_depths
+from stages.nerf.config import StereoConfig
+from stages.nerf.stereo import _box, sweep_depths
 
 
 @pytest.fixture(scope="module")
@@ -28,7 +29,7 @@ def room(tiny_room):
 @pytest.fixture(scope="module")
 def swept(room):
     images, ks, poses, tracks, _ = room
-    return sweep_depths(images, ks, poses, tracks, SweepConfig())
+    return sweep_depths(images, ks, poses, tracks, StereoConfig())
 
 
 def _errors(depths: list[np.ndarray], gt: list[np.ndarray]) -> np.ndarray:
@@ -61,7 +62,7 @@ def test_wrong_poses_give_no_depth(room, swept):
     moved = [p.copy() for p in poses]
     for i, p in enumerate(moved):
         p[:3, 3] += 0.3 * np.array([np.cos(i), np.sin(i), 0.0])
-    _, facts = sweep_depths(images, ks, moved, tracks, SweepConfig())
+    _, facts = sweep_depths(images, ks, moved, tracks, StereoConfig())
     assert facts["kept"] < 0.25 * swept[1]["kept"], (facts, swept[1])
 
 
@@ -69,7 +70,7 @@ def test_flat_images_give_no_depth(room):
     # no texture, nothing to match: every reading is refused rather than guessed
     images, ks, poses, tracks, _ = room
     flat = [np.full_like(im, 0.5) for im in images]
-    depths, facts = sweep_depths(flat, ks, poses, tracks, SweepConfig())
+    depths, facts = sweep_depths(flat, ks, poses, tracks, StereoConfig())
     assert facts["matched"] == 0 and all(not d.any() for d in depths)
 
 
@@ -84,7 +85,7 @@ def test_same_depth_at_any_scale_and_offset(room, swept, scale, offset):
         q[:3, 3] = q[:3, 3] * scale + offset
         moved.append(q)
     scaled = [t * np.float32(scale) for t in tracks]
-    out, _ = sweep_depths(images, ks, moved, scaled, SweepConfig())
+    out, _ = sweep_depths(images, ks, moved, scaled, StereoConfig())
     for a, b in zip(ref, out, strict=True):
         assert np.isfinite(b).all()
         both = (a > 0) & (b > 0)
@@ -106,7 +107,7 @@ def test_box_mean_matches_a_direct_sum():
     "kw",
     [
         {"planes": 2},
-        {"neighbours": 0},
+        {"views": 0},
         {"refine": 2},
         {"refine": -1},
         {"window": 4},
@@ -115,8 +116,8 @@ def test_box_mean_matches_a_direct_sum():
     ],
 )
 def test_bad_settings_are_refused(kw):
-    with pytest.raises(BlunfError, match="nerf.stereo_"):
-        SweepConfig(**kw)
+    with pytest.raises(BlunfError, match=r"nerf\.stereo\."):
+        StereoConfig(**kw)
 
 
 def test_refinement_sharpens_the_coarse_planes(room):
@@ -124,7 +125,7 @@ def test_refinement_sharpens_the_coarse_planes(room):
     # refinement across a plane step either side lowers the error and confirms more readings
     # (measured: median 1.43 % -> 1.09 %, 6.1 % -> 9.0 % of the pixels kept)
     images, ks, poses, tracks, gt = room
-    coarse, fc = sweep_depths(images, ks, poses, tracks, SweepConfig(planes=16, refine=0))
-    fine, ff = sweep_depths(images, ks, poses, tracks, SweepConfig(planes=16, refine=16))
+    coarse, fc = sweep_depths(images, ks, poses, tracks, StereoConfig(planes=16, refine=0))
+    fine, ff = sweep_depths(images, ks, poses, tracks, StereoConfig(planes=16, refine=16))
     e_coarse, e_fine = np.median(_errors(coarse, gt)), np.median(_errors(fine, gt))
     assert e_fine < 0.85 * e_coarse and ff["kept"] > fc["kept"], (e_fine, e_coarse, ff, fc)

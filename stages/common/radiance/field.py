@@ -1,27 +1,31 @@
-"""The radiance field: world points -> density (1/m), colour and class logits.
+"""The radiance field: world points -> colour, density (1/m) and class logits, in one query.
 
 World points are mapped into the unit cube by the scene box (per axis) before encoding.
 Two encodings share the heads: Instant-NGP's multi-resolution hash grid (the default: a few
 table look-ups per sample and a 64-wide MLP) and NeRF's positional encoding with a 4 x 128
 MLP (the baseline the bench compares against). Density uses a truncated exponential: exp
 with its argument clamped at 15 in both passes, so it never overflows.
+
+A renderer takes the field as functions (`FieldFns`): `sigma` for density alone (marching,
+occupancy updates) and `query` for one pass per sample batch; nothing is kept between calls.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import torch
 from torch import Tensor, nn
 
-from stages.blueprint.encoding import PositionalEncoding, gather_rows, relu_mlp
+from stages.common.encoding import PositionalEncoding, gather_rows, relu_mlp
 from stages.common.errors import BlunfError
-from stages.nerf.config import NerfConfig
-from stages.nerf.occupancy import OccupancyGrid
+from stages.common.radiance.config import FIELDS, FieldConfig, SamplingConfig
+from stages.common.radiance.occupancy import OccupancyGrid
 
-FIELDS = ("hash", "pe")
 EXP_CLAMP = 15.0  # density = exp(min(raw, 15)) <= 3.3e6 per metre
 # Instant-NGP's hashing primes, as wrapped int32 (int32 products wrap the same way every run).
 _PRIMES = (1, 2654435761 - 2**32, 805459861)
@@ -96,12 +100,32 @@ class HashGrid3D(nn.Module):
         return (feat * wt).sum(dim=2).view(n, self.out_dim)
 
 
-class NerfModel(nn.Module):
-    """Field + scene box + occupancy grid + class table: what render_view needs.
+class FieldOut(NamedTuple):
+    """One query's answer for N samples."""
 
-    density(x) [N, 3] world -> [N] 1/m; color(x, dirs) -> [N, 3] in [0, 1];
-    semantics(x) -> [N, K] logits over `class_ids` (None when trained without labels).
-    `color` / `semantics` called right after `density` on the same tensor reuse its features.
+    rgb: Tensor | None  # [N, 3] in [0, 1]; None when no colour was asked (dirs None)
+    sigma: Tensor  # [N] density (1/m), finite and >= 0
+    logits: Tensor | None  # [N, K] class logits; None without semantics
+
+
+SigmaFn = Callable[[Tensor], Tensor]  # [N, 3] world points -> [N] density (1/m)
+QueryFn = Callable[[Tensor, Tensor | None], FieldOut]  # points [N, 3], dirs [N, 3] | None
+
+
+@dataclass(frozen=True)
+class FieldFns:
+    """A field as functions, what the renderer takes (an edit wraps them)."""
+
+    sigma: SigmaFn  # density alone
+    query: QueryFn  # colour (when dirs are given), density and logits in one pass
+
+
+class RadianceField(nn.Module):
+    """Field + scene box + occupancy grid + class table + sampling: what a renderer needs.
+
+    `query(x, dirs)` answers colour, density and class logits of a sample batch in one pass;
+    `sigma(x)` the density alone. Class logits are over `class_ids` (no semantic head when
+    trained without labels).
     """
 
     # buffers (registered in __init__; declared here for the type checker)
@@ -111,22 +135,24 @@ class NerfModel(nn.Module):
 
     def __init__(
         self,
-        cfg: NerfConfig,
+        cfg: FieldConfig,
+        sampling: SamplingConfig,
         lo: Tensor,
         hi: Tensor,
         class_ids: list[int],
         occupancy: OccupancyGrid,
     ) -> None:
         super().__init__()
-        if cfg.field not in FIELDS:
-            raise BlunfError(f"nerf.field must be one of {FIELDS}, got {cfg.field!r}")
+        if cfg.kind not in FIELDS:
+            raise BlunfError(f"nerf.field.kind must be one of {FIELDS}, got {cfg.kind!r}")
         self.cfg = cfg
+        self.sampling = sampling
         self.register_buffer("lo", lo.float())  # [3] world corner of the scene box
         self.register_buffer("hi", hi.float())  # [3]
         self.class_ids = list(class_ids)
         self.occupancy = occupancy
         g = cfg.geo_features
-        if cfg.field == "hash":
+        if cfg.kind == "hash":
             self.encoding: nn.Module = HashGrid3D(
                 cfg.hash_levels,
                 cfg.hash_features,
@@ -149,7 +175,7 @@ class NerfModel(nn.Module):
         # surfaces) would otherwise drown the colour's in the shared table's Adam statistics
         self.color_encoding: nn.Module | None = None
         d_col = g
-        if cfg.color_grid and cfg.field == "hash":
+        if cfg.color_grid and cfg.kind == "hash":
             self.color_encoding = HashGrid3D(
                 cfg.hash_levels,
                 cfg.hash_features,
@@ -160,7 +186,6 @@ class NerfModel(nn.Module):
             d_col = int(self.color_encoding.out_dim)
         self.color_head = relu_mlp(d_col + d_dir, cfg.width, 1, 3)
         self.sem_head = relu_mlp(g, cfg.width, 1, len(class_ids)) if class_ids else None
-        self._cache: tuple[Tensor, Tensor] | None = None
         # rendering colours each ray at its expected depth (set when trained with depth)
         self.register_buffer("surface", torch.zeros((), dtype=torch.bool))
 
@@ -171,69 +196,101 @@ class NerfModel(nn.Module):
     @property
     def step(self) -> float:
         """Ray-marching step in metres (scene box diagonal / samples_across)."""
-        return float(torch.linalg.norm(self.hi - self.lo)) / self.cfg.samples_across
+        return float(torch.linalg.norm(self.hi - self.lo)) / self.sampling.samples_across
 
     def normalise(self, x: Tensor) -> Tensor:
         """World [N, 3] -> unit cube [N, 3] (hash) or [-1, 1]^3 (pe)."""
         u = (x - self.lo) / (self.hi - self.lo)
-        return u if self.cfg.field == "hash" else 2.0 * u - 1.0
+        return u if self.cfg.kind == "hash" else 2.0 * u - 1.0
 
-    def _features(self, x: Tensor) -> Tensor:
-        if self._cache is not None and self._cache[0] is x:
-            return self._cache[1]
-        h = self.trunk(self.encoding(self.normalise(x)))  # [N, 1 + G]
-        self._cache = (x, h)
-        return h
+    def _trunk(self, x: Tensor) -> Tensor:
+        return self.trunk(self.encoding(self.normalise(x)))  # [N, 1 + G]
 
-    def density(self, x: Tensor) -> Tensor:
+    def sigma(self, x: Tensor) -> Tensor:
         """[N, 3] world points -> [N] density (1/m), finite and >= 0."""
-        self._cache = None
-        return TruncExp.apply(self._features(x)[:, 0])
+        return TruncExp.apply(self._trunk(x)[:, 0])
+
+    def query(self, x: Tensor, dirs: Tensor | None, semantics: bool = True) -> FieldOut:
+        """One pass over a sample batch: x [N, 3] world points, dirs [N, 3] unit directions
+        (None: no colour) -> colour [N, 3], density [N], logits [N, K] (with `semantics` and
+        a semantic head, else None)."""
+        h = self._trunk(x)  # [N, 1 + G]
+        sigma = TruncExp.apply(h[:, 0])
+        rgb = None if dirs is None else self._color(x, dirs, h)
+        logits = self.sem_head(h[:, 1:]) if semantics and self.sem_head is not None else None
+        return FieldOut(rgb, sigma, logits)
 
     def color(self, x: Tensor, dirs: Tensor) -> Tensor:
         """[N, 3] world points, [N, 3] unit directions -> [N, 3] RGB in [0, 1]."""
+        h = None if self.color_encoding is not None else self._trunk(x)
+        return self._color(x, dirs, h)
+
+    def _color(self, x: Tensor, dirs: Tensor, h: Tensor | None) -> Tensor:
         if self.color_encoding is not None:
             geo = self.color_encoding(self.normalise(x))  # [N, E]
         else:
-            geo = self._features(x)[:, 1:]  # [N, G]
+            assert h is not None
+            geo = h[:, 1:]  # [N, G]
         if self.dir_enc is not None:
             geo = torch.cat([geo, self.dir_enc(dirs)], dim=-1)
         return torch.sigmoid(self.color_head(geo))
 
-    def semantics(self, x: Tensor) -> Tensor:
+    def logits(self, x: Tensor) -> Tensor:
         """[N, 3] world points -> [N, K] class logits (raises when trained without labels)."""
         if self.sem_head is None:
             raise BlunfError("this NeRF was trained without labels: no semantic head")
-        return self.sem_head(self._features(x)[:, 1:])
+        return self.sem_head(self._trunk(x)[:, 1:])
 
-    def clear_cache(self) -> None:
-        """Drop the features kept for the last density call (frees its autograd graph)."""
-        self._cache = None
+    def fns(self, semantics: bool = True) -> FieldFns:
+        """The field as the renderer takes it; `semantics` False: no logits are computed."""
+
+        def query(x: Tensor, dirs: Tensor | None) -> FieldOut:
+            return self.query(x, dirs, semantics)
+
+        return FieldFns(self.sigma, query)
 
 
-def save_model(model: NerfModel, path: Path) -> None:
-    """model.pt: state dict, config, scene box, class table and occupancy grid shape."""
+def save_field(field: RadianceField, path: Path) -> None:
+    """model.pt: state dict, field and sampling settings, class table, occupancy grid shape."""
     torch.save(
         {
-            "state_dict": model.state_dict(),
-            "config": asdict(model.cfg),
-            "class_ids": model.class_ids,
-            "occ_shape": list(model.occupancy.shape),
+            "state_dict": field.state_dict(),
+            "field": asdict(field.cfg),
+            "sampling": asdict(field.sampling),
+            "class_ids": field.class_ids,
+            "occ_shape": list(field.occupancy.shape),
         },
         path,
     )
 
 
-def load_model(path: Path) -> NerfModel:
-    """Read model.pt written by the nerf stage; returns the model in eval mode."""
+def load_field(path: Path) -> RadianceField:
+    """Read model.pt written by `save_field`; returns the field in eval mode."""
     try:
         ck = torch.load(path, map_location="cpu", weights_only=True)
-        cfg = NerfConfig(**ck["config"])
+        cfg = FieldConfig(**ck["field"])
+        sampling = SamplingConfig(**ck["sampling"])
         sd = ck["state_dict"]
         occ = OccupancyGrid(sd["occupancy.lo"], sd["occupancy.hi"], tuple(ck["occ_shape"]))
-        model = NerfModel(cfg, sd["lo"], sd["hi"], ck["class_ids"], occ)
-        model.load_state_dict(sd)
+        field = RadianceField(cfg, sampling, sd["lo"], sd["hi"], ck["class_ids"], occ)
+        field.load_state_dict(sd)
     except (OSError, RuntimeError, KeyError, TypeError) as e:
         raise BlunfError(f"{path}: not a NeRF model ({e.__class__.__name__}: {e})") from None
-    model.eval()
-    return model
+    field.eval()
+    return field
+
+
+def field_of(
+    density: SigmaFn,
+    color: Callable[[Tensor, Tensor], Tensor],
+    logits: Callable[[Tensor], Tensor] | None = None,
+) -> FieldFns:
+    """A field given as separate functions (analytic scenes, tests): each is called once per
+    query, density first."""
+
+    def query(x: Tensor, dirs: Tensor | None) -> FieldOut:
+        sigma = density(x)
+        rgb = None if dirs is None else color(x, dirs)
+        return FieldOut(rgb, sigma, None if logits is None else logits(x))
+
+    return FieldFns(density, query)

@@ -4,12 +4,13 @@ Each cell of a box-aligned grid keeps a running estimate of the field's density 
 cell is occupied when the estimate exceeds a threshold. Seeding from depth points starts the
 grid tight around the surfaces seen; updates decay every estimate and re-measure the density
 at a jittered point in a random set of cells, so cells the field empties are dropped and
-cells it fills are added.
+cells it fills are added. `Occupancy` is what the marcher asks of such a structure.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any, Protocol
 
 import torch
 import torch.nn.functional as F
@@ -17,6 +18,23 @@ from torch import Tensor, nn
 
 UPDATE_CHUNK = 65536  # points per density call during an update
 COARSE = 4  # cells per side of the blocks used to skip long empty stretches
+
+
+class Occupancy(Protocol):
+    """Where the field may hold density: what `marching.march` asks of an occupancy grid."""
+
+    def query(self, x: Tensor) -> Tensor:
+        """Occupied? [N, 3] world points -> bool [N]."""
+        ...
+
+    def query_coarse(self, x: Tensor) -> Tensor:
+        """Occupied within one coarse block of x? [N, 3] -> bool [N] (True wherever `query`
+        could be True on a segment of `coarse_size` metres centred at x)."""
+        ...
+
+    def coarse_size(self) -> float:
+        """Metres: the side of a coarse block (rays are first walked in segments this long)."""
+        ...
 
 
 class OccupancyGrid(nn.Module):
@@ -28,6 +46,7 @@ class OccupancyGrid(nn.Module):
     ema: Tensor  # [X, Y, Z]
     binary: Tensor  # [X, Y, Z] bool
     keep: Tensor  # [X, Y, Z] bool
+    coarse: Tensor  # [X', Y', Z'] bool, derived from binary (not saved)
 
     def __init__(self, lo: Tensor, hi: Tensor, shape: tuple[int, int, int]) -> None:
         super().__init__()
@@ -38,6 +57,10 @@ class OccupancyGrid(nn.Module):
         # cells seen full by depth: occupied whatever the updates measure (a thin surface
         # inside a cell is easily missed by the one jittered point an update looks at)
         self.register_buffer("keep", torch.zeros(shape, dtype=torch.bool))  # [X, Y, Z]
+        # blocks of COARSE^3 cells, occupied when any cell of theirs or of a neighbouring
+        # block is: recomputed by every method that changes `binary`, and on loading
+        self.register_buffer("coarse", self._coarse_of(self.binary), persistent=False)
+        self.register_load_state_dict_post_hook(OccupancyGrid._loaded)
 
     @staticmethod
     def for_box(lo: Tensor, hi: Tensor, res: int) -> OccupancyGrid:
@@ -64,17 +87,23 @@ class OccupancyGrid(nn.Module):
         """Smallest side of a cell (metres)."""
         return float(((self.hi - self.lo) / torch.tensor(self.shape)).min())
 
-    def coarse(self) -> Tensor:
+    @staticmethod
+    def _coarse_of(binary: Tensor) -> Tensor:
         """Blocks of COARSE^3 cells, occupied when any cell of theirs or of a neighbouring
-        block is (bool [X', Y', Z']); cached until `binary` changes. A segment shorter than a
-        block is free when its middle lies in a free coarse block."""
-        key = (self.binary.data_ptr(), self.binary._version)
-        if getattr(self, "_coarse_key", None) != key:
-            b = self.binary.float()[None, None]
-            b = F.max_pool3d(b, COARSE, stride=COARSE, ceil_mode=True)
-            self._coarse = F.max_pool3d(b, 3, stride=1, padding=1)[0, 0] > 0
-            self._coarse_key = key
-        return self._coarse
+        block is (bool [X', Y', Z']). A segment shorter than a block is free when its middle
+        lies in a free coarse block."""
+        b = binary.float()[None, None]
+        b = F.max_pool3d(b, COARSE, stride=COARSE, ceil_mode=True)
+        return F.max_pool3d(b, 3, stride=1, padding=1)[0, 0] > 0
+
+    def _changed(self) -> None:
+        """Bring `coarse` up to date with `binary`."""
+        self.coarse = self._coarse_of(self.binary)
+
+    @staticmethod
+    def _loaded(module: nn.Module, _keys: Any) -> None:
+        assert isinstance(module, OccupancyGrid)
+        module._changed()
 
     def coarse_size(self) -> float:
         """Smallest side of a coarse block (metres)."""
@@ -84,7 +113,7 @@ class OccupancyGrid(nn.Module):
         """Occupied within one coarse block of x? [N, 3] world points -> bool [N]."""
         if len(x) == 0:
             return torch.zeros(0, dtype=torch.bool)
-        c = self.coarse()
+        c = self.coarse
         dims = torch.tensor(self.shape, dtype=torch.int64)
         cdims = torch.tensor(c.shape, dtype=torch.int64)
         # clamped, not cut, at the box: a segment whose middle lies just outside the box may
@@ -103,6 +132,7 @@ class OccupancyGrid(nn.Module):
         """Every cell occupied, with density estimate `value`."""
         self.ema.fill_(value)
         self.binary.fill_(True)
+        self._changed()
 
     def seed(self, points: Tensor, value: float, dilate: int) -> int:
         """Mark the cells holding `points` [N, 3] (and `dilate` cells around) as occupied for
@@ -117,6 +147,7 @@ class OccupancyGrid(nn.Module):
         self.ema.copy_(torch.where(occ, torch.maximum(self.ema, torch.tensor(value)), self.ema))
         self.keep |= occ
         self.binary |= occ
+        self._changed()
         return int(self.binary.sum())
 
     @torch.no_grad()
@@ -143,6 +174,7 @@ class OccupancyGrid(nn.Module):
                 best[i : i + UPDATE_CHUNK] = torch.maximum(best[i : i + UPDATE_CHUNK], sig)
         self.ema.copy_(best.view(self.shape))
         self.binary.copy_((self.binary & (self.ema > threshold)) | self.keep)
+        self._changed()
         return int(self.binary.sum())
 
     @torch.no_grad()
@@ -176,3 +208,4 @@ class OccupancyGrid(nn.Module):
         flat = self.ema.view(-1)
         flat.scatter_reduce_(0, idx, torch.nan_to_num(sigma, nan=0.0), reduce="amax")
         self.binary.copy_((self.ema > threshold) | self.keep)
+        self._changed()

@@ -1,0 +1,142 @@
+"""Depth for fusion from a trained field (photos only): each view's render, the stereo
+readings where there are some, checked against the other views."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from stages.common.capture import Frame
+from stages.common.errors import BlunfError
+from stages.common.io import write_depth_npy
+from stages.common.radiance.field import RadianceField
+from stages.common.radiance.render import render_view
+from stages.nerf.config import NerfConfig
+from stages.nerf.consistency import consistent_depth
+
+log = logging.getLogger(__name__)
+
+
+def write_depths(
+    model: RadianceField,
+    frames: list[Frame],
+    cfg: NerfConfig,
+    folder: Path,
+    prior: dict[int, np.ndarray] | None = None,
+    stereo_check: int = 0,
+) -> tuple[list[Frame], dict]:
+    """Render every frame's depth and write folder/<stem>.npy for fusion.
+
+    View i's `prior` (its stereo readings, full resolution, 0 = none) is taken where it has
+    a reading, at full resolution, the render (upsampled) elsewhere. With stereo_check > 0
+    the rendered readings are kept only where at least that many other views' stereo
+    readings agree with them (within stereo.tol) and none sees through them: the field's
+    depth fills the stereo's holes where the photos confirm it (held-out views, which are
+    never swept, get the checked render alone). With depth_check.enabled every reading is then
+    checked against the other views' depth. Returns (the frames pointing at those files,
+    facts: fractions of the rendered readings kept by each check, None when it did not run).
+    """
+    prior = prior or {}
+    k = max(1, cfg.depth_render_scale)
+    # a swept view's render is needed only where a block of its pixels lacks stereo
+    need = {i: _block_any(p <= 0, k) for i, p in prior.items()}
+    depths = [render_depth(model, f, cfg, need.get(i)) for i, f in enumerate(frames)]
+    facts: dict = {
+        "depth_check_kept": None,
+        "stereo_check_kept": None,
+        "rendered": round(
+            sum(d.size if i not in need else int(need[i].sum()) for i, d in enumerate(depths))
+            / max(1, sum(d.size for d in depths)),
+            4,
+        ),
+    }
+    full = {i: upsample_depth(depths[i], p.shape) for i, p in prior.items()}
+    cands = [
+        np.where(prior[i] > 0, 0.0, full[i]) if i in prior else d for i, d in enumerate(depths)
+    ]
+    if prior and stereo_check > 0:
+        idx = sorted(prior)
+        refs = (
+            [prior[i] for i in idx],
+            [_k_at(frames[i], prior[i]) for i in idx],
+            [np.asarray(frames[i].pose, np.float64) for i in idx],
+        )
+        cands, kept = consistent_depth(
+            cands,
+            [_k_at(f, d) for f, d in zip(frames, cands, strict=True)],
+            [np.asarray(f.pose, np.float64) for f in frames],
+            cfg.stereo.tol,
+            stereo_check,
+            0,
+            cfg.depth_check.views,
+            refs=refs,
+        )
+        facts["stereo_check_kept"] = round(kept, 4)
+        log.info("nerf: %.1f %% of the rendered depth readings confirmed by stereo", 100 * kept)
+    depths = [
+        np.where(prior[i] > 0, prior[i], c).astype(np.float32) if i in prior else c
+        for i, c in enumerate(cands)
+    ]
+    dc = cfg.depth_check
+    if dc.enabled:
+        depths, kept = consistent_depth(
+            depths,
+            [_k_at(f, d) for f, d in zip(frames, depths, strict=True)],
+            [np.asarray(f.pose, np.float64) for f in frames],
+            dc.tol,
+            dc.agree,
+            dc.through,
+            dc.views,
+        )
+        facts["depth_check_kept"] = round(kept, 4)
+        log.info("nerf: %.1f %% of the rendered depth readings confirmed by others", 100 * kept)
+    out = []
+    for f, d in zip(frames, depths, strict=True):
+        path = folder / f"{f.stem}.npy"
+        write_depth_npy(path, d)
+        out.append(replace(f, depth=path))
+    return out, facts
+
+
+def _k_at(f: Frame, depth: np.ndarray) -> np.ndarray:
+    """Frame f's [3, 3] intrinsics at the resolution of `depth`."""
+    return f.intrinsics.scaled(depth.shape[1], depth.shape[0]).K
+
+
+def upsample_depth(depth: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """depth [H // k, W // k] rendered at 1/k (Intrinsics.scaled: a small pixel's centre is
+    its k x k block's centre) to `shape` = (H, W): each block takes its small pixel's value;
+    rows and columns beyond the whole blocks repeat the last ones."""
+    h, w = shape
+    k = h // depth.shape[0]
+    if k < 1 or w // depth.shape[1] != k:
+        raise BlunfError(f"depth of {depth.shape} does not scale to {shape} by whole blocks")
+    up = np.repeat(np.repeat(depth, k, axis=0), k, axis=1)
+    return np.pad(up, ((0, h - up.shape[0]), (0, w - up.shape[1])), mode="edge")
+
+
+def _block_any(mask: np.ndarray, k: int) -> np.ndarray:
+    """mask [H, W] at 1/k (render_depth's pixels, each a k x k block; rows and columns
+    beyond the whole blocks belong to the last): whether any pixel of a block is set."""
+    h, w = max(1, mask.shape[0] // k), max(1, mask.shape[1] // k)
+    rows = np.minimum(np.arange(mask.shape[0]) // k, h - 1)
+    cols = np.minimum(np.arange(mask.shape[1]) // k, w - 1)
+    out = np.zeros((h, w), bool)
+    np.logical_or.at(out, (rows[:, None], cols[None, :]), mask)
+    return out
+
+
+def render_depth(
+    model: RadianceField, f: Frame, cfg: NerfConfig, pixels: np.ndarray | None = None
+) -> np.ndarray:
+    """z-depth (metres, float32) of frame f at 1 / depth_render_scale of its resolution; 0
+    where the opacity is below sampling.acc_threshold (fusion rescales the intrinsics to fit) and,
+    given `pixels` (bool, at that resolution), where it is False (not rendered)."""
+    k = max(1, cfg.depth_render_scale)
+    w, h = f.intrinsics.width, f.intrinsics.height
+    intr = f.intrinsics.scaled(max(1, w // k), max(1, h // k))
+    v = render_view(model, np.asarray(f.pose), intr, cfg.chunk, color=False, pixels=pixels)
+    return np.where(v["acc"] >= cfg.sampling.acc_threshold, v["depth"], 0.0).astype(np.float32)
