@@ -33,11 +33,11 @@ from pathlib import Path
 import numpy as np
 
 from stages.common.blueprint import Blueprint
-from stages.common.capture import Capture, write_layout
+from stages.common.capture import UNKNOWN, Capture, write_layout
 from stages.common.errors import BlunfError
 from stages.common.io import read_json, write_json
 from stages.evaluate.gt import plan_frame
-from stages.evaluate.plan import evaluate_plan
+from stages.evaluate.plan import class_map, coarse_gt, evaluate_plan, to_frame
 from stages.evaluate.poses import pose_metrics
 from stages.ingest import load
 
@@ -110,27 +110,61 @@ def score(ref_run: Path, pred_run: Path) -> dict:
     pred = Blueprint.load(Path(pred_run) / "blueprint.npz")
     est, gt = run_poses(pred_run), run_poses(ref_run)
     m, frame = plan_frame(True, est, gt, ref.grid)
-    plan = {**evaluate_plan(pred, ref, m), "frame": frame}
+    plan = {**evaluate_plan(pred, ref, m), "frame": frame, "confusion": confusion(pred, ref, m)}
     return {"plan": plan, "poses": pose_metrics(est, gt), "scale": scale_facts(pred_run)}
 
 
+def confusion(pred: Blueprint, ref: Blueprint, pred_to_ref: np.ndarray | None) -> dict:
+    """{reference class: {predicted class or "unknown": percent of its cells}}: where each
+    class of the reference went in the prediction (read as evaluate_plan reads it)."""
+    if pred_to_ref is None:
+        labels = pred.resample(ref.grid)
+    else:
+        labels = pred.sample(to_frame(ref.grid.centers().reshape(-1, 2), pred_to_ref))
+    ref = coarse_gt(pred, ref)
+    got = class_map(pred, ref)[labels.reshape(-1)]  # [H * W] in the reference's ids
+    want = ref.labels.reshape(-1)
+    out: dict = {}
+    for c in np.unique(want[want != UNKNOWN]):
+        sel = got[want == c]
+        ids, n = np.unique(sel, return_counts=True)
+        name = ref.classes.get(int(c), str(int(c)))
+        out[name] = {
+            ("unknown" if i == UNKNOWN else ref.classes.get(int(i), str(int(i)))): round(
+                100.0 * int(k) / sel.size, 1
+            )
+            for i, k in zip(ids, n, strict=True)
+        }
+    return out
+
+
 def measure(
-    src: Path, out: Path, photo_args: list[str], ref_args: list[str], frames: int = 0
+    src: Path,
+    out: Path,
+    photo_args: list[str],
+    ref_args: list[str],
+    frames: int = 0,
+    ref_run: Path | None = None,
 ) -> dict:
-    """Both runs of `src` under `out`, scored; writes and returns out/real.json."""
+    """Both runs of `src` under `out`, scored; writes and returns out/real.json.
+    `ref_run`: a finished reference run folder to score against instead of running one."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     pick = ["--frames", str(frames)] if frames else []
     t0 = time.perf_counter()
-    sensor = stripped_copy(src, out / "sensor-capture", sensor=True)
     bare = stripped_copy(src, out / "photos-capture", sensor=False)
     copy_s = time.perf_counter() - t0
-    ref_s = run_plan(sensor, out / "ref", [*ref_args, *pick])
+    ref_s = 0.0
+    if ref_run is None:
+        sensor = stripped_copy(src, out / "sensor-capture", sensor=True)
+        ref_run = out / "ref"
+        ref_s = run_plan(sensor, ref_run, [*ref_args, *pick])
     photo_s = run_plan(bare, out / "photos", [*photo_args, *pick])
-    res = score(out / "ref", out / "photos")
+    res = score(ref_run, out / "photos")
     res["seconds"] = {"copy": copy_s, "ref": ref_s, "photos": photo_s}
     res["seconds"]["total"] = time.perf_counter() - t0
     res["capture"], res["photos_args"], res["ref_args"] = str(src), photo_args, ref_args
+    res["ref_run"] = str(ref_run)
     write_json(out / "real.json", res)
     return res
 
@@ -154,12 +188,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", action="append", default=[], help="photos-only run: stage.key=v")
     ap.add_argument("--ref-set", action="append", default=[], help="reference run: stage.key=v")
     ap.add_argument("--frames", type=int, default=0, help="N views spread evenly (0 = all)")
+    ap.add_argument("--ref-run", type=Path, help="a finished reference run to score against")
     a = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
     photo = ["--config", a.config, *(x for s in a.set for x in ("--set", s))]
     ref = [x for s in a.ref_set for x in ("--set", s)]
     try:
-        res = measure(a.capture, a.out, photo, ref, a.frames)
+        res = measure(a.capture, a.out, photo, ref, a.frames, a.ref_run)
     except BlunfError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
