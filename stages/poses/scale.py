@@ -230,5 +230,7 @@ def scale_from_priors(
         "uncertainty_rel": float(1.0 / np.sqrt(sum(w.values()))),
         "per_cue": {k: float(s) for k, (s, _) in cues.items()},
         "camera_height_m": float(floor * scale),
-        "room_height_m": float(room * scale) if "room_height" in cues else None,
+        "room_height_m": float(room * scale)
+        if room is not None and "room_height" in cues
+        else None,
     }
