@@ -358,6 +358,12 @@ def _scale(
         # rows 0 and 1 of world-to-camera rotation = the camera's x and y axes in the world
         rots = np.array([im.cam_from_world().rotation.matrix() for im in ims])  # [C, 3, 3]
         points = np.array([p.xyz for p in rec.points3D.values()]).reshape(-1, 3)  # [N, 3]
+        if how == "priors" and cfg.scale_from == "auto":
+            try:
+                return scale_mod.scale_from_priors(centers, rots[:, 0], rots[:, 1], points)
+            except BlunfError as e:  # auto: as before the priors, SfM units with a warning
+                log.warning("%s; poses stay in arbitrary SfM units", e)
+                return 1.0, {"method": "none", "how": f"scale_from=auto: {e}; SfM units"}
         if how == "priors":
             return scale_mod.scale_from_priors(centers, rots[:, 0], rots[:, 1], points)
         return scale_mod.scale_from_camera_height(
