@@ -10,7 +10,7 @@ from stages.common.errors import BlunfError
 
 MAPPERS = ("incremental", "global")
 MATCHINGS = ("auto", "sequential", "exhaustive")
-SCALE_FROM = ("auto", "depth", "distance", "camera_height", "none")
+SCALE_FROM = ("auto", "depth", "distance", "camera_height", "priors", "none")
 
 
 @dataclass(frozen=True)
@@ -29,8 +29,12 @@ class PosesConfig:
     threads: int = 0  # CPU threads for extraction, matching and mapping; 0 = every core we may use
     min_registered_frac: float = 0.5  # fail when fewer than this fraction of the images register
     seed: int = 0  # random seed of pycolmap's RANSAC and mapper (same inputs -> same poses)
-    scale_from: str = "auto"  # metric scale: "depth" | "distance" | "camera_height" | "none";
-    #                           "auto" = "depth" when every frame has depth, else "none"
+    scale_from: str = "auto"  # metric scale: "depth" | "distance" | "camera_height" |
+    #                           "priors" (camera height of a hand-held capture above the floor
+    #                           found in the sparse points, and the ceiling height when seen:
+    #                           scale.scale_from_priors) | "none"; "auto" = "depth" when every
+    #                           frame has depth, else camera_height or distance when given,
+    #                           else "priors"
     known_distance: float | None = None  # scale_from="distance": metres between the first and
     #                                      last frames' camera centres (capture order)
     camera_height: float | None = None  # scale_from="camera_height": metres from the camera

@@ -11,6 +11,18 @@ import numpy as np
 from stages.common.errors import BlunfError
 
 FLOOR_PERCENTILE = 2.0  # camera_height: the floor is this low percentile of point heights
+#                         when no horizontal surface piles up points below the cameras
+HEIGHT_BIN = 0.02  # floor / ceiling search: bin of the height histogram, as a fraction of the
+#                    99th percentile of the points' distances below the cameras
+PEAK_FRAC = 0.02  # ... a surface holds this fraction of the points on its side (3 bins)
+X_SPAN = 0.05  # up from the x axes needs their second eigenvalue this fraction of the first
+PRIOR_CAMERA_HEIGHT = 1.45  # metres: median height of a hand-held camera above the floor
+PRIOR_CAMERA_SPREAD = 0.1  # its relative spread (1 sigma). Measured medians: 1.39 m (7-Scenes
+#                           kitchen, hand-held Kinect), 1.43 (synthetic rooms), 1.76 (Replica
+#                           office renders: a virtual camera higher than people hold a phone)
+PRIOR_ROOM_HEIGHT = 2.6  # metres: floor to ceiling of a room (2.4-2.8 in most homes, offices)
+PRIOR_ROOM_SPREAD = 0.07  # its relative spread (1 sigma)
+ROOM_OVER_CAMERA = (1.4, 2.6)  # a ceiling counts when floor-to-ceiling / camera height is here
 
 
 def depth_ratios(
@@ -80,31 +92,145 @@ def scale_from_distance(
     }
 
 
+def up_from_cameras(x_axes: np.ndarray, y_axes: np.ndarray) -> tuple[np.ndarray, str]:
+    """The world's up from the cameras' axes [C, 3] (x = image right, y = image down).
+
+    A hand-held camera is rolled little, so its x axis is nearly horizontal whichever way it
+    pitches: up is the direction most nearly orthogonal to every x axis (the smallest
+    eigenvector of sum x x^T), on the side of minus the mean image-down axis. The mean
+    image-down axis alone tilts by the cameras' pitch (23 degrees on a 7-Scenes kitchen
+    looking down at its counters; 4 degrees with the x axes). When the x axes span no plane
+    (cameras all facing one way) that mean is all there is. Returns (unit up [3], how).
+    """
+    x = np.asarray(x_axes, np.float64).reshape(-1, 3)
+    y0 = -np.asarray(y_axes, np.float64).reshape(-1, 3).mean(axis=0)
+    if np.linalg.norm(y0) < 1e-6:
+        raise BlunfError("sfm: metric scale: cannot tell up from the cameras (mean axes cancel)")
+    y0 /= np.linalg.norm(y0)
+    vals, vecs = np.linalg.eigh(x.T @ x)  # ascending
+    if vals[1] < X_SPAN * vals[2]:  # x axes nearly parallel: the pitch is not observable
+        return y0, "minus the cameras' mean image-down axis (their x axes span no plane)"
+    up = vecs[:, 0] * (1.0 if vecs[:, 0] @ y0 >= 0 else -1.0)
+    return up, "normal of the cameras' x axes (hand-held cameras are rolled little)"
+
+
+def _peak(h: np.ndarray, bin_w: float, frac: float) -> float | None:
+    """The farthest (largest h) horizontal surface among heights h [N] (> 0, distance below or
+    above the cameras): the largest-h bin whose 3-bin window holds `frac` of them and stands
+    out of its neighbourhood (twice the median window within 10 bins), climbed to its local
+    peak; the median height within 1.5 bins of it. None when no window qualifies."""
+    if h.size < 20:
+        return None
+    idx = np.floor(h / bin_w).astype(np.int64)
+    counts = np.bincount(idx, minlength=3)  # [B]
+    support = np.convolve(counts, np.ones(3, np.int64), mode="same")  # [B]
+    pad = np.pad(support, 10, mode="constant")
+    win = np.lib.stride_tricks.sliding_window_view(pad, 21)  # [B, 21]
+    ok = (support >= frac * h.size) & (support >= 2 * np.median(win, axis=1))
+    cand = np.flatnonzero(ok)
+    if not cand.size:
+        return None
+    i = int(cand[-1])
+    while i > 0 and support[i - 1] > support[i]:
+        i -= 1
+    centre = (i + 0.5) * bin_w
+    return float(np.median(h[np.abs(h - centre) <= 1.5 * bin_w]))
+
+
+def floor_and_ceiling(
+    centers: np.ndarray, up: np.ndarray, points: np.ndarray
+) -> tuple[float | None, float | None]:
+    """(floor's depth below, ceiling's height above) the cameras' median height, in the
+    points' units (None when not found). The floor is the lowest horizontal surface that
+    piles up points (see _peak: counters and tables lie higher, stray points below the floor
+    never pile up), the ceiling the highest above the cameras; heights are binned in
+    HEIGHT_BIN of the 99th percentile of the points' distances below the cameras."""
+    h = np.asarray(points, np.float64).reshape(-1, 3) @ up  # [N]
+    cam = float(np.median(np.asarray(centers, np.float64) @ up))
+    below, above = cam - h[h < cam], h[h > cam] - cam
+    if below.size < 20:
+        return None, None
+    bin_w = HEIGHT_BIN * float(np.percentile(below, 99))
+    floor = _peak(below, bin_w, PEAK_FRAC)
+    ceiling = _peak(above, bin_w, PEAK_FRAC) if above.size >= 20 else None
+    return floor, ceiling
+
+
 def scale_from_camera_height(
-    centers: np.ndarray, y_axes: np.ndarray, points: np.ndarray, height_m: float
+    centers: np.ndarray,
+    x_axes: np.ndarray,
+    y_axes: np.ndarray,
+    points: np.ndarray,
+    height_m: float,
 ) -> tuple[float, dict]:
     """Scale making the cameras' median height above the floor equal `height_m` metres.
 
     Args:
-        centers: [C, 3] camera centres. y_axes: [C, 3] cameras' y axes (image down) in the world.
-        points: [N, 3] sparse points; the floor is their FLOOR_PERCENTILE height along "up".
+        centers: [C, 3] camera centres. x_axes, y_axes: [C, 3] cameras' x (image right) and
+            y (image down) axes in the world. points: [N, 3] sparse points.
     """
-    y = np.asarray(y_axes, np.float64).mean(axis=0)
-    if np.linalg.norm(y) < 1e-6 or len(points) == 0:
-        raise BlunfError(
-            "sfm: scale from camera_height: cannot tell up from the cameras or no sparse points"
-        )
-    up = -y / np.linalg.norm(y)  # [3]
-    floor = float(np.percentile(np.asarray(points, np.float64) @ up, FLOOR_PERCENTILE))
-    above = float(np.median(np.asarray(centers, np.float64) @ up - floor))
-    if not above > 1e-9:
+    up, up_how = up_from_cameras(x_axes, y_axes)
+    floor, _ = floor_and_ceiling(centers, up, points)
+    how_floor = "the lowest horizontal surface the sparse points pile up on"
+    if floor is None:
+        h = np.asarray(points, np.float64).reshape(-1, 3) @ up
+        floor = float(np.median(np.asarray(centers) @ up) - np.percentile(h, FLOOR_PERCENTILE))
+        how_floor = f"the {FLOOR_PERCENTILE:g}th percentile of point heights (no floor found)"
+    if not floor > 1e-9:
         raise BlunfError(
             "sfm: scale from camera_height: the cameras are not above the lowest sparse points"
         )
-    return height_m / above, {
+    return height_m / floor, {
         "method": "camera_height",
         "how": f"cameras' median height above the floor is {height_m} m (poses.camera_height); "
-        "assumes the cameras were held upright (up = minus their mean image-down axis) and "
-        f"the floor is the {FLOOR_PERCENTILE:g}th percentile of sparse point heights",
-        "sfm_height": above,
+        f"up: {up_how}; floor: {how_floor}",
+        "sfm_height": floor,
+    }
+
+
+def scale_from_priors(
+    centers: np.ndarray, x_axes: np.ndarray, y_axes: np.ndarray, points: np.ndarray
+) -> tuple[float, dict]:
+    """Metric scale with no length given: the cameras' median height above the floor is
+    taken to be how high people hold a phone (PRIOR_CAMERA_HEIGHT, relative spread
+    PRIOR_CAMERA_SPREAD) and, when the ceiling is seen, the floor-to-ceiling height a room's
+    (PRIOR_ROOM_HEIGHT, PRIOR_ROOM_SPREAD); the two are combined in log scale, each weighted
+    by the inverse square of its spread. Arguments as scale_from_camera_height.
+    Facts: scale, source ("camera_height_prior", "+ceiling"), uncertainty_rel (1 sigma).
+    """
+    up, up_how = up_from_cameras(x_axes, y_axes)
+    floor, ceiling = floor_and_ceiling(centers, up, points)
+    if floor is None or not floor > 1e-9:
+        raise BlunfError(
+            "sfm: metric scale: no floor found among the sparse points; set poses.camera_height "
+            "or poses.known_distance"
+        )
+    cues = {"camera_height": (PRIOR_CAMERA_HEIGHT / floor, PRIOR_CAMERA_SPREAD)}
+    room = None
+    if ceiling is not None:
+        room = floor + ceiling
+        # a ceiling only when the room it makes is plausible against the camera height: upper
+        # cabinets and shelf tops above the cameras are lower than that
+        if ROOM_OVER_CAMERA[0] <= room / floor <= ROOM_OVER_CAMERA[1]:
+            cues["room_height"] = (PRIOR_ROOM_HEIGHT / room, PRIOR_ROOM_SPREAD)
+    w = {k: 1.0 / sd**2 for k, (_, sd) in cues.items()}
+    log_s = sum(w[k] * np.log(s) for k, (s, _) in cues.items()) / sum(w.values())
+    scale = float(np.exp(log_s))
+    return scale, {
+        "method": "priors",
+        "source": "+".join(cues),
+        "how": f"cameras' median height above the floor taken as {PRIOR_CAMERA_HEIGHT} m "
+        f"(hand-held, +-{PRIOR_CAMERA_SPREAD:.0%})"
+        + (
+            f" and floor to ceiling as {PRIOR_ROOM_HEIGHT} m (+-{PRIOR_ROOM_SPREAD:.0%})"
+            if "room_height" in cues
+            else " (no ceiling seen)"
+        )
+        + f"; up: {up_how}",
+        "uncertainty_rel": float(1.0 / np.sqrt(sum(w.values()))),
+        "per_cue": {k: float(s) for k, (s, _) in cues.items()},
+        "camera_height_m": float(floor * scale),
+        "room_height_m": float(room * scale)
+        if room is not None and "room_height" in cues
+        else None,
     }

@@ -340,13 +340,9 @@ def _scale(
     `kept` are the registered frames' indices in the capture, `ids` their COLMAP image ids.
     """
     how = cfg.scale_from
-    if how == "auto" and not cap.has_depth:
-        log.warning("sfm: no depth in the capture: poses stay in arbitrary SfM units")
-        return 1.0, {
-            "method": "none",
-            "how": "scale_from=auto and some frames have no depth: "
-            "SfM units (arbitrary); set poses.scale_from to distance or camera_height",
-        }
+    if how == "auto" and not cap.has_depth:  # a given length first, else the priors
+        how = "camera_height" if cfg.camera_height else "priors"
+        how = "distance" if cfg.known_distance and not cfg.camera_height else how
     ims = [rec.image(i) for i in ids]  # registered images, in capture order
     if how in ("auto", "depth"):
         if not cap.has_depth:
@@ -374,12 +370,20 @@ def _scale(
             )
         c0, c1 = ims[0].projection_center(), ims[-1].projection_center()
         return scale_mod.scale_from_distance(c0, c1, float(cfg.known_distance or 0), (first, last))
-    if how == "camera_height":
+    if how in ("camera_height", "priors"):
         centers = np.array([im.projection_center() for im in ims])  # [C, 3]
-        # row 1 of world-to-camera rotation = the camera's y axis (image down) in the world
-        y_axes = np.array([im.cam_from_world().rotation.matrix()[1] for im in ims])  # [C, 3]
+        # rows 0 and 1 of world-to-camera rotation = the camera's x and y axes in the world
+        rots = np.array([im.cam_from_world().rotation.matrix() for im in ims])  # [C, 3, 3]
         points = np.array([p.xyz for p in rec.points3D.values()]).reshape(-1, 3)  # [N, 3]
+        if how == "priors" and cfg.scale_from == "auto":
+            try:
+                return scale_mod.scale_from_priors(centers, rots[:, 0], rots[:, 1], points)
+            except BlunfError as e:  # auto: as before the priors, SfM units with a warning
+                log.warning("%s; poses stay in arbitrary SfM units", e)
+                return 1.0, {"method": "none", "how": f"scale_from=auto: {e}; SfM units"}
+        if how == "priors":
+            return scale_mod.scale_from_priors(centers, rots[:, 0], rots[:, 1], points)
         return scale_mod.scale_from_camera_height(
-            centers, y_axes, points, float(cfg.camera_height or 0)
+            centers, rots[:, 0], rots[:, 1], points, float(cfg.camera_height or 0)
         )
     return 1.0, {"method": "none", "how": "no metric scale: SfM units (arbitrary)"}

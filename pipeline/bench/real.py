@@ -1,0 +1,210 @@
+"""A real capture from photos alone against the same capture with its sensor depth.
+
+For one capture with depth (7-Scenes, Replica/vMAP, the project's layout):
+  reference    the plan `blunf run` gives from a copy with the sensor depth (and the
+               poses and gravity when the capture has them) but no per-pixel labels, so
+               that both plans take their classes from the geometry the same way;
+  photos-only  the plan from a copy holding the colour images and intrinsics only (no
+               depth, poses, labels or gravity): poses from SfM, depth from stereo.
+The photos-only plan is scored against the reference per class through the similarity
+between the two runs' camera centres (stages.evaluate: the frame estimated poses are scored
+in), so a wrong metric scale is not counted twice; the poses are scored likewise
+(registration, ATE, and the scale of that similarity: 1 = the photos-only scale is right).
+
+    python -m pipeline.bench.real CAPTURE --out DIR [--set k=v ...] [--ref-set k=v ...]
+                                  [--frames N] [--config configs/phone.yaml]
+writes DIR/real.json (figures, seconds) and keeps DIR/ref, DIR/photos and the two copies.
+A run folder already finished under DIR is reused (the pipeline's caches): a second call
+with other photos-only settings reruns only what they change. The NeRF trains for a wall-clock
+budget (nerf.time_budget): on a loaded machine it takes few steps and the plan suffers (7-Scenes
+kitchen, 30 frames, 14 steps in 120 s: fwIoU 16.3); for figures that do not depend on the
+machine's load give `--set nerf.time_budget=0 --set nerf.max_steps=N`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import logging
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from stages.common.blueprint import Blueprint
+from stages.common.capture import UNKNOWN, Capture, write_layout
+from stages.common.errors import BlunfError
+from stages.common.io import read_json, write_json
+from stages.evaluate.gt import plan_frame
+from stages.evaluate.plan import class_map, coarse_gt, evaluate_plan, to_frame
+from stages.evaluate.poses import pose_metrics
+from stages.ingest import load
+
+log = logging.getLogger(__name__)
+
+CLASSES = ("floor", "wall", "object")  # the classes the geometry labels the plan with
+
+
+def stripped_copy(src: Path, out: Path, sensor: bool) -> Path:
+    """Write `src` in the project's layout without labels: with `sensor`, colour, depth, poses
+    and gravity as the capture has them; else colour images and intrinsics only. Returns out
+    (kept as it is when it already holds a copy)."""
+    out = Path(out)
+    if (out / "cameras.json").is_file():
+        return out
+    with tempfile.TemporaryDirectory(prefix="blunf-real-") as tmp:
+        cap = load(Path(src), Path(tmp))
+        bare = [
+            replace(
+                f,
+                depth=f.depth if sensor else None,
+                pose=f.pose if sensor else None,
+                label=None,
+                instance=None,
+            )
+            for f in cap.frames
+        ]
+        cap = replace(cap.with_frames(bare), classes={}, ignore=(), gt=None)
+        if not sensor:
+            cap = replace(cap, gravity=None)
+        return write_layout(cap, out, with_poses=sensor)
+
+
+def run_plan(capture: Path, out: Path, args: list[str]) -> float:
+    """`blunf run capture --out out args...`; returns the seconds it took."""
+    from pipeline.cli import main
+
+    t = time.perf_counter()
+    rc = main(["run", str(capture), "--out", str(out), *args])
+    if rc != 0:
+        raise BlunfError(f"{out}: blunf run failed (exit code {rc}); see its report.json")
+    return time.perf_counter() - t
+
+
+def run_poses(run: Path) -> dict[str, np.ndarray]:
+    """stem -> [4, 4] camera-to-world pose in the frame of the run's plan (the align stage's)."""
+    found = sorted(glob.glob(str(Path(run) / "align" / "*" / "frames.json")))
+    if not found:
+        raise BlunfError(f"{run}: no align/*/frames.json (not a finished run folder)")
+    cap = Capture.load(Path(max(found, key=lambda p: Path(p).stat().st_mtime)))
+    return {f.stem: np.asarray(f.pose, np.float64) for f in cap.frames if f.pose is not None}
+
+
+def scale_facts(run: Path) -> dict:
+    """How the run's poses stage found the metric scale (sfm.json "scale_from" with "scale"),
+    {} without SfM."""
+    found = sorted(glob.glob(str(Path(run) / "poses" / "*" / "sfm.json")))
+    if not found:
+        return {}
+    sfm = read_json(Path(max(found, key=lambda p: Path(p).stat().st_mtime)))
+    return {**sfm.get("scale_from", {}), "scale": sfm.get("scale")}
+
+
+def score(ref_run: Path, pred_run: Path) -> dict:
+    """The photos-only run's plan and poses against the reference run's (see the module doc).
+
+    Returns {"plan": evaluate_plan metrics + "frame", "poses": pose_metrics, "scale": facts}.
+    """
+    ref = Blueprint.load(Path(ref_run) / "blueprint.npz")
+    pred = Blueprint.load(Path(pred_run) / "blueprint.npz")
+    est, gt = run_poses(pred_run), run_poses(ref_run)
+    m, frame = plan_frame(True, est, gt, ref.grid)
+    plan = {**evaluate_plan(pred, ref, m), "frame": frame, "confusion": confusion(pred, ref, m)}
+    return {"plan": plan, "poses": pose_metrics(est, gt), "scale": scale_facts(pred_run)}
+
+
+def confusion(pred: Blueprint, ref: Blueprint, pred_to_ref: np.ndarray | None) -> dict:
+    """{reference class: {predicted class or "unknown": percent of its cells}}: where each
+    class of the reference went in the prediction (read as evaluate_plan reads it)."""
+    if pred_to_ref is None:
+        labels = pred.resample(ref.grid)
+    else:
+        labels = pred.sample(to_frame(ref.grid.centers().reshape(-1, 2), pred_to_ref))
+    ref = coarse_gt(pred, ref)
+    got = class_map(pred, ref)[labels.reshape(-1)]  # [H * W] in the reference's ids
+    want = ref.labels.reshape(-1)
+    out: dict = {}
+    for c in np.unique(want[want != UNKNOWN]):
+        sel = got[want == c]
+        ids, n = np.unique(sel, return_counts=True)
+        name = ref.classes.get(int(c), str(int(c)))
+        out[name] = {
+            ("unknown" if i == UNKNOWN else ref.classes.get(int(i), str(int(i)))): round(
+                100.0 * int(k) / sel.size, 1
+            )
+            for i, k in zip(ids, n, strict=True)
+        }
+    return out
+
+
+def measure(
+    src: Path,
+    out: Path,
+    photo_args: list[str],
+    ref_args: list[str],
+    frames: int = 0,
+    ref_run: Path | None = None,
+) -> dict:
+    """Both runs of `src` under `out`, scored; writes and returns out/real.json.
+    `ref_run`: a finished reference run folder to score against instead of running one."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    pick = ["--frames", str(frames)] if frames else []
+    t0 = time.perf_counter()
+    bare = stripped_copy(src, out / "photos-capture", sensor=False)
+    copy_s = time.perf_counter() - t0
+    ref_s = 0.0
+    if ref_run is None:
+        sensor = stripped_copy(src, out / "sensor-capture", sensor=True)
+        ref_run = out / "ref"
+        ref_s = run_plan(sensor, ref_run, [*ref_args, *pick])
+    photo_s = run_plan(bare, out / "photos", [*photo_args, *pick])
+    res = score(ref_run, out / "photos")
+    res["seconds"] = {"copy": copy_s, "ref": ref_s, "photos": photo_s}
+    res["seconds"]["total"] = time.perf_counter() - t0
+    res["capture"], res["photos_args"], res["ref_args"] = str(src), photo_args, ref_args
+    res["ref_run"] = str(ref_run)
+    write_json(out / "real.json", res)
+    return res
+
+
+def summary(res: dict) -> str:
+    """One line: fwIoU, per-class IoU, registration and the photos-only scale's error."""
+    p, q = res["plan"], res["poses"]
+    per = " ".join(f"{c} {p['per_class'].get(c, float('nan')):.1f}" for c in CLASSES)
+    return (
+        f"fwIoU {p['fwiou']:.1f} pAcc {p['pacc']:.1f} | IoU {per} | registered "
+        f"{q['registered']}/{q['total']} ATE {q.get('ate_rmse_m') or float('nan'):.3f} m | "
+        f"scale x{q.get('align_scale') or float('nan'):.3f} ({res['scale'].get('method', '?')})"
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m pipeline.bench.real", description=__doc__)
+    ap.add_argument("capture", type=Path)
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--config", default="configs/phone.yaml", help="photos-only run's config")
+    ap.add_argument("--set", action="append", default=[], help="photos-only run: stage.key=v")
+    ap.add_argument("--ref-set", action="append", default=[], help="reference run: stage.key=v")
+    ap.add_argument("--frames", type=int, default=0, help="N views spread evenly (0 = all)")
+    ap.add_argument("--ref-run", type=Path, help="a finished reference run to score against")
+    a = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+    photo = ["--config", a.config, *(x for s in a.set for x in ("--set", s))]
+    ref = [x for s in a.ref_set for x in ("--set", s)]
+    try:
+        res = measure(a.capture, a.out, photo, ref, a.frames, a.ref_run)
+    except BlunfError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(summary(res))
+    print(json.dumps(res["seconds"]))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
