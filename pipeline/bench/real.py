@@ -16,9 +16,9 @@ in), so a wrong metric scale is not counted twice; the poses are scored likewise
 writes DIR/real.json (figures, seconds) and keeps DIR/ref, DIR/photos and the two copies.
 A run folder already finished under DIR is reused (the pipeline's caches): a second call
 with other photos-only settings reruns only what they change. The NeRF trains for a wall-clock
-budget (nerf.time_budget): on a loaded machine it takes few steps and the plan suffers (7-Scenes
+budget (nerf.train.time_budget): on a loaded machine it takes few steps and the plan suffers (7-Scenes
 kitchen, 30 frames, 14 steps in 120 s: fwIoU 16.3); for figures that do not depend on the
-machine's load give `--set nerf.time_budget=0 --set nerf.max_steps=N`.
+machine's load give `--set nerf.train.time_budget=0 --set nerf.train.max_steps=N`.
 """
 
 from __future__ import annotations
@@ -38,9 +38,9 @@ import numpy as np
 from stages.common.blueprint import Blueprint
 from stages.common.capture import UNKNOWN, Capture, write_layout
 from stages.common.errors import BlunfError
+from stages.common.gt_frame import plan_frame
 from stages.common.io import read_json, write_json
-from stages.evaluate.gt import plan_frame
-from stages.evaluate.plan import class_map, coarse_gt, evaluate_plan, to_frame
+from stages.common.plan_metrics import class_map, coarse_gt, evaluate_plan, to_frame
 from stages.evaluate.poses import pose_metrics
 from stages.ingest import load
 
