@@ -18,7 +18,8 @@ A run folder already finished under DIR is reused (the pipeline's caches): a sec
 with other photos-only settings reruns only what they change. The NeRF trains for a
 wall-clock budget (nerf.train.time_budget): on a loaded machine it takes few steps and the
 plan suffers (7-Scenes kitchen, 30 frames, 14 steps in 120 s: fwIoU 16.3); for figures
-that do not depend on the machine's load give `--set nerf.train.time_budget=0 --set nerf.train.max_steps=N`.
+that do not depend on the machine's load give
+`--set nerf.train.time_budget=0 --set nerf.train.max_steps=N`.
 """
 
 from __future__ import annotations
