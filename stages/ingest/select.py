@@ -18,7 +18,8 @@ from typing import ClassVar
 import numpy as np
 from PIL import Image
 
-from stages.common.capture import Capture, Frame, check_intrinsics, check_unique_stems
+from stages.common.capture import Capture, Frame
+from stages.common.checks import check_intrinsics, check_unique_stems
 from stages.common.errors import BlunfError
 from stages.common.io import (
     depth_size,

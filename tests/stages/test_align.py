@@ -1,4 +1,4 @@
-"""Align stage: the synthetic room of test_fusion moved by a known rigid motion comes back
+"""Align stage: the synthetic room of exact_room moved by a known rigid motion comes back
 with its floor at z = 0 and up = +z; and the 7-Scenes kitchen, with and without gravity."""
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from stages.align.planes import angle_deg, find_floor, rotation_between
 from stages.common.capture import Capture, Frame
 from stages.common.errors import BlunfError
 from tests.conftest import shared_capture
-from tests.stages.test_fusion import room_capture
+from tests.stages.exact_room import room_capture
 
 CFG = AlignConfig(stride=2)  # 64x48 views: every other pixel, all 8 frames
 UP = np.array([0.0, 0.0, 1.0])

@@ -1,164 +1,45 @@
-"""Edits on an analytic field whose renders are worked out by hand.
-
-The scene: a grey floor slab z in [-0.1, 0) over [0, 2]^2, a red box A over [0.4, 0.8]^2 and
-a blue box B over [1.2, 1.6]^2, both z in [0, 0.5] and both of class chair. Densities are
-1e4 / m (opaque within one 1 cm step), 0 elsewhere.
-
-The camera looks straight down from (1, 1, 20) with f = 200 px on a 20 x 20 image (cx = cy =
-9.5): pixel (u, v) sees the floor at x = 1 + (u - 9.5) 0.1, y = 1 - (v - 9.5) 0.1, and the
-box tops (z = 0.5, 19.5 m away) at x = 1 + (u - 9.5) 0.0975, y = 1 - (v - 9.5) 0.0975.
-So A covers columns u 4..7 (x 0.464 .. 0.756; u = 3 gives 0.366, u = 8 0.854) and rows
-v 12..15; B covers u 12..15 and v 4..7. The rays are so steep that none clips a box's side
-(u = 3 goes from x 0.366 at the top's height to 0.35 at the floor, never reaching 0.4).
-
-The plan: 0.1 m cells from the origin, 20 x 20, floor (0) everywhere but chair (4) on A's
-cells (columns 4..7, rows 12..15: row = 19 - floor(y / 0.1)) and B's (columns 12..15,
-rows 4..7).
+"""Edits on an analytic field whose renders are worked out by hand: selections and extents
+on the plan, then every edit op rendered. The scene, the camera and the plan are described in
+tests/stages/edit_scene.py.
 """
 
 from __future__ import annotations
 
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-import trimesh
 
-from stages.common.blueprint import Blueprint, Grid
-from stages.common.camera import Intrinsics
 from stages.common.components import component_map
-from stages.common.errors import BlunfError
 from stages.common.radiance.field import FieldFns, field_of
 from stages.common.radiance.rays import camera_rays
-from stages.common.radiance.render import RenderOptions, render_view
+from stages.common.radiance.render import RenderOptions
 from stages.edit.config import EditConfig
-from stages.edit.metrics import PSNR_CAP, EditScore, changed, match_instances, pooled_iou
-from stages.edit.ops import (
-    FieldEdit,
-    edit_colors,
-    edit_mesh,
-    fill_ground,
-    reference_luminance,
+from stages.edit.metrics import PSNR_CAP, EditScore
+from stages.edit.ops import edit_colors, fill_ground
+from stages.edit.render import render_rays_edited
+from stages.edit.select import _top, extent_of
+from stages.edit.spec import Edit, Selector
+from tests.stages.edit_scene import (
+    BLUE,
+    CFG,
+    GREY,
+    INTR,
+    POSE,
+    RED,
+    _edit,
+    _floor,
+    _gt_instances,
+    _plan,
+    _render,
+    _select,
+    _vertices,
+    color,
+    density,
 )
-from stages.edit.render import look_at, orbit_poses, render_rays_edited, render_view_edited
-from stages.edit.select import _top, extent_of, select_cells
-from stages.edit.spec import Edit, EditSpec, Selector
-from stages.nerf.config import NerfConfig
-from stages.nerf.scene import build_model
-from tests.conftest import tune
 
 torch.set_num_threads(1)
-
-GREY = (0.5, 0.5, 0.5)
-RED = (1.0, 0.0, 0.0)
-BLUE = (0.0, 0.0, 1.0)
-BOX_A = (0.4, 0.8, 0.4, 0.8)  # x0, x1, y0, y1
-BOX_B = (1.2, 1.6, 1.2, 1.6)
-SIGMA = 1e4
-# floor_clear 0: the boxes stand on the floor with their bottom at z = 0, the floor slab is
-# z < 0, so an extent from z = 0 up holds all of a box and none of the floor. pad 0: the
-# footprints are exactly the boxes' cells.
-CFG = EditConfig(floor_clear=0.0, pad=0.0)
-
-
-def _in_box(x: torch.Tensor, b: tuple[float, float, float, float]) -> torch.Tensor:
-    return (
-        (x[:, 0] >= b[0])
-        & (x[:, 0] < b[1])
-        & (x[:, 1] >= b[2])
-        & (x[:, 1] < b[3])
-        & (x[:, 2] >= 0.0)
-        & (x[:, 2] <= 0.5)
-    )
-
-
-def _floor(x: torch.Tensor) -> torch.Tensor:
-    inside = (x[:, :2] >= 0).all(dim=1) & (x[:, :2] < 2).all(dim=1)
-    return inside & (x[:, 2] >= -0.1) & (x[:, 2] < 0.0)
-
-
-def density(x: torch.Tensor) -> torch.Tensor:
-    solid = _floor(x) | _in_box(x, BOX_A) | _in_box(x, BOX_B)
-    return torch.where(solid, SIGMA, 0.0)
-
-
-def color(x: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
-    c = torch.tensor(GREY).expand(len(x), 3).clone()
-    c[_in_box(x, BOX_A)] = torch.tensor(RED)
-    c[_in_box(x, BOX_B)] = torch.tensor(BLUE)
-    return c
-
-
-INTR = Intrinsics(200.0, 200.0, 9.5, 9.5, 20, 20)
-POSE = look_at(np.array([1.0, 1.0, 20.0]), np.array([1.0, 1.0, 0.0]))
-
-
-def _gt_instances() -> np.ndarray:
-    """Instance per pixel (1 = A, 2 = B, 0 = floor), from the geometry worked out above."""
-    inst = np.zeros((20, 20), np.int32)
-    inst[12:16, 4:8] = 1
-    inst[4:8, 12:16] = 2
-    return inst
-
-
-def _plan() -> Blueprint:
-    lab = np.zeros((20, 20), np.uint8)
-    lab[12:16, 4:8] = 4
-    lab[4:8, 12:16] = 4
-    return Blueprint(lab, Grid((0.0, 0.0), 0.1, (20, 20)), {0: "floor", 4: "chair"})
-
-
-def _vertices() -> tuple[np.ndarray, np.ndarray]:
-    """Points of the surfaces a fusion would see, with colours: the floor at the centres of
-    the floor cells (z = 0), the boxes' tops and sides every 5 cm, and a ceiling at z = 2.5
-    over everything (the height measurement must stop below it)."""
-    pts, cols = [], []
-    g = np.arange(0.025, 2.0, 0.05)
-    xx, yy = np.meshgrid(g, g)
-    xy = np.stack([xx, yy], -1).reshape(-1, 2)
-    floor = _plan().sample(xy) == 0
-    pts.append(np.c_[xy[floor], np.zeros(floor.sum())])
-    cols.append(np.tile(GREY, (floor.sum(), 1)))
-    pts.append(np.c_[xy, np.full(len(xy), 2.5)])
-    cols.append(np.tile((1.0, 1.0, 1.0), (len(xy), 1)))
-    for (x0, x1, y0, y1), c in ((BOX_A, RED), (BOX_B, BLUE)):
-        s = np.arange(0.0, 0.41, 0.05)
-        tx, ty = np.meshgrid(x0 + s, y0 + s)
-        top = np.c_[tx.ravel(), ty.ravel(), np.full(tx.size, 0.5)]
-        zz = np.arange(0.05, 0.5, 0.05)
-        side = np.array(
-            [(x0, y0 + a, z) for a in s for z in zz]
-            + [(x1, y0 + a, z) for a in s for z in zz]
-            + [(x0 + a, y0, z) for a in s for z in zz]
-            + [(x0 + a, y1, z) for a in s for z in zz]
-        )
-        pts += [top, side]
-        cols += [np.tile(c, (len(top), 1)), np.tile(c, (len(side), 1))]
-    return np.concatenate(pts), np.concatenate(cols)
-
-
-def _select(kind: str, value, width: float = 0.0) -> np.ndarray:
-    bp = _plan()
-    return select_cells(Selector(kind, value, width, f"test.{kind}"), bp, component_map(bp))
-
-
-def _edit(op: str, cells: np.ndarray, cfg: EditConfig = CFG, **kw) -> FieldEdit:
-    bp = _plan()
-    v, c = _vertices()
-    ext, _ = extent_of(cells, bp, component_map(bp), v, cfg)
-    return FieldEdit(op, ext, ref_lum=reference_luminance(ext, v, c), **kw)
-
-
-def _render(edits=(), masks=(), surface: bool = False) -> dict:
-    o, d, _ = camera_rays(POSE, INTR)
-    opts = RenderOptions(near=19.0, far=20.2, step=0.01, surface_color=surface)
-    out = render_rays_edited(o, d, field_of(density, color), opts, edits, masks)
-    return {
-        "rgb": out["rgb"].view(20, 20, 3).numpy(),
-        "masks": out["masks"].view(-1, 20, 20).numpy(),
-    }
 
 
 @pytest.fixture(scope="module")
@@ -417,195 +298,3 @@ def test_edits_when_colour_is_read_at_the_expected_depth(before):
     np.testing.assert_allclose(after[inst == 1], np.tile(GREY, (16, 1)), atol=1e-6)
     np.testing.assert_allclose(after[inst == 2], np.tile((0.0, 0.5, 0.5), (16, 1)), atol=1e-5)
     assert np.array_equal(after[inst == 0], plain[inst == 0])
-
-
-def test_metrics_by_hand():
-    b = np.zeros((2, 3, 3))
-    a = b.copy()
-    a[0, 0] = 0.5  # changed
-    a[0, 1] = 0.01  # below the 0.02 threshold
-    a[1, 2] = 0.1  # changed, outside the selection
-    ch = changed(b, a, 0.02)
-    assert ch.tolist() == [[True, False, False], [False, False, True]]
-    sel = np.array([[True, True, False], [False, False, False]])
-    gt = np.array([[True, True, False], [False, False, False]])
-    # intersection {(0,0)}, union {(0,0), (0,1), (1,2)}: 1/3
-    assert pooled_iou([ch], [gt]) == pytest.approx(1 / 3)
-    # outside the selection: 4 pixels x 3 channels, one pixel off by 0.1 on 3 channels:
-    # MSE = 3 * 0.01 / 12 = 0.0025, PSNR = -10 log10(0.0025) = 26.0206. With the view's GT
-    # instances (4 on the first two pixels, as gt) the matched instance is 4 and the IoU 1/3
-    score = EditScore(0.02)
-    score.add(b, a, sel, np.where(gt, 4, 0))
-    res = score.result({})
-    assert res["psnr_outside"] == pytest.approx(26.0206, abs=1e-3)
-    assert res["changed_iou"] == pytest.approx(0.3333, abs=1e-4)
-    assert res["gt_instances"] == [{"id": 4, "name": ""}]
-    # the same view twice: the same pooled figures; a view without GT: no IoU, a note
-    score.add(b, a, sel, np.where(gt, 4, 0))
-    assert score.result({})["changed_iou"] == res["changed_iou"]
-    assert score.result({})["changed_iou_views"] == [0.3333, 0.3333]
-    # a third view where nothing changed over the same GT pixels: IoU 0 there, pooled
-    # 2 / (3 + 3 + 2) = 0.25
-    score.add(b, b, sel, np.where(gt, 4, 0))
-    assert score.result({})["changed_iou_views"] == [0.3333, 0.3333, 0.0]
-    assert score.result({})["changed_iou"] == 0.25
-    score.add(b, a, sel, None)
-    assert score.result({})["changed_iou"] is None and score.result({})["note"]
-    # instance 3 is the most overlapped (2 px), instance 5 is half inside (1 of 2 px), 7 not
-    inst = np.array([[3, 3, 5], [5, 7, 7]])
-    m = np.array([[True, True, True], [False, False, False]])
-    assert match_instances([m], [inst]) == [3, 5]
-    assert match_instances([np.zeros_like(m)], [inst]) == []
-    # instance 9 is wholly inside but 1 px against 40 px of the best (< 5 %): not matched
-    big = np.zeros((5, 10), np.int32)
-    big[:4] = 3
-    big[4, 0] = 9
-    assert match_instances([np.ones((5, 10), bool)], [big]) == [3]
-
-
-def test_mesh_edits():
-    # a grey floor quad at z = 0 over [0, 2]^2 and a red box standing off the floor inside A's
-    # cells ([0.45, 0.75]^2 x [0.1, 0.5], like a seat), subdivided into small faces. With the
-    # default floor_clear (0.02) A's extent spans z 0.02 .. 0.55 over A's cells: every box
-    # face lies inside it, no floor face does (z = 0).
-    floor = trimesh.Trimesh([[0, 0, 0], [2, 0, 0], [2, 2, 0], [0, 2, 0]], [[0, 1, 2], [0, 2, 3]])
-    box = trimesh.creation.box(bounds=[[0.45, 0.45, 0.1], [0.75, 0.75, 0.5]])
-    for _ in range(3):
-        floor, box = floor.subdivide(), box.subdivide()
-    nv = len(floor.vertices)
-    rgba = np.r_[
-        np.tile([128, 128, 128, 255], (nv, 1)), np.tile([255, 0, 0, 255], (len(box.vertices), 1))
-    ]
-    mesh = trimesh.Trimesh(
-        np.r_[floor.vertices, box.vertices],
-        np.r_[floor.faces, box.faces + nv],
-        vertex_colors=rgba,
-        process=False,
-    )
-    cfg = EditConfig(pad=0.0)
-    a = _select("click", (0.6, 0.6))
-    out, stats = edit_mesh(mesh, [_edit("remove", a, cfg)])
-    assert stats["faces_removed"] == len(box.faces)
-    assert len(out.faces) == len(floor.faces) and len(out.vertices) == nv
-    assert np.all(out.vertices[:, 2] == 0.0)
-    # sketch A green (flat): the box's vertices only
-    green = torch.tensor([0.0, 1.0, 0.0])
-    out2, st2 = edit_mesh(mesh, [_edit("sketch", a, cfg, color=green)])
-    assert len(out2.faces) == len(mesh.faces)
-    col = np.asarray(out2.visual.vertex_colors)
-    assert np.all(col[nv:, :3] == [0, 255, 0]) and np.all(col[:nv, :3] == 128)
-    assert st2["vertices_recolored"] == len(box.vertices)
-
-
-@pytest.mark.parametrize("surface", [False, True])
-def test_render_view_edited_without_edits_is_render_view(surface):
-    # an untrained model: the same box, near plane, occupancy, step, pruning and colouring
-    # mode (composited, or read at the expected depth) as render_view (the shared
-    # renderer's), so the same pixels bit for bit
-    torch.manual_seed(0)
-    cfg = tune(
-        NerfConfig(),
-        field__hash_log2_size=10,
-        field__hash_levels=2,
-        field__width=16,
-        sampling__samples_across=64,
-    )
-    model = build_model(cfg, torch.tensor([0.0, 0.0, 0.0]), torch.tensor([2.0, 2.0, 1.0]), [], [])
-    model.surface.fill_(surface)
-    intr = Intrinsics(8.0, 8.0, 3.5, 2.5, 8, 6)
-    pose = look_at(np.array([1.0, -0.5, 0.8]), np.array([1.0, 1.0, 0.2]))
-    ref = render_view(model, pose, intr, chunk=17)
-    got = render_view_edited(model, pose, intr, (), chunk=17)
-    for k in ("rgb", "depth", "acc"):
-        assert np.array_equal(got[k], ref[k]), k
-
-
-@pytest.mark.parametrize("color", [False, True])
-def test_render_view_of_some_pixels_is_the_full_render_there(color):
-    # the photos-only path renders only the pixels stereo left without depth: the same
-    # values as the full view where asked, 0 (no opacity) elsewhere
-    torch.manual_seed(0)
-    cfg = tune(
-        NerfConfig(),
-        field__hash_log2_size=10,
-        field__hash_levels=2,
-        field__width=16,
-        sampling__samples_across=64,
-    )
-    model = build_model(cfg, torch.tensor([0.0, 0.0, 0.0]), torch.tensor([2.0, 2.0, 1.0]), [], [])
-    intr = Intrinsics(8.0, 8.0, 3.5, 2.5, 8, 6)
-    pose = look_at(np.array([1.0, -0.5, 0.8]), np.array([1.0, 1.0, 0.2]))
-    ref = render_view(model, pose, intr, chunk=7, color=color)
-    assert ref["acc"].min() > 0  # every pixel has something to compare
-    mask = np.zeros((6, 8), bool)
-    mask[1:4, 2:7] = True
-    mask[5, 0] = True
-    got = render_view(model, pose, intr, chunk=7, color=color, pixels=mask)
-    for k in ("rgb", "depth", "acc"):
-        assert got[k].shape == ref[k].shape, k
-        np.testing.assert_allclose(got[k][mask], ref[k][mask], rtol=1e-6, atol=1e-7)
-        assert not got[k][~mask].any(), k
-    nothing = render_view(model, pose, intr, color=color, pixels=np.zeros((6, 8), bool))
-    assert not nothing["depth"].any() and nothing["depth"].shape == (6, 8)
-    with pytest.raises(BlunfError, match="pixel mask"):
-        render_view(model, pose, intr, pixels=np.ones((8, 6), bool))
-
-
-def test_orbit_cameras_look_at_the_centre():
-    c = (1.0, 2.0, 0.5)
-    poses = orbit_poses(c, 2.0, 1.5, 4)
-    # frame k sits at angle k * 90 degrees, at height 1.5, 2 m from the centre horizontally
-    np.testing.assert_allclose(poses[1][:3, 3], [1.0, 4.0, 1.5], atol=1e-12)
-    for p in poses:
-        # the centre projects to the principal point: it is on the optical axis (z column)
-        d = np.asarray(c) - p[:3, 3]
-        np.testing.assert_allclose(p[:3, 2], d / np.linalg.norm(d), atol=1e-12)
-        # image x is horizontal, image y points down (its world z is negative)
-        assert abs(p[2, 0]) < 1e-12 and p[2, 1] < 0
-        np.testing.assert_allclose(p[:3, :3].T @ p[:3, :3], np.eye(3), atol=1e-12)
-        assert np.linalg.det(p[:3, :3]) == pytest.approx(1.0)
-
-
-def test_edited_plan_relabels_removed_cells():
-    from stages.edit.nerf import _edited_plan
-
-    bp = _plan()
-    a = _select("click", (0.6, 0.6))
-    floor = _select("pixel", (0, 0))  # the floor component: every cell but the two chairs'
-    edits = [
-        Edit(0, "remove", Selector("click", (0.6, 0.6))),
-        Edit(1, "recolor", Selector("pixel", (0, 0))),
-    ]
-    # removing A makes its 16 cells floor; a recolour changes no label
-    new, n = _edited_plan(
-        EditConfig(), bp, EditSpec(Path("e.yaml"), tuple(edits), (0,)), [a, floor]
-    )
-    assert n == 16 and np.all(new.labels[a] == 0) and np.all(new.labels[~a] == bp.labels[~a])
-    new, n = _edited_plan(
-        EditConfig(removed_label="unknown"),
-        bp,
-        EditSpec(Path("e.yaml"), tuple(edits), (0,)),
-        [a, floor],
-    )
-    assert n == 16 and np.all(new.labels[a] == 255)
-    # removing the floor itself leaves unknown cells, whatever removed_label says
-    rm_floor = [Edit(0, "remove", Selector("pixel", (0, 0)))]
-    new, n = _edited_plan(
-        EditConfig(), bp, EditSpec(Path("e.yaml"), tuple(rm_floor), (0,)), [floor]
-    )
-    assert n == 400 - 32 and np.all(new.labels[floor] == 255)
-
-
-def test_edited_plan_keeps_instances_but_the_removed_ones():
-    from stages.edit.nerf import _edited_plan
-
-    bp = _plan()
-    inst = np.zeros(bp.labels.shape, np.int32)
-    inst[bp.labels != 0] = 7  # both chairs one instance here: only the clicked cells lose it
-    bp = replace(bp, instances=inst)
-    a = _select("click", (0.6, 0.6))
-    edits = (Edit(0, "remove", Selector("click", (0.6, 0.6))),)
-    new, _ = _edited_plan(EditConfig(), bp, EditSpec(Path("e.yaml"), edits, (0,)), [a])
-    assert new.instances is not None
-    assert np.all(new.instances[a] == 0) and np.all(new.instances[~a] == inst[~a])
-    assert (inst[~a] == 7).any()

@@ -11,7 +11,8 @@ import pytest
 from PIL import Image
 
 from stages.common.camera import Intrinsics
-from stages.common.capture import Capture, Frame, check_intrinsics
+from stages.common.capture import Capture, Frame
+from stages.common.checks import check_intrinsics
 from stages.common.errors import BlunfError
 from stages.common.io import check_exists, read_depth, write_depth_png
 from stages.ingest.select import check_structure

@@ -1,4 +1,4 @@
-"""Manhattan yaw of the align stage: the room of test_fusion (walls on x and y) turned about z
+"""Manhattan yaw of the align stage: the room of exact_room (walls on x and y) turned about z
 by a known angle comes back with its walls on the axes, by the smallest turn; a square room
 is kept; a floor without walls keeps its yaw and says why."""
 
@@ -16,8 +16,8 @@ from stages.align.manhattan import MIN_NORMALS, find_yaw, heading_turn, rot_z
 from stages.common.capture import Capture, Frame
 from stages.common.errors import BlunfError
 from stages.common.io import write_depth_png
+from tests.stages.exact_room import INTR, render, room_capture, room_poses
 from tests.stages.test_align import align, motion
-from tests.stages.test_fusion import INTR, render, room_capture, room_poses
 
 
 def turned(deg: float, tilt: bool = False) -> np.ndarray:
