@@ -249,14 +249,14 @@ def test_clean_drops_entries_the_latest_run_did_not_use(room, done, tmp_path, ca
     """`blunf clean RUN`: the entries the latest report names stay (a rerun of it is all
     cached), every other one goes, and it says how much it freed."""
     out = copy_run(done, tmp_path / "run")
-    seed5 = ["--set", "blueprint.blunf.seed=5"]  # a new plan: blunf, evaluate and export rerun
+    seed5 = ["--set", "blueprint.blunf.seed=5"]  # a new plan: blunf, layout, evaluate, export rerun
     code_version.cache_clear()
     assert main(["run", str(room), "--out", str(out), *FAST, *QUICK, *seed5]) == 0
     report = json.loads((out / "report.json").read_text())
     used = {(s["name"], s["key"]) for s in report["stages"] if s["key"]}
     every = {(stage, k) for stage, keys in entries(out).items() for k in keys}
     unused = every - used
-    assert {s for s, _ in unused} == {"blueprint", "export", "evaluate"}, unused
+    assert {s for s, _ in unused} == {"blueprint", "layout", "export", "evaluate"}, unused
     size = sum(p.stat().st_size for s, k in unused for p in (out / s / k).rglob("*") if p.is_file())
     capsys.readouterr()
     assert main(["clean", str(out)]) == 0

@@ -11,13 +11,14 @@ from pathlib import Path
 
 import ezdxf
 import numpy as np
+from shapely import make_valid, union_all
 from shapely.geometry import Polygon
-from shapely.ops import unary_union
 
 SVG_NS = "http://www.w3.org/2000/svg"
 LONG_PX = 1400.0  # the plan's longer side in the SVG (px)
 PAD_M = 0.8  # metres of paper round the walls (dimension lines live there)
 DIM_OFF = 0.35  # metres: a dimension line's distance outside the wall's outer face
+GRID_M = 1e-4  # metres: the precision grid of the wall overlay
 LAYERS = {"WALLS": 7, "OPENINGS": 3, "OBJECTS": 5, "DIMENSIONS": 1, "TEXT": 7}  # ACI colours
 FONT = "font-family:sans-serif;fill:#111"
 
@@ -44,9 +45,13 @@ def wall_shapes(plan: dict) -> Polygon:
         n = np.array([d[1], -d[0]])
         t = float(w["thickness"]) + 0.01
         cuts.append(Polygon([p - n * 0.01, q - n * 0.01, q + n * t, p + n * t]))
-    shape = unary_union(bands)
-    rooms = unary_union([Polygon(r["polygon"]) for r in plan["rooms"]])
-    return shape.difference(rooms).difference(unary_union(cuts))
+    # overlay on a 0.1 mm grid: GEOS's floating overlay fails on near-coincident edges
+    # ("non-noded intersection") that degenerate plans give; the fixed grid never does
+    g = GRID_M
+    shape = union_all([make_valid(b) for b in bands], grid_size=g)
+    rooms = union_all([make_valid(Polygon(r["polygon"])) for r in plan["rooms"]], grid_size=g)
+    cut = union_all(cuts, grid_size=g)
+    return shape.difference(rooms, grid_size=g).difference(cut, grid_size=g)
 
 
 @dataclass(frozen=True)
