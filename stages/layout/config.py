@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 from stages.common.errors import BlunfError
 
@@ -71,6 +72,7 @@ class LayoutInputs:
 
 @dataclass(frozen=True)
 class LayoutOutputs:
+    STATS: ClassVar[str | None] = "layout.json"  # counts (and why empty): the report's facts
     plan_json: Path  # plan.json: rooms, walls, openings, objects as vectors in metres
     plan_svg: Path  # plan.svg: the plan drawn as an architect would
     plan_dxf: Path  # plan.dxf: layers WALLS, OPENINGS, OBJECTS, DIMENSIONS, TEXT

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
+from shapely.errors import GEOSException
 
 from stages.common.blueprint import Blueprint
 from stages.common.errors import BlunfError
@@ -71,15 +72,21 @@ def run(cfg: LayoutConfig, inputs: LayoutInputs, out: Path) -> LayoutOutputs:
     t0 = time.perf_counter()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    plan = build_plan(Blueprint.load(inputs.blueprint), cfg, inputs.mesh)
+    bp = Blueprint.load(inputs.blueprint)
     outs = LayoutOutputs.at(out)
-    write_plan(plan, outs)
-    log.info(
-        "layout: %d rooms, %d walls, %d openings, %d objects in %.2f s",
-        len(plan["rooms"]),
-        len(plan["walls"]),
-        len(plan["openings"]),
-        len(plan["objects"]),
-        time.perf_counter() - t0,
-    )
+    try:
+        plan = build_plan(bp, cfg, inputs.mesh)
+        write_plan(plan, outs)
+    except GEOSException as e:
+        # the architectural drawing is a layer over the plan, not the plan: a geometry the
+        # overlay cannot handle leaves it empty, says why, and the run keeps its blueprint
+        log.warning("layout: no drawing: %s", e)
+        plan = {"rooms": [], "walls": [], "openings": [], "objects": [], "error": str(e)}
+        write_plan(plan, outs)
+    write_json(out / "layout.json", {"error": plan.get("error"), **_counts(plan)})
+    log.info("layout: %s in %.2f s", _counts(plan), time.perf_counter() - t0)
     return outs
+
+
+def _counts(plan: dict) -> dict:
+    return {k: len(plan[k]) for k in ("rooms", "walls", "openings", "objects")}
