@@ -229,11 +229,12 @@ class Cache:
         """Remove temp folders left by killed runs (their process is gone)."""
         for t in self.root.glob("*/.tmp-*"):
             pid = t.name.rsplit("-", 1)[-1]
-            if pid.isdigit() and not _alive(int(pid)):
+            if pid.isdigit() and not alive(int(pid)):
                 shutil.rmtree(t, ignore_errors=True)
 
 
-def _alive(pid: int) -> bool:
+def alive(pid: int) -> bool:
+    """Whether a process of that id exists (a killed run's is gone)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:

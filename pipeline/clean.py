@@ -11,8 +11,9 @@ import os
 import shutil
 from pathlib import Path
 
+from pipeline.cache import alive
 from pipeline.config import stage_configs
-from pipeline.publish import alive, in_progress
+from pipeline.publish import in_progress
 from stages.common.errors import BlunfError
 from stages.common.io import read_json
 

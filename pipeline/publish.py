@@ -24,6 +24,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from pipeline.cache import alive
 from stages.common.errors import BlunfError
 from stages.common.io import write_json
 
@@ -155,13 +156,3 @@ def sweep(out: Path) -> None:
                     t.unlink()
                 except OSError:
                     pass
-
-
-def alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
