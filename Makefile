@@ -10,14 +10,19 @@ DEMO    ?= runs/demo
 .PHONY: setup sysdeps demo test test-slow check lint typecheck bench bench-quick batch clean FORCE
 
 # System libraries the wheels link against, as `library:Debian package`: open3d needs libusb,
-# torch and open3d need libgomp. Installed with apt-get when we are root and it exists;
-# otherwise the exact command is printed and setup stops.
+# torch and open3d need libgomp. Programs, as `program:Debian package`: the studio's browser
+# test drives Debian's chromium (a browser a Python package downloads cannot be fetched here).
+# Installed with apt-get when we are root and it exists; otherwise the exact command is
+# printed and setup stops.
 SYSLIBS := libusb-1.0.so.0:libusb-1.0-0 libgomp.so.1:libgomp1
+SYSBINS := chromium:chromium chromedriver:chromium-driver
 LDCONFIG := $(shell command -v ldconfig || echo /sbin/ldconfig)
 
 sysdeps:  ## the system libraries the Python packages need (apt-get, when root)
 	@missing=""; for e in $(SYSLIBS); do \
 	  $(LDCONFIG) -p 2>/dev/null | grep -q "$${e%%:*}" || missing="$$missing $${e##*:}"; done; \
+	for e in $(SYSBINS); do \
+	  command -v "$${e%%:*}" >/dev/null || missing="$$missing $${e##*:}"; done; \
 	if [ -z "$$missing" ]; then exit 0; fi; \
 	if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
 	  echo "blunf: installing system packages:$$missing"; \
