@@ -54,11 +54,16 @@ demo: setup  ## the default room from photos alone, then edited through its NeRF
 	@echo "from photos alone: $(DEMO)/phone-run/blueprint.png  report: $(DEMO)/phone-run/report.json"
 	@echo "edited: $(DEMO)/run/edits/  blueprint: $(DEMO)/run/blueprint.png  report: $(DEMO)/run/report.json"
 
+# Both suites run on every core (pytest-xdist), one torch thread a worker; tests that share a
+# module's fixture stay on one worker (tests/conftest.py). TESTJOBS=1 runs them in one process.
+TESTJOBS ?= logical
+XDIST   := $(if $(filter 1,$(TESTJOBS)),,-n $(TESTJOBS) --dist loadgroup)
+
 test: setup  ## the default suite (fast; real-data tests are marked slow)
-	$(BIN)/pytest -q
+	OMP_NUM_THREADS=1 $(BIN)/pytest -q $(XDIST)
 
 test-slow: setup  ## real captures and long runs
-	$(BIN)/pytest -q -m slow
+	OMP_NUM_THREADS=1 $(BIN)/pytest -q -m slow $(XDIST) --durations=15
 
 check: lint typecheck
 

@@ -43,3 +43,20 @@ def tune(cfg, **changes):
     for head, ch in sub.items():
         top[head] = tune(getattr(cfg, head), **ch)
     return dataclasses.replace(cfg, **top)
+
+
+def pytest_collection_modifyitems(config, items):
+    """Under pytest-xdist (`--dist loadgroup`, as the Makefile runs the suites), keep the tests
+    that share a module- or class-scoped fixture on one worker, so that the fixture (often a
+    whole pipeline run) is built once; every other test is dealt out one by one."""
+    for item in items:
+        info = getattr(item, "_fixtureinfo", None)
+        if info is None or item.get_closest_marker("xdist_group"):
+            continue
+        shared = any(
+            d.scope in ("module", "class")
+            for defs in info.name2fixturedefs.values()
+            for d in defs
+        )
+        if shared:
+            item.add_marker(pytest.mark.xdist_group(item.nodeid.split("::")[0]))
