@@ -79,7 +79,7 @@ def start(args: list[str]) -> subprocess.Popen:
     )
 
 
-def wait_for_stage(p: subprocess.Popen, out: Path, scenes, timeout: float = 180) -> tuple:
+def wait_for_stage(p: subprocess.Popen, out: Path, scenes, timeout: float = 600) -> tuple:
     """(scene, pid) of the first worker seen running a stage that lasts > 1 s here."""
     t0 = time.monotonic()
     while time.monotonic() - t0 < timeout and p.poll() is None:
@@ -131,7 +131,9 @@ def batch_cmd(caps: list[Path], out: Path, *extra: str) -> list[str]:
     ]
 
 
-def finish(p: subprocess.Popen, timeout: float = 240) -> tuple[int, str]:
+# The timeouts are guards against a hung batch, not timings: the suites run two tests at once
+# (pytest-xdist), so a batch may get one core for its two workers.
+def finish(p: subprocess.Popen, timeout: float = 900) -> tuple[int, str]:
     try:
         _, err = p.communicate(timeout=timeout)
     except subprocess.TimeoutExpired:
