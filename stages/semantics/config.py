@@ -50,6 +50,11 @@ class SemanticsConfig:
     # room), 78.1 -> 84.6 (seed 3); with their exact depth 90.3 -> 90.4, 85.5 -> 86.0
     floor_fill: bool = True
     floor_fill_cell: float = 0.05
+    # rays that hit no surface and cross a wall plane inside the wall's extent (its inliers'
+    # box along the wall, down to the floor) and inside the room are labelled wall at that
+    # crossing (wallfill.py): plain walls that stereo left as holes. Needs floor_fill (the
+    # room's footprint and the depth written with it)
+    wall_fill: bool = False
 
     def __post_init__(self) -> None:
         if self.impl not in ("geometry", "height"):
