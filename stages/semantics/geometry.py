@@ -24,6 +24,7 @@ from stages.semantics.config import (
     CLASSES,
     FLOOR,
     IGNORE,
+    OBJECT,
     WALL,
     SemanticsConfig,
     SemanticsInputs,
@@ -61,6 +62,11 @@ def run(cfg: SemanticsConfig, inputs: SemanticsInputs, out: Path) -> SemanticsOu
     outs.labels.mkdir(parents=True, exist_ok=True)
     outs.instances.mkdir(parents=True, exist_ok=True)
     room = _room(verts, tris, seg, cfg) if cfg.floor_fill else None
+    if room is not None and cfg.outside_unknown:
+        out_obj = (seg.cls == OBJECT) & ~room.contains(triangles(verts, tris)[0][:, :2])
+        seg.cls[out_obj] = UNKNOWN
+        seg.instance[out_obj] = 0
+        seg.outside_triangles = int(out_obj.sum())
     t0 = time.perf_counter()
     frames, pixels = _render(mesh, seg, cap, outs, room, cfg.plane_dist, cfg.wall_fill)
     t_render = time.perf_counter() - t0
@@ -80,6 +86,7 @@ def run(cfg: SemanticsConfig, inputs: SemanticsInputs, out: Path) -> SemanticsOu
         "noise_clusters": seg.noise_clusters,  # labelled unknown
         "noise_triangles": seg.noise_triangles,  # labelled unknown
         "floating_clusters": seg.floating_clusters,  # labelled unknown
+        "outside_triangles": seg.outside_triangles,  # objects outside the room: unknown
         "area_m2": {
             name: round(float(seg.area[seg.cls == k].sum()), 3)
             for k, name in [*CLASSES.items(), (UNKNOWN, "unknown")]
