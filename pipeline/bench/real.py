@@ -6,9 +6,10 @@ For one capture with depth (7-Scenes, Replica/vMAP, the project's layout):
                that both plans take their classes from the geometry the same way;
   photos-only  the plan from a copy holding the colour images and intrinsics only (no
                depth, poses, labels or gravity): poses from SfM, depth from stereo.
-The photos-only plan is scored against the reference per class through the similarity
-between the two runs' camera centres (stages.evaluate: the frame estimated poses are scored
-in), so a wrong metric scale is not counted twice; the poses are scored likewise
+The photos-only plan is scored against the reference per class, on the reference's cells
+within its projected points' bounds (`observed`; "padded" keeps the whole grid), through
+the similarity between the two runs' camera centres (stages.evaluate: the frame estimated
+poses are scored in), so a wrong metric scale is not counted twice; the poses are scored likewise
 (registration, ATE, and the scale of that similarity: 1 = the photos-only scale is right).
 
     python -m pipeline.bench.real CAPTURE --out DIR [--set k=v ...] [--ref-set k=v ...]
@@ -105,17 +106,42 @@ def scale_facts(run: Path) -> dict:
     return {**sfm.get("scale_from", {}), "scale": sfm.get("scale")}
 
 
+def observed(ref_run: Path, ref: Blueprint) -> Blueprint:
+    """The reference plan with the cells beyond its projected points' bounds (the project
+    stage's grid.json "bounds") made unknown. The plan's grid pads the bounds and the BluNF
+    plan clamps the field there (blueprint.blunf.outside): a band of whatever class lies at
+    the bounds, mostly wall. On Replica office0 (30 frames) that band is ~85 % of the
+    reference's wall cells, and a plan from other depth has no cells there."""
+    found = sorted(glob.glob(str(Path(ref_run) / "project" / "*" / "grid.json")))
+    if not found:
+        return ref
+    bounds = read_json(Path(max(found, key=lambda p: Path(p).stat().st_mtime))).get("bounds")
+    if not bounds:
+        return ref
+    xy = ref.grid.centers()  # [H, W, 2]
+    inside = (xy >= np.asarray(bounds[:2])).all(-1) & (xy <= np.asarray(bounds[2:])).all(-1)
+    return replace(ref, labels=np.where(inside, ref.labels, np.uint8(UNKNOWN)))
+
+
 def score(ref_run: Path, pred_run: Path) -> dict:
     """The photos-only run's plan and poses against the reference run's (see the module doc).
 
-    Returns {"plan": evaluate_plan metrics + "frame", "poses": pose_metrics, "scale": facts}.
+    Returns {"plan": evaluate_plan metrics + "frame" + "confusion", "padded": the plan's
+    metrics counting the reference's padding band too (see observed), "poses": pose_metrics,
+    "scale": facts}.
     """
-    ref = Blueprint.load(Path(ref_run) / "blueprint.npz")
+    padded = Blueprint.load(Path(ref_run) / "blueprint.npz")
+    ref = observed(ref_run, padded)
     pred = Blueprint.load(Path(pred_run) / "blueprint.npz")
     est, gt = run_poses(pred_run), run_poses(ref_run)
     m, frame = plan_frame(True, est, gt, ref.grid)
     plan = {**evaluate_plan(pred, ref, m), "frame": frame, "confusion": confusion(pred, ref, m)}
-    return {"plan": plan, "poses": pose_metrics(est, gt), "scale": scale_facts(pred_run)}
+    return {
+        "plan": plan,
+        "padded": evaluate_plan(pred, padded, m),
+        "poses": pose_metrics(est, gt),
+        "scale": scale_facts(pred_run),
+    }
 
 
 def confusion(pred: Blueprint, ref: Blueprint, pred_to_ref: np.ndarray | None) -> dict:

@@ -24,6 +24,7 @@ from stages.semantics.config import (
     CLASSES,
     FLOOR,
     IGNORE,
+    OBJECT,
     WALL,
     SemanticsConfig,
     SemanticsInputs,
@@ -31,6 +32,7 @@ from stages.semantics.config import (
 )
 from stages.semantics.floorfill import Footprint, floor_through
 from stages.semantics.segment import Segmentation, segment, triangles
+from stages.semantics.wallfill import wall_through
 
 log = logging.getLogger(__name__)
 
@@ -60,8 +62,13 @@ def run(cfg: SemanticsConfig, inputs: SemanticsInputs, out: Path) -> SemanticsOu
     outs.labels.mkdir(parents=True, exist_ok=True)
     outs.instances.mkdir(parents=True, exist_ok=True)
     room = _room(verts, tris, seg, cfg) if cfg.floor_fill else None
+    if room is not None and cfg.outside_unknown:
+        out_obj = (seg.cls == OBJECT) & ~room.contains(triangles(verts, tris)[0][:, :2])
+        seg.cls[out_obj] = UNKNOWN
+        seg.instance[out_obj] = 0
+        seg.outside_triangles = int(out_obj.sum())
     t0 = time.perf_counter()
-    frames, pixels = _render(mesh, seg, cap, outs, room, cfg.plane_dist)
+    frames, pixels = _render(mesh, seg, cap, outs, room, cfg.plane_dist, cfg.wall_fill)
     t_render = time.perf_counter() - t0
     sem = replace(cap, frames=tuple(frames), classes=dict(CLASSES), ignore=IGNORE)
     sem.save(outs.frames)
@@ -79,6 +86,7 @@ def run(cfg: SemanticsConfig, inputs: SemanticsInputs, out: Path) -> SemanticsOu
         "noise_clusters": seg.noise_clusters,  # labelled unknown
         "noise_triangles": seg.noise_triangles,  # labelled unknown
         "floating_clusters": seg.floating_clusters,  # labelled unknown
+        "outside_triangles": seg.outside_triangles,  # objects outside the room: unknown
         "area_m2": {
             name: round(float(seg.area[seg.cls == k].sum()), 3)
             for k, name in [*CLASSES.items(), (UNKNOWN, "unknown")]
@@ -120,12 +128,14 @@ def _render(
     outs: SemanticsOutputs,
     room: Footprint | None,
     margin: float,
+    wall_fill: bool = False,
 ) -> tuple[list[Frame], dict[str, float]]:
     """Class and instance maps of every view; returns the frames pointing at them and the
     fraction of pixels per class over all views (and of floor seen through the surface).
 
     With a room, the floor seen through the surface within it (floorfill.py, `margin` metres
-    beyond the plane) is labelled floor, and each view's depth is written with it."""
+    beyond the plane) is labelled floor, and each view's depth is written with it; with
+    wall_fill, so are the walls seen through it (wallfill.py), the nearer crossing winning."""
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(mesh)
     cls = np.append(seg.cls, np.uint8(UNKNOWN))  # [T + 1]: the last entry is "no hit"
@@ -133,7 +143,7 @@ def _render(
     wide = inst.max(initial=0) > 255
     walls = tuple(p for p in seg.planes if p["kind"] == "wall")
     counts = np.zeros(256, np.int64)
-    frames, filled = [], 0
+    frames, filled, walled = [], 0, 0
     if room is not None:
         outs.depth.mkdir(parents=True, exist_ok=True)
     for f in cap.frames:
@@ -145,13 +155,23 @@ def _render(
         label = cls[prim]  # [H, W] uint8
         if room is not None:
             t = hit["t_hit"].numpy()  # [H, W]: the depth (Open3D's rays have camera z = 1)
-            floor = floor_through(rays.numpy(), t, seg.floor_z, room, margin, walls)  # [H, W]
+            r = rays.numpy()
+            floor = floor_through(r, t, seg.floor_z, room, margin, walls)  # [H, W]
+            wall = (
+                wall_through(r, t, walls, seg.floor_z, room, margin)[0]
+                if wall_fill
+                else np.zeros_like(t)
+            )
+            wall = np.where((wall > 0) & ((floor == 0) | (wall < floor)), wall, 0.0)
+            floor = np.where(wall > 0, 0.0, floor)
             seen = floor > 0
             label = np.where(seen, np.uint8(FLOOR), label)
-            prim[seen] = len(cls) - 1  # no instance
+            label = np.where(wall > 0, np.uint8(WALL), label)
+            prim[seen | (wall > 0)] = len(cls) - 1  # no instance
             filled += int(seen.sum())
+            walled += int((wall > 0).sum())
             dpath = outs.depth / f"{f.stem}.npy"
-            write_depth_npy(dpath, np.where(seen, floor, t))  # inf (no hit) -> 0
+            write_depth_npy(dpath, np.where(seen, floor, np.where(wall > 0, wall, t)))
             f = replace(f, depth=dpath)
         counts += np.bincount(label.reshape(-1), minlength=256)
         path = outs.labels / f"{f.stem}.png"
@@ -163,7 +183,11 @@ def _render(
     total = max(int(counts.sum()), 1)
     names = {**CLASSES, UNKNOWN: "unknown"}
     pixels = {name: round(int(counts[k]) / total, 4) for k, name in names.items()}
-    return frames, {**pixels, "floor_seen_through": round(filled / total, 4)}
+    return frames, {
+        **pixels,
+        "floor_seen_through": round(filled / total, 4),
+        "wall_seen_through": round(walled / total, 4),
+    }
 
 
 def _room(verts: np.ndarray, tris: np.ndarray, seg: Segmentation, cfg: SemanticsConfig

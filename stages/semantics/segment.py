@@ -53,6 +53,7 @@ class Segmentation:
     noise_clusters: int = 0  # clusters below object_min_area (unknown)
     noise_triangles: int = 0  # triangles DBSCAN calls noise (unknown)
     floating_clusters: int = 0  # clusters above object_max_gap (unknown)
+    outside_triangles: int = 0  # object triangles outside the room (outside_unknown)
     floor_z: float = 0.0  # median height of the floor triangles (0 when no floor was found)
 
 

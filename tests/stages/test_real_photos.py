@@ -1,0 +1,42 @@
+"""A real capture from its photos alone (slow): the plan from the colour images and
+intrinsics only, scored against the plan the same frames give with their sensor depth and
+poses, as `python -m pipeline.bench.real` scores it (reference cells beyond the reference's
+points excluded). The test holds the figure measured at its settings, less a noise margin
+(the SfM and RANSAC samples move a plan by a point or two between runs). Small settings keep
+it near three minutes of one core: 20 frames at 240 px, 50 NeRF steps, the MVR plan."""
+
+from __future__ import annotations
+
+import pytest
+
+from tests.conftest import shared_capture
+
+MARGIN = 3.0  # points below the measured figure that still pass
+# the semantics settings that find the office's walls (README, photos-only accuracy); the
+# kitchen has no wall plane either way (its measured figures below were with semantics.wall_fill
+# on too, which fills only found walls: without any, it changes nothing)
+WALLS = ["semantics.wall_min_height=0.7", "semantics.wall_min_area=0.5"]
+
+# measured on the 7-Scenes kitchen, these settings: fwIoU 10.2, floor 3.2, wall 0.0, object
+# 13.2 (wall settings off: 9.8, 2.5, 0.0, 12.9). Far from the sensor plan: the align stage takes the
+# counter tops for the floor (the SfM points barely see the floor: 2 % of them), so every
+# class is read at the wrong height (README, photos-only accuracy).
+KITCHEN = {"fwiou": 10.2, "floor": 3.2, "object": 13.2}
+
+
+@pytest.mark.slow
+def test_kitchen_photos_only_plan_against_the_sensor_plan(tmp_path):
+    from pipeline.bench.real import measure, summary
+
+    src = shared_capture("7scenes-redkitchen")
+    common = ["ingest.max_side=240", "run.methods=[mvr]"]
+    photo = ["--config", "configs/phone.yaml"]
+    for s in [*common, *WALLS, "nerf.train.time_budget=0", "nerf.train.max_steps=50"]:
+        photo += ["--set", s]
+    ref = [x for s in common for x in ("--set", s)]
+    res = measure(src, tmp_path, photo, ref, frames=20)
+    print(f"\nkitchen: {summary(res)}")
+    got = {"fwiou": res["plan"]["fwiou"], **res["plan"]["per_class"]}
+    assert res["poses"]["registered"] >= 19
+    for key, value in KITCHEN.items():
+        assert got[key] >= value - MARGIN, (key, got)
