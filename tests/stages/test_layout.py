@@ -72,9 +72,9 @@ def test_interior_angles_of_an_l():
     np.testing.assert_allclose(interior_angles(ell), [90, 90, 90, 270, 90, 90])
 
 
-@pytest.mark.parametrize("seed", [3, 5])
-def test_exact_room_with_doors_meets_the_targets(tmp_path, seed):
-    cap = make_room(tmp_path / "cap", views=1, seed=seed, size=(16, 12), doors=2)
+@pytest.mark.parametrize(("seed", "shape"), [(3, "rect"), (5, "rect"), (0, "L"), (4, "L")])
+def test_exact_room_with_doors_meets_the_targets(tmp_path, seed, shape):
+    cap = make_room(tmp_path / "cap", views=1, seed=seed, size=(16, 12), doors=2, shape=shape)
     out = IMPLS["walls"](
         GT_PLAN,
         LayoutInputs(cap / "gt" / "blueprint.npz", cap / "gt" / "mesh.ply"),
