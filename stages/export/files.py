@@ -82,7 +82,8 @@ def _picture(bp: Blueprint, inputs: ExportInputs, path: Path, title: str) -> Non
         if inputs.layout is not None and Path(inputs.layout).is_file():
             plan = read_json(inputs.layout)
         else:
-            plan = build_plan(bp, LayoutConfig(), inputs.mesh)
+            mesh = inputs.mesh if Path(inputs.mesh).is_file() else None
+            plan = build_plan(bp, LayoutConfig(), mesh)
         if plan.get("rooms"):
             architect_png(bp, plan, path, title)
             return

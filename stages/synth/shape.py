@@ -37,6 +37,7 @@ log = logging.getLogger(__name__)
 GROW = 1.25  # an L room's bounding box is the seed's rectangle grown by this factor
 NOTCH = (0.35, 0.5)  # the notch's sides as shares of the bounding box's sides
 LOOP_WALL = 1.3  # metres: each arm's camera loop keeps this far from the arm's sides
+BEYOND = 1.0  # metres: the wall a door looks onto stands this far past the door's wall
 _NORMALS = {(0, -1): "south", (1, 0): "east", (0, 1): "north", (-1, 0): "west"}
 
 
@@ -181,6 +182,19 @@ def _span(d: Door, f: Face, depth: float) -> Polygon:
     return box(min(x, x + n[0] * depth), d.start, max(x, x + n[0] * depth), d.end)
 
 
+def _beyond(d: Door, f: Face, t: float, h: float) -> Bounds:
+    """A wall BEYOND metres past the door's wall, facing it, 0.5 m wider on each side (within
+    the wall's face): the views see depth through the doorway, as they would in a house."""
+    lo, hi = sorted((f.a[0], f.b[0]) if f.along_x else (f.a[1], f.b[1]))
+    s0, s1 = max(lo, d.start - 0.5), min(hi, d.end + 0.5)
+    n = f.normal
+    if f.along_x:
+        y = f.a[1] + n[1] * (t + BEYOND)
+        return (s0, s1, min(y, y + n[1] * 0.1), max(y, y + n[1] * 0.1), 0.0, h)
+    x = f.a[0] + n[0] * (t + BEYOND)
+    return (min(x, x + n[0] * 0.1), max(x, x + n[0] * 0.1), s0, s1, 0.0, h)
+
+
 def build_l_room(seed: int, ceiling: bool = True, doors: int = 0) -> Room:
     """The seed's L-shaped room (its rectangle's draws, grown, with a notch)."""
     rng = np.random.default_rng([seed, 1])
@@ -209,6 +223,16 @@ def build_l_room(seed: int, ceiling: bool = True, doors: int = 0) -> Room:
         pieces = wall_pieces(f.name, cut, f.bounds, f.along_x) if cut else [f.bounds]
         mesh = trimesh.util.concatenate([bounds_mesh(b) for b in pieces])
         parts.append(Part(mesh, WALL, 0, f.name, _jitter(rng, PALETTE[WALL])))
+    for i, d in enumerate(gaps):  # what a view sees through the door: a wall beyond it
+        parts.append(
+            Part(
+                bounds_mesh(_beyond(d, by_name[d.wall], wall, height)),
+                WALL,
+                0,
+                f"beyond_{i + 1}",
+                _jitter(rng, PALETTE[WALL]),
+            )
+        )
     color = _jitter(rng, PALETTE[CEILING])
     if ceiling:
         top = [bounds_mesh((*b, height, height + 0.05)) for b in tiles]
