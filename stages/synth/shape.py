@@ -75,7 +75,8 @@ def faces_of(poly: tuple[tuple[float, float], ...], t: float, h: float) -> list[
         u, v = edge[i - 1], edge[i]
         return bool(u[0] * v[1] - u[1] * v[0] > 0)
 
-    out, seen = [], {}
+    out: list[Face] = []
+    seen: dict[str, int] = {}
     for i in range(n):
         a, b = p[i], p[(i + 1) % n]
         d = np.sign(b - a).astype(int)
@@ -182,6 +183,12 @@ def _span(d: Door, f: Face, depth: float) -> Polygon:
     return box(min(x, x + n[0] * depth), d.start, max(x, x + n[0] * depth), d.end)
 
 
+def _concat(meshes: list[trimesh.Trimesh]) -> trimesh.Trimesh:
+    out = trimesh.util.concatenate(meshes)
+    assert isinstance(out, trimesh.Trimesh)
+    return out
+
+
 def _beyond(d: Door, f: Face, t: float, h: float) -> Bounds:
     """A wall BEYOND metres past the door's wall, facing it, 0.5 m wider on each side (within
     the wall's face): the views see depth through the doorway, as they would in a house."""
@@ -217,11 +224,11 @@ def build_l_room(seed: int, ceiling: bool = True, doors: int = 0) -> Room:
     for d in gaps:
         x0, y0, x1, y1 = _span(d, by_name[d.wall], wall).bounds
         floor.append(bounds_mesh((x0, x1, y0, y1, -0.05, 0.0)))
-    parts = [Part(trimesh.util.concatenate(floor), FLOOR, 0, "floor", _jitter(rng, PALETTE[FLOOR]))]
+    parts = [Part(_concat(floor), FLOOR, 0, "floor", _jitter(rng, PALETTE[FLOOR]))]
     for f in faces:
         cut = [d for d in gaps if d.wall == f.name]
         pieces = wall_pieces(f.name, cut, f.bounds, f.along_x) if cut else [f.bounds]
-        mesh = trimesh.util.concatenate([bounds_mesh(b) for b in pieces])
+        mesh = _concat([bounds_mesh(b) for b in pieces])
         parts.append(Part(mesh, WALL, 0, f.name, _jitter(rng, PALETTE[WALL])))
     for i, d in enumerate(gaps):  # what a view sees through the door: a wall beyond it
         parts.append(
@@ -236,7 +243,7 @@ def build_l_room(seed: int, ceiling: bool = True, doors: int = 0) -> Room:
     color = _jitter(rng, PALETTE[CEILING])
     if ceiling:
         top = [bounds_mesh((*b, height, height + 0.05)) for b in tiles]
-        parts.append(Part(trimesh.util.concatenate(top), CEILING, 0, "ceiling", color))
+        parts.append(Part(_concat(top), CEILING, 0, "ceiling", color))
     parts += furniture_parts(rng, lay)
     log.info(
         "L room %.2f x %.2f (notch %.2f x %.2f) x %.2f m, %d pieces of furniture",
