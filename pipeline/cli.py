@@ -68,6 +68,7 @@ def parser() -> argparse.ArgumentParser:
         help="keep only images and intrinsics, as a phone gives (ground truth still in gt/)",
     )
     s.add_argument("--doors", type=int, default=0, help="door gaps in distinct walls (0..4)")
+    s.add_argument("--shape", choices=("rect", "L"), default="rect", help="room outline")
 
     b = sub.add_parser("bench", help="run time against error: table, CSV and plots")
     b.add_argument("--out", type=Path, default=Path("runs/bench"))
@@ -191,6 +192,7 @@ def _dispatch(args: argparse.Namespace) -> int:
             size=args.size,
             photos_only=args.photos_only,
             doors=args.doors,
+            shape=args.shape,
         )
         print(out)
         return 0

@@ -7,14 +7,19 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar
 
+from shapely.errors import GEOSException
+
 from stages.common.blueprint import Blueprint
 from stages.common.capture import Capture
 from stages.common.components import plan_summary, polygons
-from stages.common.io import write_json
+from stages.common.io import read_json, write_json
 from stages.common.nerfstudio import write_transforms
 from stages.common.plan_picture import plan_png
 from stages.export.config import ExportConfig
+from stages.export.picture import architect_png
 from stages.export.vector import write_dxf, write_geojson, write_svg
+from stages.layout.config import LayoutConfig
+from stages.layout.walls import build_plan
 
 FILES = (
     "blueprint.png",
@@ -33,6 +38,8 @@ class ExportInputs:
     blueprint: Path  # blueprint.npz of the product's method
     mesh: Path  # fused mesh.ply
     frames: Path  # frames.json with the final (aligned) poses
+    layout: Path | None = None  # the layout stage's plan.json, drawn over blueprint.png (None:
+    #                             the plan is read off the blueprint with the default settings)
 
 
 @dataclass(frozen=True)
@@ -49,7 +56,7 @@ class ExportOutputs:
 def run(cfg: ExportConfig, inputs: ExportInputs, out: Path) -> ExportOutputs:
     bp = Blueprint.load(inputs.blueprint)
     shutil.copyfile(inputs.blueprint, out / "blueprint.npz")
-    plan_png(bp, out / "blueprint.png", title=cfg.title)
+    _picture(bp, inputs, out / "blueprint.png", cfg.title)
     polys = polygons(bp, cfg.tolerance)  # traced once, written in three formats
     write_svg(bp, out / "blueprint.svg", title=cfg.title, polys=polys)
     write_geojson(bp, out / "blueprint.geojson", polys=polys)
@@ -66,3 +73,20 @@ def run(cfg: ExportConfig, inputs: ExportInputs, out: Path) -> ExportOutputs:
     shutil.copyfile(inputs.mesh, out / "mesh.ply")
     write_transforms(Capture.load(inputs.frames), out / "transforms.json")
     return ExportOutputs.at(out)
+
+
+def _picture(bp: Blueprint, inputs: ExportInputs, path: Path, title: str) -> None:
+    """blueprint.png: the classes with the architectural plan over them; the classes alone
+    when the plan has no room (nothing to draw over them)."""
+    try:
+        if inputs.layout is not None and Path(inputs.layout).is_file():
+            plan = read_json(inputs.layout)
+        else:
+            mesh = inputs.mesh if Path(inputs.mesh).is_file() else None
+            plan = build_plan(bp, LayoutConfig(), mesh)
+        if plan.get("rooms"):
+            architect_png(bp, plan, path, title)
+            return
+    except GEOSException:
+        pass  # the layout stage says why in its layout.json; the plain picture stands
+    plan_png(bp, path, title=title)

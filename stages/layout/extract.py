@@ -134,10 +134,15 @@ def _parallel(a: Line, b: Line) -> bool:
     return abs(a.d[0] * b.d[1] - a.d[1] * b.d[0]) < math.sin(math.radians(3))
 
 
-def _merge(a: Line, b: Line) -> Line:
-    """One line for two nearly parallel ones, by support-weighted offset along the normal."""
+def _merge(a: Line, b: Line, step: float) -> Line:
+    """One line for two nearly parallel ones: the support-weighted offset along the normal;
+    the better supported line's own when they lie more than `step` apart (a doorway's bump or
+    a shallow alcove left when the short edges between them went: not the wall's face)."""
     n = np.array([-a.d[1], a.d[0]])
-    off = (a.weight * (a.p @ n) + b.weight * (b.p @ n)) / (a.weight + b.weight)
+    if abs(a.p @ n - b.p @ n) > step:
+        off = a.p @ n if a.weight >= b.weight else b.p @ n
+    else:
+        off = (a.weight * (a.p @ n) + b.weight * (b.p @ n)) / (a.weight + b.weight)
     return Line(a.p + (off - a.p @ n) * n, a.d, a.weight + b.weight, a.snapped and b.snapped)
 
 
@@ -193,7 +198,7 @@ def outline(mask: np.ndarray, fr: Frame, cfg: LayoutConfig) -> np.ndarray | None
         for i in range(len(lines)):
             j = (i + 1) % len(lines)
             if len(lines) > 3 and _parallel(lines[i], lines[j]):
-                lines[i] = _merge(lines[i], lines[j])
+                lines[i] = _merge(lines[i], lines[j], 2 * cfg.tolerance)
                 del lines[j]
                 break
         else:

@@ -7,7 +7,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from PIL import Image, ImageDraw
+from PIL import Image, ImageDraw, ImageFont
+from shapely.geometry import Polygon
 
 from stages.common.blueprint import Grid
 from stages.layout.draw import PAD_M, dimension, wall_shapes
@@ -36,6 +37,13 @@ def overlay(rgb: np.ndarray, grid: Grid, plan: dict, long_px: int = 1400) -> Ima
         xy = np.asarray(xy, np.float64).reshape(-1, 2)
         return [((x - ox) * px_per_m, (top - y) * px_per_m) for x, y in xy]
 
+    # text about 12 cm high on the floor, 12 to 26 px
+    size = int(min(26, max(12, 0.12 * px_per_m)))
+    try:
+        font = ImageFont.load_default(size=size)
+        big = ImageFont.load_default(size=int(size * 1.4))
+    except (OSError, ImportError, TypeError):  # Pillow without FreeType: its bitmap font
+        font = big = ImageFont.load_default()
     walls = wall_shapes(plan)
     mask = Image.new("L", img.size, 0)
     md = ImageDraw.Draw(mask)
@@ -56,12 +64,16 @@ def overlay(rgb: np.ndarray, grid: Grid, plan: dict, long_px: int = 1400) -> Ima
             f"{o['class']}\n{o['width']:.2f} x {o['depth']:.2f}",
             fill=(0, 0, 0),
             anchor="mm",
+            font=font,
+            align="center",
         )
     for wl in plan.get("walls", []):
         a, b, t = dimension(wl)
         draw.line(px(np.array([a, b])), fill=(60, 60, 60), width=1)
-        draw.text(px(t)[0], f"{wl['length']:.2f} m", fill=(0, 0, 0), anchor="mm")
+        draw.text(px(t)[0], f"{wl['length']:.2f} m", fill=(0, 0, 0), anchor="mm", font=font)
     for r in plan.get("rooms", []):
-        c = np.asarray(r["polygon"]).mean(0)
-        draw.text(px(c)[0], f"{r['name']}  {r['area']:.2f} m2", fill=(0, 0, 0), anchor="mm")
+        c = np.asarray(Polygon(r["polygon"]).representative_point().coords)[0]
+        draw.text(
+            px(c)[0], f"{r['name']}  {r['area']:.2f} m2", fill=(0, 0, 0), anchor="mm", font=big
+        )
     return img

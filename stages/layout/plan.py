@@ -16,6 +16,7 @@ import numpy as np
 from scipy import ndimage as ndi
 from shapely.geometry import MultiPoint, Polygon
 from shapely.geometry.polygon import orient
+from skimage.measure import find_contours
 
 from stages.common.blueprint import Blueprint
 from stages.common.capture import UNKNOWN
@@ -190,7 +191,7 @@ def objects(bp: Blueprint, cfg: LayoutConfig, top: Callable | None = None) -> li
         ang = math.degrees(math.atan2(major[1], major[0]))
         ang = (ang + 90) % 180 - 90
         box_like = m.sum() * cell**2 >= (1 - cfg.box_slack) * rect.area
-        shape = rect if box_like else hull.simplify(cell)
+        shape = rect if box_like else _outline(m, bp, hull)
         inner = ndi.binary_erosion(m)
         height = top([centres[inner if inner.sum() >= 4 else m]])[0] if top is not None else None
         name = bp.classes.get(cls, str(cls))
@@ -210,3 +211,20 @@ def objects(bp: Blueprint, cfg: LayoutConfig, top: Callable | None = None) -> li
             }
         )
     return out
+
+
+def _outline(m: np.ndarray, bp: Blueprint, hull: Polygon) -> Polygon:
+    """The outline of an object's cells (its largest piece, on the cell edges, simplified
+    within a cell): an L of kitchen counters is an L, not the hull that spans the room; the
+    convex hull where the trace is degenerate."""
+    sl = ndi.find_objects(m.astype(np.int32))[0]
+    cs = find_contours(np.pad(m[sl], 1).astype(np.float64), 0.5)
+    if not cs:
+        return hull
+    rc = max(cs, key=len) - 1.0 + np.array([sl[0].start, sl[1].start])  # (row, col)
+    (ox, oy), cell, h = bp.grid.origin, bp.grid.cell, bp.grid.shape[0]
+    xy = np.stack([ox + (rc[:, 1] + 0.5) * cell, oy + (h - rc[:, 0] - 0.5) * cell], 1)
+    poly = Polygon(xy).buffer(0).simplify(cell)
+    if poly.geom_type != "Polygon" or poly.is_empty or poly.area < 0.5 * m.sum() * cell**2:
+        return hull
+    return orient(poly, 1.0)

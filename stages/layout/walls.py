@@ -5,13 +5,16 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import open3d as o3d
 import trimesh
 from shapely.errors import GEOSException
 
 from stages.common.blueprint import Blueprint
+from stages.common.capture import UNKNOWN
 from stages.common.errors import BlunfError
 from stages.common.io import write_json
 from stages.layout.config import LayoutConfig, LayoutInputs, LayoutOutputs
@@ -20,6 +23,8 @@ from stages.layout.openings import ceiling, heights, mesh_openings, scene_of
 from stages.layout.plan import architecture, objects
 
 log = logging.getLogger(__name__)
+
+FLOOR_BAND = 0.15  # metres: floor cells need a surface of the mesh within this of z = 0
 
 
 def build_plan(bp: Blueprint, cfg: LayoutConfig, mesh: Path | None = None) -> dict:
@@ -33,21 +38,41 @@ def build_plan(bp: Blueprint, cfg: LayoutConfig, mesh: Path | None = None) -> di
             tris = np.asarray(m.faces, np.int64)  # type: ignore[attr-defined]
         except (OSError, ValueError, AttributeError) as e:
             raise BlunfError(f"{mesh}: cannot read the mesh ({e})") from None
-    plan = architecture(bp, cfg)
-    if verts is not None and tris is not None and len(tris):
-        plan["openings"] = _distinct(mesh_openings(plan["walls"], verts, tris, cfg))
-    else:
-        plan["openings"] = _distinct(plan["openings"])
     if verts is not None and tris is not None and len(tris):
         scene = scene_of(verts, tris)
+        plan = architecture(seen_floor(bp, scene), cfg)
+        plan["openings"] = _distinct(mesh_openings(plan["walls"], verts, tris, cfg))
         fid = [k for k, v in bp.classes.items() if v == "floor"]
         floor = bp.grid.centers()[np.isin(bp.labels, fid)]
         ceil = ceiling(scene, floor[:: max(1, len(floor) // 50)])
         plan["objects"] = objects(bp, cfg, lambda xys: heights(scene, xys, ceil))
         plan["ceiling_m"] = None if ceil is None else round(ceil, 4)
     else:
+        plan = architecture(bp, cfg)
+        plan["openings"] = _distinct(plan["openings"])
         plan["objects"] = objects(bp, cfg)
     return plan
+
+
+def seen_floor(bp: Blueprint, scene: o3d.t.geometry.RaycastingScene) -> Blueprint:
+    """The blueprint with its floor cells that have no surface of the mesh at floor level
+    (a ray cast down from FLOOR_BAND meets nothing within 2 x FLOOR_BAND) made unknown: the
+    plan's field fills ground no view saw (outside an L's walls, behind a doorway), which is
+    no room."""
+    fid = [k for k, v in bp.classes.items() if v == "floor"]
+    floor = np.isin(bp.labels, fid)
+    if not floor.any():
+        return bp
+    xy = bp.grid.centers()[floor]  # [N, 2]
+    rays = np.concatenate(
+        [xy, np.full((len(xy), 1), FLOOR_BAND), np.tile([0.0, 0.0, -1.0], (len(xy), 1))], 1
+    )
+    t = scene.cast_rays(o3d.core.Tensor.from_numpy(rays.astype(np.float32)))["t_hit"].numpy()
+    labels = bp.labels.copy()
+    rows, cols = np.nonzero(floor)
+    gone = ~(t <= 2 * FLOOR_BAND)
+    labels[rows[gone], cols[gone]] = UNKNOWN
+    return replace(bp, labels=labels)
 
 
 def _distinct(openings: list[dict], tol: float = 0.3) -> list[dict]:

@@ -72,10 +72,13 @@ def wall_bounds(name: str, lx: float, ly: float, t: float, h: float) -> Bounds:
     }[name]
 
 
-def wall_pieces(name: str, doors: list[Door], bounds: Bounds) -> list[Bounds]:
-    """The wall's box cut by its doors into the pieces between them."""
+def wall_pieces(
+    name: str, doors: list[Door], bounds: Bounds, along_x: bool | None = None
+) -> list[Bounds]:
+    """The wall's box cut by its doors into the pieces between them (along x or y; by default
+    from the name of a rectangular room's wall)."""
     x0, x1, y0, y1, z0, z1 = bounds
-    along_x = name in ("wall_north", "wall_south")
+    along_x = name in ("wall_north", "wall_south") if along_x is None else along_x
     lo, hi = (x0, x1) if along_x else (y0, y1)
     cuts = sorted((d.start, d.end) for d in doors if d.wall == name)
     out = []
@@ -93,7 +96,7 @@ def threshold(d: Door, lx: float, ly: float, t: float) -> Bounds:
     return (x0, x1, d.start, d.end, -0.05, 0.0)
 
 
-def _box(b: Bounds) -> trimesh.Trimesh:
+def bounds_mesh(b: Bounds) -> trimesh.Trimesh:
     x0, x1, y0, y1, z0, z1 = b
     t = np.eye(4)
     t[:3, 3] = [(x0 + x1) / 2, (y0 + y1) / 2, (z0 + z1) / 2]
@@ -111,9 +114,9 @@ def cut_doors(
         q: Any = p
         if q.name in WALLS and any(d.wall == q.name for d in doors):
             pieces = wall_pieces(q.name, doors, wall_bounds(q.name, lx, ly, t, h))
-            q = replace(q, mesh=trimesh.util.concatenate([_box(b) for b in pieces]))
+            q = replace(q, mesh=trimesh.util.concatenate([bounds_mesh(b) for b in pieces]))
         elif q.name == "floor":
-            slabs = [_box(threshold(d, lx, ly, t)) for d in doors]
+            slabs = [bounds_mesh(threshold(d, lx, ly, t)) for d in doors]
             q = replace(q, mesh=trimesh.util.concatenate([q.mesh, *slabs]))
         out.append(q)
     return out

@@ -5,43 +5,42 @@ room on the left) with their thickness, openings with their end points on the wa
 from __future__ import annotations
 
 from stages.synth.room import Room
-
-# interior face of each wall, walked counter-clockwise (room on the left)
-_FACES = ("wall_south", "wall_east", "wall_north", "wall_west")
+from stages.synth.shape import faces_of
 
 
 def room_layout(room: Room) -> dict:
-    """rooms, walls, openings of `room` (metres)."""
-    lx, ly = room.size
-    poly = [[0.0, 0.0], [lx, 0.0], [lx, ly], [0.0, ly]]
+    """rooms, walls, openings of `room` (metres); a rectangle's walls are, counter-clockwise
+    from the origin, wall_south, wall_east, wall_north, wall_west."""
+    poly = [[float(x), float(y)] for x, y in room.polygon]
+    faces = faces_of(room.polygon, room.wall, room.height)
     walls = []
-    for i, name in enumerate(_FACES):
-        a, b = poly[i], poly[(i + 1) % 4]
-        length = abs(b[0] - a[0]) + abs(b[1] - a[1])
+    for f in faces:
         walls.append(
             {
-                "name": name,
-                "start": a,
-                "end": b,
+                "name": f.name,
+                "start": list(f.a),
+                "end": list(f.b),
                 "thickness": room.wall,
-                "length": length,
+                "length": f.length,
                 "room": 0,
             }
         )
+    names = [f.name for f in faces]
     openings = []
     for d in room.doors:
-        i = _FACES.index(d.wall)
-        if d.wall in ("wall_south", "wall_north"):
-            y = 0.0 if d.wall == "wall_south" else ly
-            p, q = [d.start, y], [d.end, y]
+        i = names.index(d.wall)
+        f = faces[i]
+        if f.along_x:
+            p, q = [d.start, f.a[1]], [d.end, f.a[1]]
         else:
-            x = lx if d.wall == "wall_east" else 0.0
-            p, q = [x, d.start], [x, d.end]
+            p, q = [f.a[0], d.start], [f.a[0], d.end]
         width = round(d.width, 6)
         openings.append({"kind": "door", "wall": i, "start": p, "end": q, "width": width})
+    x, y = [p[0] for p in poly], [p[1] for p in poly]
+    area = 0.5 * sum(x[i - 1] * y[i] - x[i] * y[i - 1] for i in range(len(poly)))
     return {
         "units": "m",
-        "rooms": [{"name": "room 1", "polygon": poly, "area": round(lx * ly, 6)}],
+        "rooms": [{"name": "room 1", "polygon": poly, "area": round(area, 6)}],
         "walls": walls,
         "openings": openings,
     }

@@ -12,8 +12,9 @@ import numpy as np
 from stages.common.errors import BlunfError
 from stages.common.io import write_depth_png, write_image, write_json, write_label_png
 from stages.synth.layout import room_layout
-from stages.synth.render import Tracer, camera_path, intrinsics_for, render, top_down
+from stages.synth.render import Tracer, intrinsics_for, render, top_down
 from stages.synth.room import CLASSES, IGNORE, build_room, scene_mesh
+from stages.synth.shape import camera_paths
 
 log = logging.getLogger(__name__)
 
@@ -29,12 +30,14 @@ def make_room(
     ceiling: bool = True,
     photos_only: bool = False,
     doors: int = 0,
+    shape: str = "rect",
 ) -> Path:
     """Render a procedural room to a capture at `out`. Returns `out`.
 
     photos_only: the capture holds what a phone gives (images and intrinsics): no depth,
     labels, poses or gravity; the ground truth in gt/ is written all the same.
     doors: that many door gaps in distinct walls (0..4); gt/layout.json holds them.
+    shape: "rect", or "L" for an L-shaped room (stages/synth/shape.py).
 
     Same (views, seed, size, ceiling) -> byte-identical files. Writes into a temp sibling
     folder renamed into place at the end, so a failure leaves nothing behind.
@@ -50,6 +53,8 @@ def make_room(
         raise BlunfError(f"--seed must be a non-negative integer, got {seed!r}")
     if not _is_int(doors) or not 0 <= doors <= 4:
         raise BlunfError(f"doors must be a whole number in 0..4, got {doors!r}")
+    if shape not in ("rect", "L"):
+        raise BlunfError(f"--shape must be rect or L, got {shape!r}")
     w, h = size
     if not (_is_int(w) and _is_int(h) and w >= 8 and h >= 8):
         raise BlunfError(f"--size must be whole pixels, at least 8x8, got {w}x{h}")
@@ -57,7 +62,7 @@ def make_room(
     tmp = out.parent / f".{out.name}.synth-tmp"
     shutil.rmtree(tmp, ignore_errors=True)
     try:
-        _write(tmp, views, seed, (w, h), ceiling, photos_only, doors)
+        _write(tmp, views, seed, (w, h), ceiling, photos_only, doors, shape)
         if out.exists():
             out.rmdir()
         tmp.rename(out)
@@ -78,6 +83,7 @@ def _write(
     ceiling: bool,
     photos_only: bool,
     doors: int = 0,
+    shape: str = "rect",
 ) -> None:
     """The capture's files; photos_only: without what a phone capture lacks (depth, labels,
     poses and gravity), the ground truth in gt/ all the same."""
@@ -87,10 +93,10 @@ def _write(
     )
     for sub in subs:
         (root / sub).mkdir(parents=True)
-    room = build_room(seed, ceiling, doors)
+    room = build_room(seed, ceiling, doors, shape)
     tracer = Tracer(room.parts)
     intr = intrinsics_for(*size)
-    poses = camera_path(room, views, seed)
+    poses = camera_paths(room, views, seed)
     stems = [f"{i:04d}" for i in range(views)]
     t_render = 0.0
     for stem, pose in zip(stems, poses, strict=True):
@@ -152,6 +158,7 @@ def _write(
             "loop": list(room.loop),
             "plan_cell": PLAN_CELL,
             "plan_rays": "one vertical ray through each cell centre, ceiling excluded",
+            **({"outline": room.outline, "loops": room.loops} if room.outline else {}),
         },
     )
     scene_mesh(room).export(root / "gt" / "mesh.ply")
