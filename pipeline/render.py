@@ -24,8 +24,8 @@ from stages.common.components import component_map, components
 from stages.common.errors import BlunfError
 from stages.common.io import read_json
 from stages.edit.config import EditConfig
-from stages.edit.spec import Edit
 from stages.edit.select import select_cells
+from stages.edit.spec import Edit
 
 TRAIN_HINT = (
     "blunf run CAPTURE --out {run} --config configs/edit.yaml --edits {run}/edits/studio.yaml"
@@ -96,12 +96,16 @@ def camera_json(path: Path) -> tuple[np.ndarray, Intrinsics]:
         raise BlunfError(f"{path}: a camera file holds 'pose' (4x4) and 'intrinsics'")
     pose = check_pose(d["pose"], f"{path}: pose")
     if not isinstance(d["intrinsics"], dict):
-        raise BlunfError(f"{path}: intrinsics: must be a mapping with fx, fy, cx, cy, width, height")
+        raise BlunfError(f"{path}: intrinsics: must map fx, fy, cx, cy, width, height")
     return pose, Intrinsics.from_json(d["intrinsics"], f"{path}: intrinsics")
 
 
 def viewer_camera(
-    position: Sequence[float], wxyz: Sequence[float], fov: float, aspect: float, height: int
+    position: Sequence[float] | np.ndarray,
+    wxyz: Sequence[float] | np.ndarray,
+    fov: float,
+    aspect: float,
+    height: int,
 ) -> tuple[np.ndarray, Intrinsics]:
     """A web viewer's camera (position, rotation quaternion w x y z of camera-to-world in
     OpenCV axes, vertical field of view in radians, width / height) as a camera-to-world pose

@@ -168,8 +168,14 @@ class Studio:
                 intr.width / intr.height, scale=0.15, wxyz=pose_wxyz(pose),
                 position=pose[:3, 3], color=(40, 80, 200),
             )  # fmt: skip
-            h.on_click(lambda ev, i=i: self._jump(ev.client, i))
+            h.on_click(self._jumper(i))
             self.frusta.append(h)
+
+    def _jumper(self, i: int):
+        def jump(ev) -> None:
+            self._jump(ev.client, i)
+
+        return jump
 
     def _show_selection(self) -> None:
         s = self.session.selection
@@ -185,7 +191,8 @@ class Studio:
         i = s.info
         self.sel_info.content = (
             f"**Selected:** {i['class']} (instance {', '.join(map(str, i['instance']))}), "
-            f"{i['area_m2']} m², x {i['bbox'][0]}..{i['bbox'][2]}, y {i['bbox'][1]}..{i['bbox'][3]} m"
+            f"{i['area_m2']} m², x {i['bbox'][0]}..{i['bbox'][2]}, "
+            f"y {i['bbox'][1]}..{i['bbox'][3]} m"
         )
 
     # ---- panel -----------------------------------------------------------------------------
@@ -280,7 +287,7 @@ class Studio:
         name = self.session.add_texture(f.name, f.content)
         opts = tuple(dict.fromkeys([*self.texture.options, name]))
         self.texture.options = tuple(o for o in opts if o != "(none)")
-        self.texture.value = name
+        self.texture.value = name  # type: ignore[misc]
         self.say(f"Texture {name} added.")
 
     def _apply(self) -> None:

@@ -21,8 +21,8 @@ from PIL import Image, UnidentifiedImageError
 from pipeline.render import RunFiles, Scene, run_files
 from stages.common.capture import UNKNOWN
 from stages.common.errors import BlunfError
-from stages.edit.spec import Edit, Selector, load_spec, parse_spec
 from stages.edit.select import select_cells
+from stages.edit.spec import Edit, Selector, load_spec, parse_spec
 
 SPEC_NAME = "studio.yaml"
 TEXTURES = Path(__file__).resolve().parents[2] / "configs" / "edits" / "textures"
