@@ -95,27 +95,37 @@ class ClientView:
                 log.debug("studio: render failed: %r", e)
                 time.sleep(0.5)
 
-    def _tick(self) -> None:
-        st = self.studio
-        if not st.session.scene.has_field:
-            return
+    def _key(self) -> tuple | None:
+        """What a render depends on: the camera, the edits, the before / after switch."""
         cam = self.client.camera
         try:
             state = (tuple(np.round(cam.position, 5)), tuple(np.round(cam.wxyz, 5)),
                      round(cam.fov, 5), cam.image_width, cam.image_height)  # fmt: skip
         except AssertionError:  # no camera state from the page yet
+            return None
+        return (state, self.studio.session.version, self.studio.before.value)
+
+    def _tick(self) -> None:
+        st = self.studio
+        if not st.session.scene.has_field:
             return
-        before = st.before.value
+        key = self._key()
+        if key is None:
+            return
         full = time.perf_counter() - self.moved >= REST
-        key = (state, st.session.version, before)
         if self.drawn is not None and self.drawn[0] == key and (self.drawn[1] or not full):
             return
         pose, intr = self.camera(full)
-        r = st.session.scene.render(pose, intr, st.session.parsed(), before=before)
+        r = st.session.scene.render(pose, intr, st.session.parsed(), before=key[2])
         self.client.scene.set_background_image(r.rgb, format="png")
+        if self._key() != key:  # changed while rendering: shown, but not counted as done
+            return
         self.drawn = (key, full)
         what = "full" if full else "preview"
-        st.timing.content = f"{what} {intr.width}x{intr.height}: {r.seconds * 1000:.0f} ms"
+        st.renders += 1
+        st.timing.content = (
+            f"{what} {intr.width}x{intr.height}: {r.seconds * 1000:.0f} ms (render {st.renders})"
+        )
 
 
 class Studio:
@@ -124,6 +134,7 @@ class Studio:
         self.running = True
         self.clients: dict[int, ClientView] = {}
         self.views_seen: set[int] = set()
+        self.renders = 0  # renders shown so far (the page numbers them)
         self._build_scene()
         self._build_gui()
         server.on_client_connect(self._connect)
