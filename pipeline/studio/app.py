@@ -199,6 +199,7 @@ class Studio:
         rgba = np.zeros((*s.cells.shape, 4), np.uint8)
         rgba[s.cells] = HIGHLIGHT
         self.highlight = self._floor_image("/selection", rgba, 0.004)
+        self.highlight.visible = not self.render_only.value
         i = s.info
         self.sel_info.content = (
             f"**Selected:** {i['class']} (instance {', '.join(map(str, i['instance']))}), "
