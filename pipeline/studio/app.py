@@ -57,6 +57,7 @@ class ClientView:
             cam.position = pose[:3, 3]
             cam.wxyz = pose_wxyz(pose)
         self.at_view = n
+        self.moved = time.perf_counter()  # a preview first, then the full view
         self.studio.views_seen.add(n)
 
     def camera(self, full: bool):
@@ -321,6 +322,8 @@ class Studio:
         self._edits_changed("Redone." if self.session.redo() else "Nothing to redo.")
 
     def _edits_changed(self, msg: str) -> None:
+        for cv in list(self.clients.values()):
+            cv.moved = time.perf_counter()  # a preview first, then the full view
         lines = self.session.describe()
         self.edit_list.content = "  \n".join(lines) if lines else "No edits."
         self.say(msg)
