@@ -161,7 +161,7 @@ class Studio:
         sc, sess = self.server.scene, self.session
         sc.set_up_direction("+z")
         self.plan = self._floor_image("/plan", self._plan_rgba(), 0.002)
-        self.highlight = None
+        self.highlight: viser.ImageHandle | None = None
         v, c = sess.scene.verts, sess.scene.colors
         idx = np.linspace(0, len(v) - 1, min(len(v), MAX_POINTS)).astype(int)
         col = (c[idx] * 255).astype(np.uint8) if c is not None else (180, 180, 180)
@@ -199,8 +199,9 @@ class Studio:
             return
         rgba = np.zeros((*s.cells.shape, 4), np.uint8)
         rgba[s.cells] = HIGHLIGHT
-        self.highlight = self._floor_image("/selection", rgba, 0.004)
-        self.highlight.visible = not self.render_only.value
+        hl = self._floor_image("/selection", rgba, 0.004)
+        hl.visible = not self.render_only.value
+        self.highlight = hl
         i = s.info
         self.sel_info.content = (
             f"**Selected:** {i['class']} (instance {', '.join(map(str, i['instance']))}), "
