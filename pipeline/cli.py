@@ -1,4 +1,4 @@
-"""`blunf` / `python -m pipeline`: run, synth, batch, bench, import, clean.
+"""`blunf` / `python -m pipeline`: run, synth, batch, bench, import, render, studio, clean.
 
 User errors (BlunfError, a bad argument, a missing file) end with one line naming the file or
 value at fault and exit status 2; nothing half-written is left in the cache.
@@ -93,6 +93,19 @@ def parser() -> argparse.ArgumentParser:
     i.add_argument("out", type=Path)
     i.add_argument("--frames", type=_positive, help="video: frames kept (default: by length)")
     i.add_argument("--max-side", type=_positive, help="video: longer side of the frames written")
+
+    v = sub.add_parser("render", help="one view of a run's NeRF, with edits applied")
+    v.add_argument("run_dir", type=Path)
+    v.add_argument("--view", type=int, help="an input view's index")
+    v.add_argument("--camera", type=Path, help="JSON: 4x4 camera-to-world pose, intrinsics")
+    v.add_argument("--edits", type=Path, help="edit spec (YAML)")
+    v.add_argument("--scale", type=float, default=1.0, help="fraction of the resolution")
+    v.add_argument("--out", type=Path, required=True, help="PNG to write")
+
+    t = sub.add_parser("studio", help="edit a run in the browser (local web page)")
+    t.add_argument("run_dir", type=Path)
+    t.add_argument("--port", type=int, default=8080)
+    t.add_argument("--host", default="127.0.0.1", help="address to listen on (default local)")
 
     c = sub.add_parser("clean", help="drop the cache entries the latest run did not use")
     c.add_argument("run_dir", type=Path)
@@ -225,6 +238,18 @@ def _dispatch(args: argparse.Namespace) -> int:
         setup_runtime(args.threads)
         print(bench(args.out, quick=args.quick, repeats=args.repeats, threads=args.threads))
         return 0
+    if args.cmd == "render":
+        from pipeline.render import render_command
+
+        setup_runtime()
+        r = render_command(args.run_dir, args.view, args.camera, args.edits, args.scale, args.out)
+        print(json.dumps(r))
+        return 0
+    if args.cmd == "studio":
+        from pipeline.studio import serve
+
+        setup_runtime()
+        return serve(args.run_dir, args.host, args.port)
     if args.cmd == "clean":
         from pipeline.clean import clean
 

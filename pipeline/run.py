@@ -121,6 +121,7 @@ def _recipe(r: Runner, pub: Publication, capture: Path, cfg: Config, spec: EditS
     if ed is not None:
         report.metrics.update(read_json(ed.stats).get("metrics", {}))
         _publish_edits(ed, pub)
+        _publish_spec(spec, r.out, pub)
         # the edited plan drawn again, so that a removed object leaves plan.svg too
         step = plan.get("layout")
         edited = r.stage("layout", step.impl, LayoutInputs(blueprint=ed.blueprint, mesh=ed.mesh))
@@ -175,3 +176,13 @@ def _publish_edits(ed: EditOutputs, pub: Publication) -> None:
     for f in files:
         if f.is_file():
             pub.add(f, f"edits/{f.name}")
+
+
+def _publish_spec(spec: EditSpec | None, out: Path, pub: Publication) -> None:
+    """A spec kept in the run's own edits/ folder (the studio saves RUN/edits/studio.yaml)
+    stays there, with its textures, when this run's edits/ replaces that folder."""
+    folder = (out / "edits").resolve()
+    if spec is None or not spec.path.resolve().is_relative_to(folder):
+        return
+    for f in (spec.path.resolve(), *spec.textures):
+        pub.add(f, f"edits/{f.relative_to(folder)}")

@@ -182,6 +182,24 @@ def _checked(
     return spec, bp, cap, cells, cmap
 
 
+def resolve_edit(
+    cfg: EditConfig,
+    e: Edit,
+    sel: np.ndarray,
+    bp: Blueprint,
+    cmap: np.ndarray,
+    verts: np.ndarray,
+    colors: np.ndarray | None,
+    model,
+) -> FieldEdit:
+    """One edit as `run` wraps the field with it (extent, reference luminance, ground fill),
+    for callers that render edits one view at a time (`blunf render`, the studio)."""
+    ext, comps = extent_of(sel, bp, cmap, verts, cfg)
+    inside = verts[ext.contains(verts)]  # [M, 3]
+    ref = field_luminance(model.fns(semantics=False), inside, REF_POINTS)
+    return _field_edit(e, ext, ref, _fill(cfg, e, ext, comps, verts, colors, model))
+
+
 def _round(v: float | None) -> float | None:
     return None if v is None else round(v, 4)
 

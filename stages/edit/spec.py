@@ -89,7 +89,12 @@ def spec_textures(path: Path) -> tuple[Path, ...]:
 def load_spec(path: Path) -> EditSpec:
     """Read and check an edit spec. Raises BlunfError naming the bad entry."""
     path = Path(path)
-    data = read_yaml(path, "edit spec")
+    return parse_spec(read_yaml(path, "edit spec"), path)
+
+
+def parse_spec(data: Any, path: Path) -> EditSpec:
+    """Check an edit spec already read (`path` names it in errors and anchors textures)."""
+    path = Path(path)
     if not isinstance(data, dict):
         raise BlunfError(f"{path}: an edit spec is a mapping with 'edits' (and 'views')")
     _only(data, ("edits", "views"), f"{path}")

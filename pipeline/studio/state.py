@@ -1,0 +1,267 @@
+"""The studio's session: the selection, the applied edits (undo / redo), save and load.
+
+Kept apart from the web page so that it can be tested without a browser. Edits are held as
+entries of an edit spec (`stages/edit/spec.py`, the YAML the pipeline reads) and checked by
+the same parser; a bad request (a click off the plan or on an unknown cell, a sketch with
+no stroke, an upload that is not an image) raises a one-line BlunfError and changes nothing.
+"""
+
+from __future__ import annotations
+
+import shutil
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from PIL import Image, UnidentifiedImageError
+
+from pipeline.render import RunFiles, Scene, run_files
+from stages.common.capture import UNKNOWN
+from stages.common.errors import BlunfError
+from stages.edit.select import select_cells
+from stages.edit.spec import Edit, Selector, load_spec, parse_spec
+
+SPEC_NAME = "studio.yaml"
+TEXTURES = Path(__file__).resolve().parents[2] / "configs" / "edits" / "textures"
+MAX_UPLOAD = 20_000_000  # bytes
+
+
+@dataclass(frozen=True)
+class Selection:
+    """What is selected: the spec's `select` entry, the cells, and what they are."""
+
+    select: dict  # e.g. {"click": [x, y]} or {"class": "sofa"}
+    cells: np.ndarray  # bool [H, W]
+    info: dict  # class, instance, area_m2, bbox [xmin, ymin, xmax, ymax] (metres), cells
+
+
+def floor_point(origin: Any, direction: Any) -> tuple[float, float]:
+    """Where a ray meets the floor plane z = 0, or a one-line error when it does not."""
+    o, d = np.asarray(origin, np.float64), np.asarray(direction, np.float64)
+    if o.shape != (3,) or d.shape != (3,) or not np.all(np.isfinite(o) & np.isfinite(d)):
+        raise BlunfError("click: not a ray")
+    if abs(d[2]) < 1e-9 or -o[2] / d[2] <= 0:
+        raise BlunfError("click: off the plan (the ray does not meet the floor)")
+    t = -o[2] / d[2]
+    return float(o[0] + t * d[0]), float(o[1] + t * d[1])
+
+
+class Session:
+    """One run open in the studio; every tab shares it (methods hold `lock`)."""
+
+    def __init__(self, run: Path):
+        self.files: RunFiles = run_files(run)
+        self.scene = Scene(self.files)
+        self.folder = self.files.run / "edits"  # where the spec and its textures are kept
+        self.edits: list[dict] = []
+        self.undone: list[dict] = []
+        self.selection: Selection | None = None
+        self.stroke: list[tuple[float, float]] = []
+        self.lock = threading.RLock()
+        self.version = 0  # bumped on every change of the edits (renders compare it)
+
+    # ---- selection -----------------------------------------------------------------------
+    def _select(self, select: dict) -> Selection:
+        kind, value = next(iter(select.items()))
+        sel = Selector(kind, tuple(value) if isinstance(value, list) else value, where="select")
+        cells = select_cells(sel, self.scene.bp, self.scene.cmap)
+        return Selection(select, cells, self._info(cells))
+
+    def _info(self, cells: np.ndarray) -> dict:
+        bp = self.scene.bp
+        ids = np.unique(self.scene.cmap[cells])
+        comps = [self.scene.components[int(i)] for i in ids if int(i) in self.scene.components]
+        rows, cols = np.nonzero(cells)
+        (ox, oy), cell, h = bp.grid.origin, bp.grid.cell, bp.grid.shape[0]
+        classes = sorted({c["class"] for c in comps})
+        return {
+            "class": ", ".join(classes),
+            "instance": sorted({c["instance"] for c in comps}),
+            "components": len(comps),
+            "cells": int(cells.sum()),
+            "area_m2": round(float(cells.sum()) * cell * cell, 3),
+            "bbox": [
+                round(ox + cols.min() * cell, 3),
+                round(oy + (h - 1 - rows.max()) * cell, 3),
+                round(ox + (cols.max() + 1) * cell, 3),
+                round(oy + (h - rows.min()) * cell, 3),
+            ],
+        }
+
+    def click(self, x: float, y: float) -> Selection:
+        """Select the component under world point (x, y), as a spec's `click` does."""
+        with self.lock:
+            s = self._select({"click": [round(float(x), 4), round(float(y), 4)]})
+            self.selection = s
+            return s
+
+    def click_ray(self, origin: Any, direction: Any) -> Selection:
+        return self.click(*floor_point(origin, direction))
+
+    def select_class(self, name: str) -> Selection:
+        with self.lock:
+            s = self._select({"class": name})
+            self.selection = s
+            return s
+
+    def classes(self) -> list[str]:
+        lab = self.scene.bp.labels
+        present = {int(c) for c in np.unique(lab) if c != UNKNOWN}
+        return sorted({n for k, n in self.scene.bp.classes.items() if k in present})
+
+    # ---- sketch strokes ------------------------------------------------------------------
+    def add_stroke_point(self, x: float, y: float) -> int:
+        with self.lock:
+            self.stroke.append((round(float(x), 4), round(float(y), 4)))
+            return len(self.stroke)
+
+    def clear_stroke(self) -> None:
+        with self.lock:
+            self.stroke = []
+
+    # ---- textures ------------------------------------------------------------------------
+    def shipped_textures(self) -> list[str]:
+        return sorted(p.name for p in TEXTURES.glob("*.png")) if TEXTURES.is_dir() else []
+
+    def add_texture(self, name: str, content: bytes) -> str:
+        """Keep an uploaded image among the spec's textures; returns its name there. Raises
+        (nothing kept) when it is not a readable image."""
+        import io
+
+        if len(content) > MAX_UPLOAD:
+            raise BlunfError(f"{name}: the upload is larger than {MAX_UPLOAD // 1_000_000} MB")
+        try:
+            with Image.open(io.BytesIO(content)) as img:
+                img.verify()
+            with Image.open(io.BytesIO(content)) as img:
+                rgb = img.convert("RGB")
+        except (UnidentifiedImageError, OSError, SyntaxError, ValueError):
+            raise BlunfError(f"{name}: not an image (PNG or JPEG expected)") from None
+        stem = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in Path(name).stem)
+        dst = self.folder / "textures" / f"{stem or 'upload'}.png"
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        rgb.save(dst)
+        return dst.name
+
+    def _texture(self, name: str) -> str:
+        """The texture's path relative to the spec's folder, copied there if shipped."""
+        dst = self.folder / "textures" / name
+        if not dst.is_file():
+            src = TEXTURES / name
+            if not src.is_file():
+                raise BlunfError(f"texture {name}: not found (shipped: {self.shipped_textures()})")
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(src, dst)
+        return f"textures/{name}"
+
+    # ---- edits ---------------------------------------------------------------------------
+    def entry(self, op: str, **kw: Any) -> dict:
+        """The spec entry `op` on the selection (or on the stroke for a sketch)."""
+        if op == "sketch":
+            if len(self.stroke) < 2:
+                raise BlunfError("sketch: draw a stroke first (two points or more on the plan)")
+            select: dict = {"stroke": [list(p) for p in self.stroke]}
+            select["width"] = float(kw.pop("width", 0.1))
+        else:
+            if self.selection is None:
+                raise BlunfError(f"{op}: select something on the plan first")
+            select = dict(self.selection.select)
+        e: dict = {"select": select, "op": op}
+        if op in ("recolor", "sketch"):
+            e["color"] = [int(c) for c in kw["color"]]
+        if op in ("recolor", "sketch", "retexture"):
+            e["strength"] = round(float(kw.get("strength", 1.0)), 3)
+        if op == "retexture":
+            e["texture"] = self._texture(kw["texture"])
+        return e
+
+    def apply(self, op: str, **kw: Any) -> Edit:
+        """Add an edit; checked (spec and plan) before anything changes."""
+        with self.lock:
+            e = self.entry(op, **kw)
+            parsed = self._parse(self.edits + [e])[-1]
+            self.scene.selection(parsed)  # a selection on no known cell fails here
+            self.edits.append(e)
+            self.undone = []
+            if op == "sketch":
+                self.stroke = []
+            self.version += 1
+            return parsed
+
+    def undo(self) -> bool:
+        with self.lock:
+            if not self.edits:
+                return False
+            self.undone.append(self.edits.pop())
+            self.version += 1
+            return True
+
+    def redo(self) -> bool:
+        with self.lock:
+            if not self.undone:
+                return False
+            self.edits.append(self.undone.pop())
+            self.version += 1
+            return True
+
+    def _parse(self, entries: list[dict]) -> tuple[Edit, ...]:
+        return parse_spec({"edits": entries}, self.folder / SPEC_NAME).edits if entries else ()
+
+    def parsed(self) -> tuple[Edit, ...]:
+        with self.lock:
+            return self._parse(self.edits)
+
+    def describe(self) -> list[str]:
+        out = []
+        for i, e in enumerate(self.edits):
+            kind, value = next((k, v) for k, v in e["select"].items() if k != "width")
+            what = f"{kind} {value}" if kind != "stroke" else f"stroke of {len(value)} points"
+            extra = ""
+            if "color" in e:
+                extra = f" colour {e['color']}"
+            if "texture" in e:
+                extra = f" texture {Path(e['texture']).name}"
+            out.append(f"{i + 1}. {e['op']} ({what}){extra}")
+        return out
+
+    # ---- save / load ---------------------------------------------------------------------
+    def spec_data(self, views: list[int]) -> dict:
+        with self.lock:
+            return {"edits": [dict(e) for e in self.edits], "views": list(views) or [0]}
+
+    def save(self, views: list[int]) -> Path:
+        """Write RUN/edits/studio.yaml (views: the input views the run renders)."""
+        with self.lock:
+            if not self.edits:
+                raise BlunfError("save: no edits to save")
+            data = self.spec_data(views)
+            path = self.folder / SPEC_NAME
+            parse_spec(data, path)
+            self.folder.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_name(f".{SPEC_NAME}.tmp")
+            header = (
+                "# Saved by blunf studio. Reproduce its renders with:\n"
+                f"#   blunf run {self.files.capture} --out {self.files.run} "
+                f"--edits {path}\n"
+            )
+            tmp.write_text(header + yaml.safe_dump(data, sort_keys=False))
+            tmp.replace(path)
+            return path
+
+    def load(self, path: Path | None = None) -> int:
+        """Replace the session's edits by a saved spec's; returns how many."""
+        path = Path(path) if path is not None else self.folder / SPEC_NAME
+        with self.lock:
+            spec = load_spec(path)  # one-line error on a bad spec, nothing changed
+            for e in spec.edits:
+                self.scene.selection(e)
+            data = yaml.safe_load(path.read_text())
+            if spec.textures and path.resolve().parent != self.folder.resolve():
+                raise BlunfError(f"{path}: a spec with textures must lie in {self.folder}")
+            self.edits = [dict(e) for e in data["edits"]]
+            self.undone = []
+            self.version += 1
+            return len(self.edits)

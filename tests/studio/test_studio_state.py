@@ -1,0 +1,125 @@
+"""The studio without a browser: viewer camera -> pose, click -> selection, edits, save / load,
+and bad input (a message, nothing applied). On a real run of a tiny room (no NeRF trained)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.cli import main
+from pipeline.render import camera_json, pose_wxyz, viewer_camera
+from pipeline.studio.state import SPEC_NAME, Session, floor_point
+from stages.common.errors import BlunfError
+from stages.edit.render import look_at
+from stages.edit.spec import load_spec
+from tests.runs import VOXEL, run_ok, small_room
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory) -> tuple[Path, Path]:
+    base = tmp_path_factory.mktemp("studio")
+    cap = small_room(base / "room")
+    run_ok(cap, base / "run", "--set", f"fusion.voxel={VOXEL}")
+    return cap, base / "run"
+
+
+def _centre(cap: Path, name: str) -> tuple[float, float]:
+    inst = json.loads((cap / "gt" / "instances.json").read_text())
+    b = next(v["bbox"] for v in inst.values() if v["name"] == name)
+    return (b[0] + b[3]) / 2, (b[1] + b[4]) / 2
+
+
+def test_viewer_camera_is_the_pose_and_pinhole() -> None:
+    pose = look_at(np.array([1.0, -2.0, 1.5]), np.array([3.0, 2.0, 0.3]))
+    fov = np.deg2rad(50.0)
+    p, intr = viewer_camera(pose[:3, 3], pose_wxyz(pose), fov, 16 / 9, 240)
+    assert np.allclose(p, pose, atol=1e-9)
+    assert (intr.width, intr.height) == (427, 240)
+    # the top image edge is fov / 2 above the optical axis
+    assert np.isclose(np.arctan((0 - 0.5 - intr.cy) / -intr.fy), fov / 2)
+    # a world point straight ahead lands on the image centre
+    x = pose[:3, 3] + 2.0 * pose[:3, 2]
+    xc = np.linalg.inv(pose) @ np.append(x, 1.0)
+    u = intr.fx * xc[0] / xc[2] + intr.cx
+    assert np.isclose(u, (intr.width - 1) / 2)
+
+
+def test_camera_file(tmp_path) -> None:
+    pose = look_at(np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 1.0]))
+    intr = {"fx": 100, "fy": 100, "cx": 39.5, "cy": 29.5, "width": 80, "height": 60}
+    f = tmp_path / "cam.json"
+    f.write_text(json.dumps({"pose": pose.tolist(), "intrinsics": intr}))
+    p, i = camera_json(f)
+    assert np.allclose(p, pose) and (i.width, i.height, i.fx) == (80, 60, 100)
+    f.write_text(json.dumps({"pose": [[1, 0], [0, 1]], "intrinsics": intr}))
+    with pytest.raises(BlunfError, match="cam.json: pose"):
+        camera_json(f)
+
+
+def test_floor_point() -> None:
+    assert floor_point((1.0, 2.0, 3.0), (0.0, 0.6, -0.8)) == pytest.approx((1.0, 4.25))
+    with pytest.raises(BlunfError, match="off the plan"):
+        floor_point((1.0, 2.0, 3.0), (0.0, 0.6, 0.8))  # looking up: never meets the floor
+
+
+def test_click_selects_the_component(run) -> None:
+    cap, out = run
+    s = Session(out)
+    x, y = _centre(cap, "chair_2")
+    sel = s.click_ray((x, y, 2.5), (0.0, 0.0, -1.0))  # a ray straight down on the chair
+    assert sel.select == {"click": [round(x, 4), round(y, 4)]}
+    assert sel.info["class"] == "chair"
+    r, c, _ = s.scene.bp.grid.cell_of(np.array([[x, y]]))
+    assert np.array_equal(sel.cells, s.scene.cmap == s.scene.cmap[r[0], c[0]])
+    assert sel.info["bbox"][0] <= x <= sel.info["bbox"][2]
+    # a click off the plan or a ray that misses the floor: an error, the selection kept
+    with pytest.raises(BlunfError, match="outside the plan"):
+        s.click(500.0, 500.0)
+    with pytest.raises(BlunfError, match="off the plan"):
+        s.click_ray((x, y, 2.5), (0.0, 0.0, 1.0))
+    assert s.selection is sel
+
+
+def test_edits_save_and_load_round_trip(run) -> None:
+    cap, out = run
+    s = Session(out)
+    s.click(*_centre(cap, "chair_2"))
+    s.apply("remove")
+    s.click(*_centre(cap, "sofa_1"))
+    s.apply("recolor", color=(40, 90, 200), strength=0.8)
+    s.select_class("table")
+    s.apply("retexture", texture="tiles.png", strength=1.0)
+    s.add_stroke_point(*_centre(cap, "table_1"))
+    s.add_stroke_point(_centre(cap, "table_1")[0] + 0.3, _centre(cap, "table_1")[1])
+    s.apply("sketch", color=(255, 0, 0), width=0.1)
+    assert s.undo() and len(s.edits) == 3 and s.redo() and len(s.edits) == 4
+    path = s.save([0, 2])
+    assert path == out / "edits" / SPEC_NAME
+    spec = load_spec(path)  # the pipeline's own parser reads it
+    assert [e.op for e in spec.edits] == ["remove", "recolor", "retexture", "sketch"]
+    assert spec.views == (0, 2) and spec.edits[1].color == (40.0, 90.0, 200.0)
+    assert spec.textures == ((out / "edits" / "textures" / "tiles.png").resolve(),)
+    s2 = Session(out)
+    assert s2.load() == 4 and s2.edits == s.edits
+
+
+def test_bad_input_changes_nothing(run, tmp_path) -> None:
+    cap, out = run
+    s = Session(out)
+    with pytest.raises(BlunfError, match="select something"):
+        s.apply("remove")
+    with pytest.raises(BlunfError, match="draw a stroke"):
+        s.apply("sketch", color=(255, 0, 0))  # a sketch with no stroke
+    with pytest.raises(BlunfError, match="notes.txt: not an image"):
+        s.add_texture("notes.txt", b"these are not pixels")
+    assert not (out / "edits" / "textures" / "notes.png").exists()
+    assert s.edits == [] and s.version == 0
+    with pytest.raises(BlunfError, match="not a run folder"):
+        Session(tmp_path)
+    assert main(["studio", str(tmp_path)]) == 2
+    # no NeRF in this run: rendering names the command that trains one
+    assert main(["render", str(out), "--view", "0", "--out", str(tmp_path / "v.png")]) == 2
+    assert not (tmp_path / "v.png").exists()
