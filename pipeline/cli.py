@@ -68,6 +68,11 @@ def parser() -> argparse.ArgumentParser:
         help="keep only images and intrinsics, as a phone gives (ground truth still in gt/)",
     )
     s.add_argument("--doors", type=int, default=0, help="door gaps in distinct walls (0..4)")
+    s.add_argument(
+        "--realism",
+        default="none",
+        help="honest | surfaces=plain,exposure=STOPS,blur=PX,noise=SD (stages/synth/realism.py)",
+    )
 
     b = sub.add_parser("bench", help="run time against error: table, CSV and plots")
     b.add_argument("--out", type=Path, default=Path("runs/bench"))
@@ -182,6 +187,7 @@ def _dispatch(args: argparse.Namespace) -> int:
         return 0
     if args.cmd == "synth":
         from stages.synth import make_room
+        from stages.synth.realism import Realism
 
         setup_runtime()
         out = make_room(
@@ -191,6 +197,7 @@ def _dispatch(args: argparse.Namespace) -> int:
             size=args.size,
             photos_only=args.photos_only,
             doors=args.doors,
+            realism=Realism.parse(args.realism),
         )
         print(out)
         return 0

@@ -12,6 +12,7 @@ import numpy as np
 from stages.common.errors import BlunfError
 from stages.common.io import write_depth_png, write_image, write_json, write_label_png
 from stages.synth.layout import room_layout
+from stages.synth.realism import Realism
 from stages.synth.render import Tracer, camera_path, intrinsics_for, render, top_down
 from stages.synth.room import CLASSES, IGNORE, build_room, scene_mesh
 
@@ -29,12 +30,15 @@ def make_room(
     ceiling: bool = True,
     photos_only: bool = False,
     doors: int = 0,
+    realism: Realism | None = None,
 ) -> Path:
     """Render a procedural room to a capture at `out`. Returns `out`.
 
     photos_only: the capture holds what a phone gives (images and intrinsics): no depth,
     labels, poses or gravity; the ground truth in gt/ is written all the same.
     doors: that many door gaps in distinct walls (0..4); gt/layout.json holds them.
+    realism: plain surfaces, exposure changes, blur and noise (stages/synth/realism.py);
+    None = the textured room and a perfect camera (gt/realism.json holds what each view drew).
 
     Same (views, seed, size, ceiling) -> byte-identical files. Writes into a temp sibling
     folder renamed into place at the end, so a failure leaves nothing behind.
@@ -57,7 +61,7 @@ def make_room(
     tmp = out.parent / f".{out.name}.synth-tmp"
     shutil.rmtree(tmp, ignore_errors=True)
     try:
-        _write(tmp, views, seed, (w, h), ceiling, photos_only, doors)
+        _write(tmp, views, seed, (w, h), ceiling, photos_only, doors, realism or Realism())
         if out.exists():
             out.rmdir()
         tmp.rename(out)
@@ -78,6 +82,7 @@ def _write(
     ceiling: bool,
     photos_only: bool,
     doors: int = 0,
+    realism: Realism | None = None,
 ) -> None:
     """The capture's files; photos_only: without what a phone capture lacks (depth, labels,
     poses and gravity), the ground truth in gt/ all the same."""
@@ -93,9 +98,14 @@ def _write(
     poses = camera_path(room, views, seed)
     stems = [f"{i:04d}" for i in range(views)]
     t_render = 0.0
-    for stem, pose in zip(stems, poses, strict=True):
+    realism = realism or Realism()
+    drawn = {}
+    for i, (stem, pose) in enumerate(zip(stems, poses, strict=True)):
         t1 = time.perf_counter()
-        v = render(tracer, pose, intr)
+        rng = np.random.default_rng([seed, 5, i])  # the view's exposure, blur and noise
+        v = render(tracer, pose, intr, realism=realism, rng=rng)
+        if v.camera:
+            drawn[stem] = v.camera
         t_render += time.perf_counter() - t1
         write_image(root / "images" / f"{stem}.png", v.rgb)
         if not photos_only:
@@ -154,6 +164,8 @@ def _write(
             "plan_rays": "one vertical ray through each cell centre, ceiling excluded",
         },
     )
+    if not realism.default:
+        write_json(root / "gt" / "realism.json", {"options": realism.to_json(), "views": drawn})
     scene_mesh(room).export(root / "gt" / "mesh.ply")
     write_json(root / "gt" / "layout.json", room_layout(room))
     plan = root / "gt" / "blueprint.npz"
