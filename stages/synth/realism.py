@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields, replace
+from typing import Any
 
 import numpy as np
 from scipy import ndimage
@@ -34,7 +35,7 @@ PLAIN_VARIATION = 0.03  # plain walls / ceilings: +-3 % albedo over PLAIN_CELL
 PLAIN_CELL = 1.5  # metres: lattice spacing of that variation (smooth across a wall)
 SMOOTH_CONTRAST = 0.3  # plain floors: noise contrast (the textured rooms use 3.0)
 DEFOCUS = 0.3  # Gaussian sigma of the defocus, as a fraction of the motion streak
-PRESETS = {
+PRESETS: dict[str, dict[str, Any]] = {
     "none": {},
     # a hand-held phone in a plain room: measured against the real captures' photos (7-Scenes
     # kitchen: streaks of a few pixels at 640 px; exposure steps between frames)
@@ -97,7 +98,8 @@ class Realism:
                 num = float(val)
             except ValueError:
                 raise BlunfError(f"--realism: {key}={val!r} is not a number") from None
-            out = replace(out, **{key: num})
+            kw: dict[str, Any] = {key: num}
+            out = replace(out, **kw)
         return out
 
 
