@@ -89,7 +89,7 @@ def measure(src: Path, out: Path, frames: int = 0) -> dict:
     pts = np.array([p.xyz for p in rec.points3D.values()]).reshape(-1, 3)
     s, facts = est.scale_from_priors(c, rot[:, 0], rot[:, 1], pts)
     up, _ = est.up_from_cameras(rot[:, 0], rot[:, 1])
-    floor, _ = est.floor_and_ceiling(c, up, pts)
+    floor, _ = est.floor_depth(c, up, pts)
     res = {
         "capture": str(src),
         "registered": len(ims),
@@ -98,7 +98,7 @@ def measure(src: Path, out: Path, frames: int = 0) -> dict:
         "truth_from": how,
         "scale": s,
         "error_pct": 100.0 * (s / t - 1.0),
-        "camera_height_true_m": None if floor is None else floor * t,
+        "camera_height_true_m": floor * t,  # where the estimator put the floor, in metres
         "estimate": facts,
     }
     write_json(out / "scale.json", res)
