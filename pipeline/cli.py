@@ -69,6 +69,11 @@ def parser() -> argparse.ArgumentParser:
     )
     s.add_argument("--doors", type=int, default=0, help="door gaps in distinct walls (0..4)")
     s.add_argument("--shape", choices=("rect", "L"), default="rect", help="room outline")
+    s.add_argument(
+        "--realism",
+        default="none",
+        help="honest | surfaces=plain,exposure=STOPS,blur=PX,noise=SD (stages/synth/realism.py)",
+    )
 
     b = sub.add_parser("bench", help="run time against error: table, CSV and plots")
     b.add_argument("--out", type=Path, default=Path("runs/bench"))
@@ -196,6 +201,7 @@ def _dispatch(args: argparse.Namespace) -> int:
         return 0
     if args.cmd == "synth":
         from stages.synth import make_room
+        from stages.synth.realism import Realism
 
         setup_runtime()
         out = make_room(
@@ -206,6 +212,7 @@ def _dispatch(args: argparse.Namespace) -> int:
             photos_only=args.photos_only,
             doors=args.doors,
             shape=args.shape,
+            realism=Realism.parse(args.realism),
         )
         print(out)
         return 0

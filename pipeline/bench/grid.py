@@ -57,14 +57,22 @@ class CaptureSpec:
     real: bool = False  # read from SHARED_DATA: skipped with a message when absent
 
 
-def synthetic(views: int, size: tuple[int, int], seed: int = 0) -> Callable[[Path], Path]:
-    """A maker of the procedural room (rendered once into <out>/captures/)."""
+def synthetic(
+    views: int, size: tuple[int, int], seed: int = 0, photos: bool = False, realism: str = "none"
+) -> Callable[[Path], Path]:
+    """A maker of the procedural room (rendered once into <out>/captures/); `photos`: images
+    and intrinsics only; `realism`: `blunf synth --realism` (plain walls, blur, noise...)."""
 
     def make(out: Path) -> Path:
         from stages.synth import make_room
+        from stages.synth.realism import Realism
 
-        cap = Path(out) / "captures" / f"room-s{seed}-v{views}-{size[0]}x{size[1]}"
-        return cap if cap.is_dir() else make_room(cap, views=views, seed=seed, size=size)
+        tag = ("" if realism == "none" else f"-{realism}") + ("-photos" if photos else "")
+        cap = Path(out) / "captures" / f"room-s{seed}-v{views}-{size[0]}x{size[1]}{tag}"
+        if cap.is_dir():
+            return cap
+        look = Realism.parse(realism)
+        return make_room(cap, views=views, seed=seed, size=size, photos_only=photos, realism=look)
 
     return make
 
@@ -84,6 +92,10 @@ def captures(quick: bool) -> dict[str, CaptureSpec]:
     specs = [
         CaptureSpec("room", synthetic(45 if quick else 90, main)),
         *(CaptureSpec(f"room-{w}x{h}", synthetic(18, (w, h))) for w, h in SIZES),
+        # photos only, textured and honest (plain walls, smooth floor, exposure, blur, noise):
+        # a change that helps only the textured room shows up as such
+        CaptureSpec("room-photos", synthetic(60, (320, 240), photos=True)),
+        CaptureSpec("honest-photos", synthetic(60, (320, 240), photos=True, realism="honest")),
         CaptureSpec("7scenes", shared("7scenes-redkitchen"), real=True),
         CaptureSpec("replica", shared("replica-office0"), real=True),
     ]
@@ -197,6 +209,34 @@ NERF: tuple[Variant, ...] = (
 )
 
 
+def phone_sets() -> tuple[str, ...]:
+    """configs/phone.yaml as --set overrides (the bench's runs take overrides only)."""
+    import yaml
+
+    def flat(d: dict, prefix: str) -> list[str]:
+        out: list[str] = []
+        for k, v in d.items():
+            out += flat(v, f"{prefix}{k}.") if isinstance(v, dict) else [f"{prefix}{k}={v}"]
+        return out
+
+    path = Path(__file__).resolve().parents[2] / "configs" / "phone.yaml"
+    return tuple(flat(yaml.safe_load(path.read_text()), ""))
+
+
+def phone(capture: str, frames: int = 0) -> Variant:
+    """The whole photos-only path (configs/phone.yaml; a fixed 300 NeRF steps so the figure
+    does not depend on the machine's load) from SfM on; error = 100 - BluNF fwIoU."""
+    return Variant(
+        f"phone-{capture}" + (f"-f{frames}" if frames else ""),
+        "phone",
+        capture,
+        (*phone_sets(), "nerf.train.time_budget=0", "nerf.train.max_steps=300"),
+        frames,
+        fresh_from="poses",
+        timed=("poses", "fusion", "semantics", "nerf", "project", "blueprint"),
+    )
+
+
 MAPPINGS = tuple((m, g) for m in ("incremental", "global") for g in ("sequential", "exhaustive"))
 
 
@@ -242,4 +282,6 @@ def full_grid() -> list[Variant]:
             error="poses.ate_rmse_m",
         ),
         *NERF,
+        phone("room-photos"),
+        phone("honest-photos"),
     ]

@@ -15,6 +15,12 @@ FLOOR_PERCENTILE = 2.0  # camera_height: the floor is this low percentile of poi
 HEIGHT_BIN = 0.02  # floor / ceiling search: bin of the height histogram, as a fraction of the
 #                    99th percentile of the points' distances below the cameras
 PEAK_FRAC = 0.02  # ... a surface holds this fraction of the points on its side (3 bins)
+BELOW_FLOOR_MAX = 0.1  # a floor has at most this fraction of the points below the cameras
+#                       lying more than FLOOR_MARGIN further down (none can be seen through
+#                       it): measured 0.2 % Replica office, 2.6 % 7-Scenes kitchen, 0.1 % the
+#                       textured procedural room; 34 % when a smooth floor gives SfM few points
+#                       and the chair seats pile up more (blunf synth --realism honest)
+FLOOR_MARGIN = 0.05  # ... relative to the floor's depth below the cameras
 X_SPAN = 0.05  # up from the x axes needs their second eigenvalue this fraction of the first
 PRIOR_CAMERA_HEIGHT = 1.45  # metres: median height of a hand-held camera above the floor
 PRIOR_CAMERA_SPREAD = 0.1  # its relative spread (1 sigma). Measured medians: 1.39 m (7-Scenes
@@ -144,7 +150,8 @@ def floor_and_ceiling(
     points' units (None when not found). The floor is the lowest horizontal surface that
     piles up points (see _peak: counters and tables lie higher, stray points below the floor
     never pile up), the ceiling the highest above the cameras; heights are binned in
-    HEIGHT_BIN of the 99th percentile of the points' distances below the cameras."""
+    HEIGHT_BIN of the 99th percentile of the points' distances below the cameras. A pile with
+    more than BELOW_FLOOR_MAX of the points under it is no floor (None)."""
     h = np.asarray(points, np.float64).reshape(-1, 3) @ up  # [N]
     cam = float(np.median(np.asarray(centers, np.float64) @ up))
     below, above = cam - h[h < cam], h[h > cam] - cam
@@ -152,8 +159,24 @@ def floor_and_ceiling(
         return None, None
     bin_w = HEIGHT_BIN * float(np.percentile(below, 99))
     floor = _peak(below, bin_w, PEAK_FRAC)
+    if floor is not None and np.mean(below > floor * (1 + FLOOR_MARGIN)) > BELOW_FLOOR_MAX:
+        floor = None  # seats or table tops: the floor lies further down
     ceiling = _peak(above, bin_w, PEAK_FRAC) if above.size >= 20 else None
     return floor, ceiling
+
+
+def floor_depth(centers: np.ndarray, up: np.ndarray, points: np.ndarray) -> tuple[float, str]:
+    """(the floor's depth below the cameras' median height, how it was found): the lowest
+    horizontal surface the points pile up on (floor_and_ceiling), else the FLOOR_PERCENTILE
+    lowest point heights (a floor with too little texture for SfM to pile points on)."""
+    floor, _ = floor_and_ceiling(centers, up, points)
+    if floor is not None:
+        return floor, "the lowest horizontal surface the sparse points pile up on"
+    h = np.asarray(points, np.float64).reshape(-1, 3) @ up
+    if h.size < 20:
+        return 0.0, "too few sparse points"
+    floor = float(np.median(np.asarray(centers) @ up) - np.percentile(h, FLOOR_PERCENTILE))
+    return floor, f"the lowest {FLOOR_PERCENTILE:g} % of point heights (no floor found)"
 
 
 def scale_from_camera_height(
@@ -170,12 +193,7 @@ def scale_from_camera_height(
             y (image down) axes in the world. points: [N, 3] sparse points.
     """
     up, up_how = up_from_cameras(x_axes, y_axes)
-    floor, _ = floor_and_ceiling(centers, up, points)
-    how_floor = "the lowest horizontal surface the sparse points pile up on"
-    if floor is None:
-        h = np.asarray(points, np.float64).reshape(-1, 3) @ up
-        floor = float(np.median(np.asarray(centers) @ up) - np.percentile(h, FLOOR_PERCENTILE))
-        how_floor = f"the {FLOOR_PERCENTILE:g}th percentile of point heights (no floor found)"
+    floor, how_floor = floor_depth(centers, up, points)
     if not floor > 1e-9:
         raise BlunfError(
             "sfm: scale from camera_height: the cameras are not above the lowest sparse points"
@@ -199,8 +217,9 @@ def scale_from_priors(
     Facts: scale, source ("camera_height_prior", "+ceiling"), uncertainty_rel (1 sigma).
     """
     up, up_how = up_from_cameras(x_axes, y_axes)
-    floor, ceiling = floor_and_ceiling(centers, up, points)
-    if floor is None or not floor > 1e-9:
+    _, ceiling = floor_and_ceiling(centers, up, points)
+    floor, how_floor = floor_depth(centers, up, points)
+    if not floor > 1e-9:
         raise BlunfError(
             "sfm: metric scale: no floor found among the sparse points; set poses.camera_height "
             "or poses.known_distance"
@@ -226,7 +245,7 @@ def scale_from_priors(
             if "room_height" in cues
             else " (no ceiling seen)"
         )
-        + f"; up: {up_how}",
+        + f"; up: {up_how}; floor: {how_floor}",
         "uncertainty_rel": float(1.0 / np.sqrt(sum(w.values()))),
         "per_cue": {k: float(s) for k, (s, _) in cues.items()},
         "camera_height_m": float(floor * scale),

@@ -12,6 +12,7 @@ import numpy as np
 from stages.common.errors import BlunfError
 from stages.common.io import write_depth_png, write_image, write_json, write_label_png
 from stages.synth.layout import room_layout
+from stages.synth.realism import Realism
 from stages.synth.render import Tracer, intrinsics_for, render, top_down
 from stages.synth.room import CLASSES, IGNORE, build_room, scene_mesh
 from stages.synth.shape import camera_paths
@@ -31,6 +32,7 @@ def make_room(
     photos_only: bool = False,
     doors: int = 0,
     shape: str = "rect",
+    realism: Realism | None = None,
 ) -> Path:
     """Render a procedural room to a capture at `out`. Returns `out`.
 
@@ -38,6 +40,8 @@ def make_room(
     labels, poses or gravity; the ground truth in gt/ is written all the same.
     doors: that many door gaps in distinct walls (0..4); gt/layout.json holds them.
     shape: "rect", or "L" for an L-shaped room (stages/synth/shape.py).
+    realism: plain surfaces, exposure changes, blur and noise (stages/synth/realism.py);
+    None = the textured room and a perfect camera (gt/realism.json holds what each view drew).
 
     Same (views, seed, size, ceiling) -> byte-identical files. Writes into a temp sibling
     folder renamed into place at the end, so a failure leaves nothing behind.
@@ -62,7 +66,7 @@ def make_room(
     tmp = out.parent / f".{out.name}.synth-tmp"
     shutil.rmtree(tmp, ignore_errors=True)
     try:
-        _write(tmp, views, seed, (w, h), ceiling, photos_only, doors, shape)
+        _write(tmp, views, seed, (w, h), ceiling, photos_only, doors, shape, realism or Realism())
         if out.exists():
             out.rmdir()
         tmp.rename(out)
@@ -84,6 +88,7 @@ def _write(
     photos_only: bool,
     doors: int = 0,
     shape: str = "rect",
+    realism: Realism | None = None,
 ) -> None:
     """The capture's files; photos_only: without what a phone capture lacks (depth, labels,
     poses and gravity), the ground truth in gt/ all the same."""
@@ -99,9 +104,14 @@ def _write(
     poses = camera_paths(room, views, seed)
     stems = [f"{i:04d}" for i in range(views)]
     t_render = 0.0
-    for stem, pose in zip(stems, poses, strict=True):
+    realism = realism or Realism()
+    drawn = {}
+    for i, (stem, pose) in enumerate(zip(stems, poses, strict=True)):
         t1 = time.perf_counter()
-        v = render(tracer, pose, intr)
+        rng = np.random.default_rng([seed, 5, i])  # the view's exposure, blur and noise
+        v = render(tracer, pose, intr, realism=realism, rng=rng)
+        if v.camera:
+            drawn[stem] = v.camera
         t_render += time.perf_counter() - t1
         write_image(root / "images" / f"{stem}.png", v.rgb)
         if not photos_only:
@@ -161,6 +171,8 @@ def _write(
             **({"outline": room.outline, "loops": room.loops} if room.outline else {}),
         },
     )
+    if not realism.default:
+        write_json(root / "gt" / "realism.json", {"options": realism.to_json(), "views": drawn})
     scene_mesh(room).export(root / "gt" / "mesh.ply")
     write_json(root / "gt" / "layout.json", room_layout(room))
     plan = root / "gt" / "blueprint.npz"

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import open3d as o3d
@@ -17,7 +17,8 @@ import open3d as o3d
 from stages.common.blueprint import Blueprint, Grid
 from stages.common.camera import Intrinsics, pixel_grid
 from stages.common.capture import UNKNOWN
-from stages.synth.room import CAM_Z, CEILING, CLASSES, Part, Room
+from stages.synth.realism import PLAIN_CELL, Realism, camera_effects, plain_albedo, smooth_floor
+from stages.synth.room import CAM_Z, CEILING, CLASSES, FLOOR, WALL, Part, Room
 
 HFOV_DEG = 65.0  # horizontal field of view of the synthetic camera
 SKY = (0.55, 0.70, 0.90)  # colour where a ray leaves the room (no ceiling)
@@ -144,6 +145,23 @@ def texture(points: np.ndarray, part: np.ndarray, base: np.ndarray) -> np.ndarra
     return albedo * (0.35 + 0.9 * v)[:, None]
 
 
+def _plain(
+    pts: np.ndarray, part: np.ndarray, base: np.ndarray, cls: np.ndarray, albedo: np.ndarray
+) -> np.ndarray:
+    """`albedo` [N, 3] with walls and ceilings plain and floors smooth (realism.py)."""
+    out = albedo.copy()
+    salt = part.astype(np.int64) * 7919 + 17
+    c = cls[part]
+    flat = (c == WALL) | (c == CEILING)
+    if flat.any():
+        low = value_noise(pts[flat] / PLAIN_CELL, salt[flat] + 203)
+        out[flat] = plain_albedo(base[part[flat]], low)
+    fl = c == FLOOR
+    if fl.any():
+        out[fl] = smooth_floor(base[part[fl]], fbm(pts[fl], salt[fl]))
+    return out
+
+
 def shade(normal: np.ndarray) -> np.ndarray:
     """Lambertian irradiance for unit normals [N, 3] under LIGHTS + AMBIENT. Returns [N]."""
     out = np.full(len(normal), AMBIENT)
@@ -165,10 +183,23 @@ class View:
     depth: np.ndarray  # [H, W] float64 metres along the optical axis (0 = no hit)
     label: np.ndarray  # [H, W] uint8 class id (UNKNOWN = no hit)
     instance: np.ndarray  # [H, W] uint8 instance id (0 = floor, wall, ceiling or no hit)
+    camera: dict = field(default_factory=dict)  # the camera effects drawn (realism.py)
 
 
-def render(tracer: Tracer, pose: np.ndarray, intr: Intrinsics, textured: bool = True) -> View:
-    """Ray-cast one pinhole view from a camera-to-world pose [4, 4]."""
+def render(
+    tracer: Tracer,
+    pose: np.ndarray,
+    intr: Intrinsics,
+    textured: bool = True,
+    realism: Realism | None = None,
+    rng: np.random.Generator | None = None,
+) -> View:
+    """Ray-cast one pinhole view from a camera-to-world pose [4, 4].
+
+    realism: plain surfaces and the camera's exposure, blur and noise (stages/synth/realism.py),
+    drawn from `rng` (needed when a camera effect is on); None = the textured, perfect camera.
+    """
+    realism = realism or Realism()
     w, h = intr.width, intr.height
     uv = pixel_grid(w, h).reshape(-1, 2)  # [R, 2]
     d_cam = np.stack(
@@ -187,15 +218,23 @@ def render(tracer: Tracer, pose: np.ndarray, intr: Intrinsics, textured: bool = 
     if textured:
         pts = origins[hit] + hits.t[hit, None] * dirs[hit]  # [N, 3]
         albedo = texture(pts, hits.part[hit], base)
+        if realism.surfaces == "plain":
+            albedo = _plain(pts, hits.part[hit], base, tracer.cls, albedo)
     else:
         albedo = base[hits.part[hit]]
     rgb[hit] = albedo * shade(n)[:, None]
+    if realism.camera:
+        if rng is None:
+            raise ValueError("render: camera effects need a random generator")
+        lin, drawn = camera_effects(rgb.reshape(h, w, 3), realism, rng)
+        rgb = lin.reshape(-1, 3)
     lin = np.round(np.clip(rgb, 0.0, 1.0) * (len(_GAMMA) - 1)).astype(np.int64)
     return View(
         rgb=_GAMMA[lin].reshape(h, w, 3),
         depth=depth.reshape(h, w),
         label=tracer.cls[hits.part].astype(np.uint8).reshape(h, w),
         instance=tracer.inst[hits.part].astype(np.uint8).reshape(h, w),
+        camera=drawn if realism.camera else {},
     )
 
 
