@@ -54,9 +54,7 @@ def pytest_collection_modifyitems(config, items):
         if info is None or item.get_closest_marker("xdist_group"):
             continue
         shared = any(
-            d.scope in ("module", "class")
-            for defs in info.name2fixturedefs.values()
-            for d in defs
+            d.scope in ("module", "class") for defs in info.name2fixturedefs.values() for d in defs
         )
         if shared:
             item.add_marker(pytest.mark.xdist_group(item.nodeid.split("::")[0]))
