@@ -27,7 +27,7 @@ import time
 from collections.abc import Iterable, Iterator
 from typing import Any, TypeVar
 
-log = logging.getLogger("stages.progress")
+log = logging.getLogger(__name__)
 
 MODES = ("auto", "bar", "log", "off")
 MIN_SECONDS = 2.0  # steps shorter than this show nothing

@@ -80,7 +80,7 @@ def runs(tmp_path_factory):
     out = base / "run"
     lines: dict[str, list[str]] = {}
     handler = _Keep()
-    logger = logging.getLogger("stages.progress")
+    logger = logging.getLogger(P.log.name)
     old_min, old_level = P.MIN_SECONDS, logger.level
     P.MIN_SECONDS = 0.0
     logger.addHandler(handler)

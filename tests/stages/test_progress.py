@@ -17,13 +17,13 @@ def log_mode(monkeypatch, caplog):
     """Log mode with no minimum duration; restores the mode after."""
     monkeypatch.setattr(P, "MIN_SECONDS", 0.0)
     P.configure("log")
-    caplog.set_level(logging.INFO, logger="stages.progress")
+    caplog.set_level(logging.INFO, logger=P.log.name)
     yield caplog
     P.configure("auto")
 
 
 def _lines(caplog) -> list[str]:
-    return [r.getMessage() for r in caplog.records if r.name == "stages.progress"]
+    return [r.getMessage() for r in caplog.records if r.name == P.log.name]
 
 
 def test_log_mode_gives_a_line_every_tenth_with_eta(log_mode):
@@ -64,7 +64,7 @@ def test_phase_without_total_logs_its_time(log_mode):
 
 
 def test_off_and_short_steps_say_nothing(monkeypatch, caplog):
-    caplog.set_level(logging.INFO, logger="stages.progress")
+    caplog.set_level(logging.INFO, logger=P.log.name)
     P.configure("off")
     try:
         monkeypatch.setattr(P, "MIN_SECONDS", 0.0)
