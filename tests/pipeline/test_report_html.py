@@ -184,3 +184,21 @@ def test_edits_section_shows_the_renders(runs, tmp_path):
     imgs = p.images["Edits"]
     assert len(imgs) == 2  # the view's render and the edited plan
     assert np.array_equal(np.asarray(decode(imgs[0])), pair)
+
+
+@pytest.mark.parametrize("quiet", [False, True])
+def test_batch_workers_log_lines_never_bars(quiet, tmp_path):
+    """A batch task sets its process to log lines into the capture's log (no bars, whatever
+    the worker's stderr is), or to nothing with --quiet."""
+    from pipeline.batch import BatchOptions, _jobs, run_capture
+
+    cap = tmp_path / "cap"
+    cap.mkdir()  # no images: the task fails at once, after setting the mode
+    (job,) = _jobs([cap], BatchOptions(out=tmp_path / "out", quiet=quiet))
+    P.configure("bar")
+    try:
+        res = run_capture(job)
+        assert not res.ok and res.error
+        assert P.mode() == ("off" if quiet else "log")
+    finally:
+        P.configure("auto")
