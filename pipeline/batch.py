@@ -29,6 +29,7 @@ from pipeline.config import Config, load_config
 from pipeline.summary import summarise
 from stages.common.errors import BlunfError
 from stages.common.io import check_exists
+from stages.common.progress import configure as configure_progress
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +50,7 @@ class BatchOptions:
     edits: Path | None = None
     dashboard: str | None = "127.0.0.1:8787"  # local dashboard address; None = no dashboard
     progress_every: float = 2.0  # seconds between progress lines (when something changed)
+    quiet: bool = False  # no progress lines, here nor in the captures' logs
 
 
 @dataclass(frozen=True)
@@ -61,6 +63,7 @@ class Job:
     cfg: Config
     edits: str | None
     threads: int
+    progress: str = "log"  # how the stages' progress shows (stages/common/progress.py)
 
 
 @dataclass
@@ -85,6 +88,7 @@ def run_capture(job: Job) -> Outcome:
     setup_runtime(job.threads)
     if "torch" in sys.modules:
         sys.modules["torch"].set_num_threads(job.threads)
+    configure_progress(job.progress)  # lines in the capture's log, never bars
     res = Outcome(scene=Path(job.out).name, worker=f"{_hostname()}:{os.getpid()}")
     handler = _log_to(Path(job.log))
     _event({"scene": res.scene, "worker": res.worker})
@@ -174,6 +178,7 @@ def _jobs(captures: list[Path], opts: BatchOptions) -> list[Job]:
                 cfg=cfg,
                 edits=str(opts.edits.resolve()) if opts.edits is not None else None,
                 threads=opts.threads_per_worker,
+                progress="off" if opts.quiet else "log",
             )
         )
     return jobs
@@ -244,7 +249,7 @@ def _drive(client, jobs: list[Job], opts: BatchOptions) -> list[Outcome]:
                     log.info("batch: %s done in %.1f s on %s", scene, r.seconds, r.worker)
                 else:
                     log.warning("batch: %s failed: %s", scene, r.error)
-            if time.monotonic() - last >= opts.progress_every:
+            if not opts.quiet and time.monotonic() - last >= opts.progress_every:
                 line = _progress(client, jobs, results, seen)
                 if line != shown:
                     log.info("batch: %s", line)

@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 from stages.common.errors import BlunfError
+from stages.common.progress import configure as configure_progress
 
 log = logging.getLogger("blunf")
 
@@ -56,6 +57,7 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("--set", dest="sets", action="append", default=[], metavar="STAGE.KEY=VALUE")
     r.add_argument("--edits", type=Path, help="edit spec (YAML)")
     r.add_argument("--frames", type=_positive, help="use N views spread along the capture")
+    r.add_argument("--quiet", action="store_true", help="no progress bars or progress lines")
 
     s = sub.add_parser("synth", help="make a procedural room with exact ground truth")
     s.add_argument("out", type=Path)
@@ -91,6 +93,7 @@ def parser() -> argparse.ArgumentParser:
     a.add_argument("--config", type=Path, help="YAML overriding the defaults (configs/*.yaml)")
     a.add_argument("--set", dest="sets", action="append", default=[], metavar="STAGE.KEY=VALUE")
     a.add_argument("--edits", type=Path, help="edit spec (YAML), for every capture")
+    a.add_argument("--quiet", action="store_true", help="no progress lines (nor in the logs)")
 
     i = sub.add_parser("import", help="convert another layout into a blunf capture")
     i.add_argument("kind", help="7scenes, replica-vmap, colmap, nerfstudio, photos, video")
@@ -152,6 +155,8 @@ def main(argv: list[str] | None = None) -> int:
         format="%(asctime)s %(name)s: %(message)s",
         datefmt="%H:%M:%S",
     )
+    # bars on a terminal, else a log line every ~10 % (stages/common/progress.py)
+    configure_progress("off" if getattr(args, "quiet", False) else "auto")
     try:
         return _dispatch(args)
     except BlunfError as e:
@@ -192,11 +197,17 @@ def _dispatch(args: argparse.Namespace) -> int:
                 {
                     "blueprint": str(args.out / "blueprint.png"),
                     "report": str(args.out / "report.json"),
+                    "report_html": str(args.out / "report.html"),
                     "stages": {f"{s.name}:{s.impl}": s.status for s in report.stages},
                     "metrics": summary,
                 },
                 indent=1,
-            )
+            ),
+            flush=True,
+        )
+        # the page to open, last (on stderr: stdout stays one JSON document)
+        print(
+            f"report: {Path(os.path.abspath(args.out / 'report.html')).as_uri()}", file=sys.stderr
         )
         return 0
     if args.cmd == "synth":
@@ -235,6 +246,7 @@ def _dispatch(args: argparse.Namespace) -> int:
             sets=tuple(args.sets),
             edits=args.edits,
             dashboard=None if args.dashboard.lower() == "none" else args.dashboard,
+            quiet=args.quiet,
         )
         facts = batch(list(args.captures), opts)
         print(json.dumps({k: v for k, v in facts.items() if k != "outcomes"}, indent=1))

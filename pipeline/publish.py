@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.cache import alive
+from pipeline.report_html import report_html
 from stages.common.errors import BlunfError
 from stages.common.io import write_json
 
@@ -82,6 +83,13 @@ class Publication:
     def add_json(self, name: str, data: Any) -> None:
         with writing(self.dir / name):
             write_json(self.dir / name, data)
+
+    def add_report(self, report: dict) -> None:
+        """report.json, and report.html drawn from it and the outputs published so far."""
+        self.add_json("report.json", report)
+        page = report_html(self.dir, report)
+        with writing(self.dir / "report.html"):
+            (self.dir / "report.html").write_text(page, encoding="utf-8")
 
     def switch(self) -> None:
         """Make this run's outputs the run folder's, at once; remove the replaced run's."""

@@ -53,7 +53,7 @@ def run(capture: Path, out: Path, cfg: Config, edits: Path | None = None) -> Rep
     report = Report(scene=out.name, capture=str(capture.resolve()), config=cfg.to_dict())
     try:
         _recipe(Runner(out, cfg, report), pub, capture, cfg, spec)
-        pub.add_json("report.json", report.to_json())
+        pub.add_report(report.to_json())  # report.json and report.html
         with writing(out):
             pub.switch()
     finally:  # a failed run switches nothing in: the previous run's outputs stay whole

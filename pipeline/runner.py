@@ -18,6 +18,7 @@ from pipeline.publish import writing
 from pipeline.report import Report, StageRecord, peak_rss_mb, peak_rss_reset
 from stages.common.errors import BlunfError
 from stages.common.io import read_json
+from stages.common.progress import close_all as close_progress
 from stages.common.threads import torch_threads
 
 log = logging.getLogger(__name__)
@@ -102,6 +103,8 @@ class Runner:
             except BaseException:
                 shutil.rmtree(tmp, ignore_errors=True)
                 raise
+            finally:
+                close_progress()  # a bar the stage left open (it raised mid-step)
         log.info("%-10s ran in %.1fs", stage, secs)
         self.report.add(
             StageRecord(stage, impl, "ran", reason, round(secs, 3), meta["peak_rss_mb"], key, facts)

@@ -78,7 +78,9 @@ def summarise(
             for k in COLUMNS[1:]
             if r.get(k) not in (None, "")
         )
-        cells.append(f'<div class="run"><h2>{name}</h2>{img}<ul>{facts}</ul></div>')
+        page = runs_dir / r["scene"] / "report.html"  # the run's own page, when it has one
+        title = f'<a href="{name}/report.html">{name}</a>' if page.exists() else name
+        cells.append(f'<div class="run"><h2>{title}</h2>{img}<ul>{facts}</ul></div>')
     html_path.write_text(
         "<!DOCTYPE html><html><head><meta charset='utf-8'><title>blunf batch</title><style>"
         "body{font-family:sans-serif}.run{display:inline-block;vertical-align:top;margin:1em;"

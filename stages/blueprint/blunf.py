@@ -34,6 +34,7 @@ from stages.common.encoding import (
 from stages.common.errors import BlunfError
 from stages.common.io import write_json
 from stages.common.points import read_bounds, read_grid, read_instances, read_points
+from stages.common.progress import track
 from stages.common.threads import torch_threads
 
 log = logging.getLogger(__name__)
@@ -205,7 +206,7 @@ def train(
     t0 = time.perf_counter()
     tail = max(1, min(50, c.steps // 10))
     losses: list[float] = []
-    for _ in range(c.steps):
+    for _ in track(range(c.steps), "blunf", unit="step"):
         idx = sample()  # [B]
         loss = nn.functional.cross_entropy(model(uv[idx]), y[idx])
         opt.zero_grad(set_to_none=True)

@@ -36,6 +36,7 @@ from stages.common.io import (
     write_label_png,
 )
 from stages.common.plan_picture import plan_png
+from stages.common.progress import track
 from stages.common.radiance.field import load_field
 from stages.common.threads import torch_threads
 from stages.edit.config import EditConfig, EditInputs, EditOutputs
@@ -305,7 +306,7 @@ def _render_views(
     scores = [EditScore(cfg.change_threshold) for _ in edits]
     renders = 0
     orbit_frames = []
-    for k, v in enumerate(views):
+    for k, v in enumerate(track(views, "edit render", unit="view")):
         before = render_view_edited(model, v.pose, v.intr, (), cfg.chunk, extents)
         renders += 1
         sel = before["masks"] >= cfg.mask_threshold  # [E, H, W]
@@ -363,7 +364,7 @@ def _gif(
         intr = _scaled(cap.frames[0].intrinsics, cfg.gif_scale)
         field_ops = [e for e in edits if e.op != "mask"]
         masks = [e.extent for e in edits if e.op == "mask"]
-        for pose in poses:
+        for pose in track(poses, "edit orbit", unit="frame"):
             r = render_view_edited(model, pose, intr, field_ops, cfg.chunk, masks)
             rgb = r["rgb"]
             for m in r["masks"]:

@@ -33,6 +33,7 @@ from stages.common.capture import Capture, Frame
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth, read_image, write_depth_npy, write_json
 from stages.common.o3d import CPU, o3d_extrinsic, o3d_intrinsic, o3d_tensor
+from stages.common.progress import track
 from stages.fusion.carve import supporting_views
 from stages.fusion.config import FusionConfig, FusionInputs, FusionOutputs
 
@@ -68,7 +69,7 @@ def run(cfg: FusionConfig, inputs: FusionInputs, out: Path) -> FusionOutputs:
     vbg = _grid(cfg, n_blocks)
     t0 = time.perf_counter()
     t_o3d = 0.0
-    for f, bc in zip(cap.frames, coords, strict=True):
+    for f, bc in track(zip(cap.frames, coords, strict=True), "fusion", len(coords), "view"):
         if bc is None:
             continue
         depth, k_depth = _depth(f, cap, cfg)
@@ -299,7 +300,7 @@ def _raycast(mesh: o3d.t.geometry.TriangleMesh, cap: Capture, folder: Path
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(mesh)
     frames, hit = [], []
-    for f in cap.frames:
+    for f in track(cap.frames, "fusion raycast", unit="view"):
         k = f.intrinsics
         # Open3D's pinhole rays have camera z = 1: the hit distance is the depth
         rays = scene.create_rays_pinhole(o3d_intrinsic(k), o3d_extrinsic(f), k.width, k.height)

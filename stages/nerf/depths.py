@@ -12,6 +12,7 @@ import numpy as np
 from stages.common.capture import Frame
 from stages.common.errors import BlunfError
 from stages.common.io import write_depth_npy
+from stages.common.progress import track
 from stages.common.radiance.field import RadianceField
 from stages.common.radiance.render import render_view
 from stages.nerf.config import NerfConfig
@@ -43,7 +44,8 @@ def write_depths(
     k = max(1, cfg.depth_render_scale)
     # a swept view's render is needed only where a block of its pixels lacks stereo
     need = {i: _block_any(p <= 0, k) for i, p in prior.items()}
-    depths = [render_depth(model, f, cfg, need.get(i)) for i, f in enumerate(frames)]
+    views = track(enumerate(frames), "nerf depth", len(frames), "view")
+    depths = [render_depth(model, f, cfg, need.get(i)) for i, f in views]
     facts: dict = {
         "depth_check_kept": None,
         "stereo_check_kept": None,

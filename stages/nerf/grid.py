@@ -23,6 +23,7 @@ import torch
 from stages.common.capture import Capture
 from stages.common.errors import BlunfError
 from stages.common.io import write_depth_npy, write_image, write_json
+from stages.common.progress import track
 from stages.common.radiance.field import save_field
 from stages.common.radiance.render import render_view
 from stages.common.threads import torch_threads
@@ -97,7 +98,7 @@ def run(cfg: NerfConfig, inputs: NerfInputs, out: Path) -> NerfOutputs:
             check = cfg.stereo.check if dense else 0
             frames, checks = write_depths(model, frames, cfg, outs.depth, prior, check)
             stats.update(checks)
-        for i in held:
+        for i in track(held, "nerf held-out", unit="view"):
             f = frames[i]
             v = render_view(model, np.asarray(f.pose), f.intrinsics, cfg.chunk)
             depth = np.where(v["acc"] >= cfg.sampling.acc_threshold, v["depth"], 0.0)

@@ -28,6 +28,7 @@ from torch import Tensor
 
 from stages.common.camera import pixel_grid, unproject
 from stages.common.errors import BlunfError
+from stages.common.progress import track
 from stages.nerf.config import StereoConfig
 from stages.nerf.consistency import consistent_depth, overlap_order
 
@@ -63,7 +64,7 @@ def sweep_depths(
     ]
     raw: list[np.ndarray] = []
     matched = 0
-    for i in range(n):
+    for i in track(range(n), "stereo", unit="view"):
         nbrs = order[i][: cfg.views]
         own = sparse[i][sparse[i] > 0]
         lo, hi = _bounds(own if len(own) >= 20 else everything)

@@ -11,6 +11,7 @@ import torch
 from torch import Tensor
 
 from stages.common.errors import BlunfError
+from stages.common.progress import progress
 from stages.common.radiance.field import RadianceField
 from stages.common.radiance.render import FieldRender, render_field
 from stages.nerf.config import NerfConfig, TrainConfig
@@ -57,6 +58,7 @@ def train(
     model.surface.fill_(dense and rays.t_depth is not None and tc.surface_color)
     model.train()
     fns = model.fns(semantics=rays.label is not None)
+    bar = progress("nerf", tc.max_steps or tc.time_budget or None, "step" if tc.max_steps else "s")
     while True:
         if tc.max_steps > 0 and step >= tc.max_steps:
             stop = "steps"
@@ -94,12 +96,14 @@ def train(
             model.occupancy.update(model.sigma, thr, oc.decay, oc.cells, gen)
         train_s += time.perf_counter() - t0
         cpu_s += time.process_time() - c0
+        bar.moveto(step if tc.max_steps > 0 else train_s, step=step)
         if held is not None and tc.eval_every > 0 and step % tc.eval_every == 0:
             model.eval()
             p = score(model, held, cfg.chunk)
             model.train()
             curve.append((round(train_s, 2), round(p, 3)))
             curve_cpu.append((round(cpu_s, 2), round(p, 3)))
+            bar.update(0, psnr=round(p, 2))
             log.info(
                 "nerf: step %d, %.1f s (cpu %.1f s), loss %.4f, held-out PSNR %.2f dB, "
                 "%.1f samples / ray, %d occupied cells",
@@ -118,6 +122,7 @@ def train(
                 if stale >= tc.patience:
                     stop = "plateau"
                     break
+    bar.close()
     model.eval()
     if not frozen:
         before = int(model.occupancy.binary.sum())

@@ -21,6 +21,7 @@ from stages.common.camera import Intrinsics
 from stages.common.capture import Capture, Frame
 from stages.common.errors import BlunfError
 from stages.common.io import image_size, read_depth, write_depth_npy, write_json
+from stages.common.progress import progress
 from stages.poses import calib
 from stages.poses import models as models_detail
 from stages.poses import scale as scale_mod
@@ -59,10 +60,12 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
     refine = cfg.self_calibrate or guessed
 
     clock = [(time.perf_counter(), time.process_time())]  # (wall, CPU of all threads)
-    with _colmap_log_level():
-        facts["camera"] = _extract(cfg, cap.frames, names, db, img_dir, threads)
+    with _colmap_log_level():  # pycolmap extracts and matches in one call each: elapsed only
+        with progress("sfm extract"):
+            facts["camera"] = _extract(cfg, cap.frames, names, db, img_dir, threads)
         clock.append((time.perf_counter(), time.process_time()))
-        facts["matching"], facts["matching_detail"] = _match(cfg, db, n, threads)
+        with progress("sfm match"):
+            facts["matching"], facts["matching_detail"] = _match(cfg, db, n, threads)
         clock.append((time.perf_counter(), time.process_time()))
         recs = _map(cfg, db, img_dir, work / "models", threads, refine)
         clock.append((time.perf_counter(), time.process_time()))
@@ -297,7 +300,9 @@ def _map(
             o.ba_refine_extra_params = False
             o.mapper.abs_pose_refine_focal_length = False
             o.mapper.abs_pose_refine_extra_params = False
-        recs = pycolmap.incremental_mapping(db, img_dir, models, o)
+        with progress("sfm map", len(os.listdir(img_dir)), "image") as bar:  # registered
+            first, then = (lambda: bar.update(2)), (lambda: bar.update(1))
+            recs = pycolmap.incremental_mapping(db, img_dir, models, o, "", first, then)
     else:
         g = pycolmap.GlobalPipelineOptions()
         g.num_threads = threads
@@ -310,7 +315,8 @@ def _map(
             ba.refine_focal_length = False
             ba.refine_principal_point = False
             ba.refine_extra_params = False
-        recs = pycolmap.global_mapping(db, img_dir, models, g)
+        with progress("sfm map"):
+            recs = pycolmap.global_mapping(db, img_dir, models, g)
     return list(recs.values())
 
 
