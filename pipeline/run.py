@@ -145,9 +145,7 @@ def _recipe(r: Runner, pub: Publication, capture: Path, cfg: Config, spec: EditS
 
     ex = r.step(
         plan.get("export"),
-        ExportInputs(
-            blueprint=product, mesh=fused.mesh, frames=fused.frames, layout=lay.plan_json
-        ),
+        ExportInputs(blueprint=product, mesh=fused.mesh, frames=fused.frames, layout=lay.plan_json),
     )
     for name in ex.files:
         pub.add(ex.folder / name, name)
