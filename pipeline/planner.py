@@ -68,6 +68,30 @@ def _derive_labels(cfg: Config) -> bool:
     return cfg["semantics"].impl != "height" and cfg["project"].labelling != "height"
 
 
+def _depth_step(cfg: Config, missing: str, tracks: bool) -> Step:
+    """The photos-only depth step: plane-sweep stereo alone (the nerf stage's `stereo`
+    implementation, no field trained) unless the config asks the field to fill stereo's holes
+    or turns stereo off, or there are no SfM tracks to bound the sweep (poses given: the
+    field then learns depth from the photos alone). A field for edits or the NeRF top view is
+    the nerf step's, trained later on the fused depth: it never needs this step's field."""
+    st = cfg["nerf"].stereo
+    head = f"no depth (e.g. frame {missing!r}): "
+    if st.enabled and not st.field_fill and tracks:
+        why = "plane-sweep stereo among the photos, no field trained (nerf.stereo.field_fill off)"
+        return Step("depth", "nerf", True, head + why, work=("nerf", "stereo"))
+    why = (
+        "the NeRF, trained on the photos"
+        + (
+            " and the SfM tracks"
+            if tracks
+            else " (poses given: no SfM tracks to supervise its depth)"
+        )
+        + (" and stereo (nerf.stereo.field_fill)" if st.enabled and tracks else "")
+        + ", renders it for fusion"
+    )
+    return Step("depth", "nerf", True, head + why, work=("nerf", cfg["nerf"].impl))
+
+
 def make_plan(cap: Capture, cfg: Config, edits: Path | None = None) -> Plan:
     """Decide every stage's fate for this capture and config."""
     s: list[Step] = [Step("ingest", cfg["ingest"].impl, True)]
@@ -109,19 +133,7 @@ def make_plan(cap: Capture, cfg: Config, edits: Path | None = None) -> Plan:
                 "(give depth for every frame, or none to have the NeRF render it)"
             )
         s.append(
-            Step(
-                "depth",
-                "nerf",
-                True,
-                f"no depth (e.g. frame {missing!r}): the NeRF, trained on the photos"
-                + (
-                    " and the SfM tracks"
-                    if not cap.has_poses or pimpl not in ("auto", "given")
-                    else " (poses given: no SfM tracks to supervise its depth)"
-                )
-                + ", renders it for fusion",
-                work=("nerf", cfg["nerf"].impl),
-            )
+            _depth_step(cfg, missing, tracks=not cap.has_poses or pimpl not in ("auto", "given"))
         )
     s.append(Step("fusion", cfg["fusion"].impl, True))
 

@@ -22,7 +22,7 @@ from stages.export.files import ExportInputs
 from stages.fusion import FusionInputs
 from stages.ingest.select import IngestInputs
 from stages.layout import LayoutInputs, LayoutOutputs
-from stages.nerf.config import NerfInputs
+from stages.nerf.config import NerfInputs, NerfOutputs
 from stages.poses import PosesInputs
 from stages.project import ProjectInputs
 from stages.semantics import SemanticsInputs
@@ -74,12 +74,14 @@ def _recipe(r: Runner, pub: Publication, capture: Path, cfg: Config, spec: EditS
     frames = posed.frames if posed else frames
     # SfM's world has an arbitrary turn about z: the first camera fixes the plan's frame then
     frames = r.step(plan.get("align"), AlignInputs(frames, free_yaw=posed is not None)).frames
-    depth = r.step(plan.get("depth"), NerfInputs(frames=frames))  # photos only: NeRF depth
+    depth = r.step(plan.get("depth"), NerfInputs(frames=frames))  # photos only: stereo (+ NeRF)
     fused = r.step(plan.get("fusion"), FusionInputs(frames=depth.frames if depth else frames))
     sem = r.step(plan.get("semantics"), SemanticsInputs(frames=fused.frames, mesh=fused.mesh))
     labelled = sem.frames if sem else fused.frames  # the frames the plan is projected from
     # on the fused (dense, clean) depth and the labels: for the NeRF baseline and edits
-    nerf = r.step(plan.get("nerf"), NerfInputs(frames=labelled)) or depth
+    nerf = r.step(plan.get("nerf"), NerfInputs(frames=labelled))
+    if nerf is None and isinstance(depth, NerfOutputs):  # the depth step's field, if it trained
+        nerf = depth
     pts = r.step(plan.get("project"), ProjectInputs(frames=labelled, holdout=plan.heldout))
     gt = gt_files(cap)
     plans = {}

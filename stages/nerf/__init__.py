@@ -6,8 +6,8 @@ registry is lazy (a cached run, or a config check, never imports torch).
 """
 
 from stages.common.registry import LazyImpls
-from stages.nerf.config import NerfConfig, NerfInputs, NerfOutputs
+from stages.nerf.config import NerfConfig, NerfInputs, NerfOutputs, StereoOutputs
 
-IMPLS = LazyImpls({"grid": "stages.nerf.grid:run"})
+IMPLS = LazyImpls({"grid": "stages.nerf.grid:run", "stereo": "stages.nerf.sweep:run"})
 
-__all__ = ["IMPLS", "NerfConfig", "NerfInputs", "NerfOutputs"]
+__all__ = ["IMPLS", "NerfConfig", "NerfInputs", "NerfOutputs", "StereoOutputs"]

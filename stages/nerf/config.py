@@ -108,6 +108,15 @@ class StereoConfig:
     refine: int = 16  # then per pixel this many planes across one coarse step either side
     #                   (0 or 1 = no refinement): a plane step is ~10 cm at 3 m here
     views: int = 4  # views each view is matched against (those overlapping it most)
+    scale: int = 1  # depth maps at 1/scale of the photos' resolution (k x k binned); 0 = the
+    #                 largest at which a pixel at the median track depth spans <= `cell`.
+    #                 Demo room, photos only, stereo alone: scale 2 with coarse 2 took 17
+    #                 CPU-s against 155 at scale 1 but the plan fell to fwIoU 72.6 (one run),
+    #                 hence 1 until the coarse maps are fused better
+    cell: float = 0.02  # metres: the plan's cell, for scale 0 (a finer depth map adds no
+    #                     detail to the plan)
+    coarse: int = 1  # the planes are swept at a further 1/coarse, the per-pixel refinement at
+    #                  1/scale round that estimate (coarse to fine; needs refine >= 3)
     window: int = 7  # pixels: side of the correlation window (odd)
     max_cost: float = 0.4  # a reading needs 1 - ZNCC below this (ZNCC above 0.6)
     min_std: float = 0.02  # ... and this grey-level spread (0-1) in its window
@@ -116,6 +125,10 @@ class StereoConfig:
     fuse: bool = True  # depth for fusion: the stereo reading where there is one (full
     #                    resolution), the field's render elsewhere (held-out views: the
     #                    render only)
+    field_fill: bool = False  # photos only: train the field on the stereo depth and fill
+    #                 stereo's holes with its render (the `grid` path below); off: the
+    #                 stereo readings alone feed fusion and no field trains unless an edit or
+    #                 the NeRF top view asks for one (nerf/sweep.py)
     check: int = 1  # ... a rendered reading is kept only where this many other views'
     #                 stereo readings agree with it (tol) and none sees through it (0, or
     #                 stereo too sparse to train on: every rendered reading). Demo room,
@@ -129,6 +142,13 @@ class StereoConfig:
                 "nerf.stereo.refine 0, 1 or >= 3, got "
                 f"{self.planes}, {self.views}, {self.refine}"
             )
+        if self.scale < 0 or self.coarse < 1 or (self.coarse > 1 and self.refine < 3):
+            raise BlunfError(
+                "nerf.stereo.scale must be >= 0 and nerf.stereo.coarse >= 1 (> 1 only with "
+                f"refine >= 3), got {self.scale}, {self.coarse} (refine {self.refine})"
+            )
+        if not 0 < self.cell < float("inf"):
+            raise BlunfError(f"nerf.stereo.cell must be a finite number > 0, got {self.cell}")
         if self.window < 3 or self.window % 2 == 0:
             raise BlunfError(f"nerf.stereo.window must be odd and >= 3, got {self.window}")
         if not 0 < self.max_cost <= 2:
@@ -209,6 +229,22 @@ class NerfConfig:
 @dataclass(frozen=True)
 class NerfInputs:
     frames: Path  # frames.json (Capture) with poses; depth and labels optional
+
+
+@dataclass(frozen=True)
+class StereoOutputs:
+    """The stereo-only implementation's outputs (sweep.py): depth for fusion, no field."""
+
+    STATS: ClassVar[str | None] = "stereo.json"  # its stats file: the report's facts
+    stats: Path  # stereo.json: fractions matched and kept, scale, planes, seconds
+    frames: Path  # frames.json: the input capture with depth -> the stereo depth maps
+    depth: Path  # depth/<stem>.npy: z-depth, float32 metres, 0 = none, sweep resolution
+
+    @classmethod
+    def at(cls, out: Path) -> StereoOutputs:
+        """The outputs inside a finished stereo folder."""
+        out = Path(out)
+        return cls(stats=out / "stereo.json", frames=out / "frames.json", depth=out / "depth")
 
 
 @dataclass(frozen=True)

@@ -28,7 +28,7 @@ from stages.common.radiance.field import save_field
 from stages.common.radiance.render import render_view
 from stages.common.threads import torch_threads
 from stages.nerf.config import NerfConfig, NerfInputs, NerfOutputs
-from stages.nerf.depths import write_depths
+from stages.nerf.depths import upsample_depth, write_depths
 from stages.nerf.evaluate import depth_absrel, psnr
 from stages.nerf.scene import build_model, scene_box
 from stages.nerf.stereo import sweep_depths
@@ -163,6 +163,8 @@ def _stereo_depth(
         sparse,
         cfg.stereo,
     )
+    # the field trains on every pixel: a sweep at a lower resolution, block by block
+    depths = [d if d.shape == s else upsample_depth(d, s) for d, s in zip(depths, hw, strict=True)]
     for i, d, sp in zip(idx, depths, sparse, strict=True):
         views.depth[i] = torch.from_numpy(np.where(d > 0, d, sp).astype(np.float32).reshape(-1))
     facts["seconds"] = round(time.perf_counter() - t0, 3)

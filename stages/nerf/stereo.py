@@ -52,16 +52,21 @@ def sweep_depths(
         sparse: per view [H, W] z-depth of the SfM tracks (0 = none): each view's sweep
             spans the depths its own tracks span (all tracks' when it has too few).
     Returns:
-        (per view [H, W] float32 depth, 0 = no reading; facts: fractions kept, seconds).
+        (per view [H // s, W // s] float32 depth, 0 = no reading, s the sweep's scale
+        (`stereo_scale`; its intrinsics: `scaled_K`); facts: fractions kept, scale, planes).
     """
     n = len(images)
     if not n == len(Ks) == len(poses) == len(sparse):
         raise BlunfError("stereo: images, intrinsics, poses and sparse depth differ in number")
     order = overlap_order(sparse, Ks, poses, stride=1)
     everything = np.concatenate([s[s > 0] for s in sparse]) if n else np.zeros(0)
+    k = stereo_scale(cfg, Ks, everything)
     grays = [
         torch.from_numpy(np.asarray(im, np.float32) @ np.asarray(GRAY, np.float32)) for im in images
     ]
+    fine = [_level(g, K, k) for g, K in zip(grays, Ks, strict=True)]
+    coarse = [_level(g, K, k * cfg.coarse) for g, K in zip(grays, Ks, strict=True)]
+    del grays
     raw: list[np.ndarray] = []
     matched = 0
     for i in track(range(n), "stereo", unit="view"):
@@ -69,20 +74,58 @@ def sweep_depths(
         own = sparse[i][sparse[i] > 0]
         lo, hi = _bounds(own if len(own) >= 20 else everything)
         if not nbrs or not hi > lo > 0:
-            raw.append(np.zeros(sparse[i].shape, np.float32))
+            raw.append(np.zeros(fine[i][0].shape, np.float32))
             continue
-        d = _sweep(grays, Ks, poses, i, nbrs, lo, hi, cfg)
+        d = _sweep(coarse, fine, poses, i, nbrs, lo, hi, cfg)
         matched += int((d > 0).sum())
         raw.append(d)
-    total = sum(s.size for s in sparse)
+    total = sum(d.size for d in raw)
     # agreement only: a stereo reading seen through by a neighbour is that neighbour's
     # occlusion as often as a floater, so the see-through count is not limited
-    checked, _ = consistent_depth(raw, Ks, poses, cfg.tol, cfg.agree, 10**6, 2 * cfg.views)
+    checked, _ = consistent_depth(
+        raw, [K for _, K in fine], poses, cfg.tol, cfg.agree, 10**6, 2 * cfg.views
+    )
     facts = {
         "matched": round(matched / max(1, total), 4),
         "kept": round(sum(int((c > 0).sum()) for c in checked) / max(1, total), 4),
+        "scale": k,
+        "coarse": cfg.coarse,
+        "planes": cfg.planes,
+        "views": cfg.views,
     }
     return checked, facts
+
+
+def stereo_scale(cfg: StereoConfig, Ks: list[np.ndarray], z: np.ndarray) -> int:
+    """The sweep's resolution divisor: `cfg.scale`, or (0, auto) the largest k at which one
+    pixel at the median track depth `z` spans at most `cfg.cell` metres (the plan's cell: a
+    finer depth map adds no detail to a plan of that cell), at least 1."""
+    if cfg.scale > 0:
+        return cfg.scale
+    if not len(z) or not Ks:
+        return 1
+    f = float(np.median([min(K[0, 0], K[1, 1]) for K in Ks]))
+    return max(1, int(cfg.cell * f / float(np.median(z))))
+
+
+def scaled_K(K: np.ndarray, k: int) -> np.ndarray:
+    """Intrinsics [3, 3] of an image binned k x k (pixel centres at integers, as
+    Intrinsics.scaled: the principal point scales about the corner at (-0.5, -0.5))."""
+    out = np.asarray(K, np.float64).copy()
+    out[:2, :2] /= k
+    out[:2, 2] = (out[:2, 2] + 0.5) / k - 0.5
+    return out
+
+
+def _level(gray: Tensor, K: np.ndarray, k: int) -> tuple[Tensor, np.ndarray]:
+    """(gray [H, W] binned k x k (rows and columns beyond whole blocks dropped), its K)."""
+    if k <= 1:
+        return gray, np.asarray(K, np.float64)
+    h, w = gray.shape[0] // k, gray.shape[1] // k
+    if h < 1 or w < 1:
+        raise BlunfError(f"nerf.stereo.scale: {k} leaves no pixel of a {tuple(gray.shape)} image")
+    g = F.avg_pool2d(gray[None, None, : h * k, : w * k], k)[0, 0].contiguous()
+    return g, scaled_K(K, k)
 
 
 def _bounds(z: np.ndarray) -> tuple[float, float]:
@@ -94,9 +137,48 @@ def _bounds(z: np.ndarray) -> tuple[float, float]:
     return float(0.7 * a), float(1.3 * b)
 
 
+class _Level:
+    """One view matched against its neighbours at one resolution: cost of depth hypotheses."""
+
+    def __init__(
+        self,
+        levels: list[tuple[Tensor, np.ndarray]],
+        poses: list[np.ndarray],
+        i: int,
+        nbrs: list[int],
+        cfg: StereoConfig,
+    ):
+        self.ref, K = levels[i]
+        h, w = self.ref.shape
+        self.shape = (h, w)
+        self.window = cfg.window
+        uv = pixel_grid(w, h).reshape(-1, 2)
+        # [HW, 3] camera-frame rays with z = 1: a point at depth d is d * ray
+        rays = torch.from_numpy(unproject(uv, np.ones(len(uv)), K, np.eye(4)))
+        self.r_mean, self.r_std = _window_stats(self.ref[None, None], cfg.window)  # [1,1,H,W]
+        self.warps = []
+        for j in nbrs:
+            w2c = np.linalg.inv(np.asarray(poses[j], np.float64))
+            rel = torch.from_numpy(w2c @ np.asarray(poses[i], np.float64))  # ref cam -> nbr cam
+            a = (rays @ rel[:3, :3].T).float()  # [HW, 3] nbr-camera direction of each ref ray
+            kj = torch.from_numpy(np.asarray(levels[j][1], np.float32))
+            # the ref pixel at depth d lands at pixel (d ka + kb)[:2] / (d ka + kb)[2] in view j
+            self.warps.append((levels[j][0], a @ kj.T, kj @ rel[:3, 3].float()))
+        self.k = max(1, math.ceil(len(nbrs) / 2))
+
+    def cost(self, depth: Tensor) -> Tensor:
+        """Matching cost [D, H, W] of depth hypotheses [D] (every pixel) or [D, HW]: the
+        mean of the best k neighbours' costs (a surface one neighbour cannot see)."""
+        c = [
+            costs_for(g, ka, kb, depth, self.ref, self.r_mean, self.r_std, self.window)
+            for g, ka, kb in self.warps
+        ]
+        return torch.topk(torch.stack(c), self.k, dim=0, largest=False).values.mean(0)
+
+
 def _sweep(
-    grays: list[Tensor],
-    Ks: list[np.ndarray],
+    coarse: list[tuple[Tensor, np.ndarray]],
+    fine: list[tuple[Tensor, np.ndarray]],
     poses: list[np.ndarray],
     i: int,
     nbrs: list[int],
@@ -104,44 +186,43 @@ def _sweep(
     hi: float,
     cfg: StereoConfig,
 ) -> np.ndarray:
-    """One view's depth [H, W] (0 = no reading) from its neighbours `nbrs`."""
-    ref = grays[i]
-    h, w = ref.shape
-    uv = pixel_grid(w, h).reshape(-1, 2)
-    # [HW, 3] camera-frame rays with z = 1: a point at depth d is d * ray
-    rays = torch.from_numpy(unproject(uv, np.ones(len(uv)), np.asarray(Ks[i]), np.eye(4)))
-    r_mean, r_std = _window_stats(ref[None, None], cfg.window)  # [1, 1, H, W] each
-    warps = []
-    for j in nbrs:
-        w2c = np.linalg.inv(np.asarray(poses[j], np.float64))
-        rel = torch.from_numpy(w2c @ np.asarray(poses[i], np.float64))  # ref cam -> nbr cam
-        a = (rays @ rel[:3, :3].T).float()  # [HW, 3] nbr-camera direction of each ref ray
-        kj = torch.from_numpy(np.asarray(Ks[j], np.float32))
-        # the ref pixel at depth d lands at pixel (d ka + kb)[:2] / (d ka + kb)[2] in view j
-        warps.append((grays[j], a @ kj.T, kj @ rel[:3, 3].float()))
-    k = max(1, math.ceil(len(nbrs) / 2))
-
-    def cost_of(depth: Tensor) -> Tensor:
-        """Matching cost [D, H, W] of depth hypotheses [D] (every pixel) or [D, HW]: the
-        mean of the best k neighbours' costs (a surface one neighbour cannot see)."""
-        c = [costs_for(g, ka, kb, depth, ref, r_mean, r_std, cfg.window) for g, ka, kb in warps]
-        return torch.topk(torch.stack(c), k, dim=0, largest=False).values.mean(0)
-
-    # coarse: planes even in inverse depth over the whole range
+    """One view's depth at the fine level's resolution (0 = no reading) from its neighbours
+    `nbrs`: planes over the whole range at the coarse level, then (refine) per-pixel
+    hypotheses across one plane step either side at the fine level (coarse to fine)."""
+    lc = _Level(coarse, poses, i, nbrs, cfg)
+    h, w = lc.shape
     step = (1.0 / hi - 1.0 / lo) / (cfg.planes - 1)  # < 0: near to far
     inv = 1.0 / lo + step * torch.arange(cfg.planes, dtype=torch.float32)  # [D]
-    best, pos, arg = _cheapest(cost_of(1.0 / inv))
-    inv_c = (1.0 / lo + pos * step).reshape(-1)  # [HW]
-    ok = (r_std[0, 0] >= cfg.min_std) & (arg > 0) & (arg < cfg.planes - 1)
+    best, pos, arg = _cheapest(lc.cost(1.0 / inv))
+    inv_c = 1.0 / lo + pos * step  # [H, W]
+    ok = (lc.r_std[0, 0] >= cfg.min_std) & (arg > 0) & (arg < cfg.planes - 1)
+    lf = lc
+    if cfg.coarse > 1:  # the coarse estimate, block by block, at the fine resolution
+        lf = _Level(fine, poses, i, nbrs, cfg)
+        h, w = lf.shape
+        ok = _blocks(ok, cfg.coarse, (h, w)) & (lf.r_std[0, 0] >= cfg.min_std)
+        inv_c = _blocks(inv_c, cfg.coarse, (h, w))
+    inv_c = inv_c.reshape(-1)  # [HW]
     if cfg.refine > 1:
         # fine: refine planes per pixel across one coarse step either side of its estimate
         off = torch.linspace(-1.0, 1.0, cfg.refine) * abs(step)  # [F]
         inv_f = (inv_c[None] + off[:, None]).clamp(min=0.5 / hi)  # [F, HW]
-        best, pos, _ = _cheapest(cost_of(1.0 / inv_f))
+        best, pos, _ = _cheapest(lf.cost(1.0 / inv_f))
         inv_c = inv_c - abs(step) + pos.reshape(-1) * (2.0 * abs(step) / (cfg.refine - 1))
     z = (1.0 / inv_c.clamp(min=0.5 / hi)).view(h, w)
     ok &= (best < cfg.max_cost) & torch.isfinite(z)
     return torch.where(ok, z, torch.zeros_like(z)).numpy().astype(np.float32)
+
+
+def _blocks(x: Tensor, k: int, shape: tuple[int, int]) -> Tensor:
+    """x [h, w] with each value repeated over a k x k block, cut or padded (edge values) to
+    `shape` (the finer level's size)."""
+    up = x.repeat_interleave(k, 0).repeat_interleave(k, 1)[: shape[0], : shape[1]]
+    ph, pw = shape[0] - up.shape[0], shape[1] - up.shape[1]
+    if ph or pw:
+        up = torch.cat([up, up[-1:].expand(ph, -1)], 0) if ph else up
+        up = torch.cat([up, up[:, -1:].expand(-1, pw)], 1) if pw else up
+    return up
 
 
 def _cheapest(cost: Tensor) -> tuple[Tensor, Tensor, Tensor]:

@@ -61,21 +61,40 @@ def cell_keep(
     n = len(xyz)
     if n == 0:
         return np.zeros(0, bool)
+    # Per-cell maxima by scatter (ufunc.at) over a dense cell index, not by sorting: the
+    # points of 100 views of 640x480 (7.7 M) sorted twice per offset grid took ~30 s.
     z = np.asarray(xyz[:, 2], np.float64)  # [N]
-    ij = np.floor(np.asarray(xyz[:, :2], np.float64) / cell).astype(np.int64)  # [N, 2]
-    ij -= ij.min(axis=0)
-    key = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]  # [N] flat cell key
-    _, c = np.unique(key, return_inverse=True)  # [N] cell index 0..C-1
-    counts = np.bincount(c)  # [C]
-    start = np.cumsum(counts) - counts  # [C] first sorted position of each cell
-    order = np.lexsort((-z, c))  # by cell, then z from the highest
-    top = np.full(len(counts), -np.inf)  # [C]
-    dense = counts >= min_points
-    top[dense] = z[order[start[dense] + min_points - 1]]
-    # highest z of each (cell, class) pair: the first of its group in (pair, -z) order
-    pair = c * 256 + np.asarray(label, np.int64)  # [N]
-    by_pair = np.lexsort((-z, pair))
-    _, first, inv = np.unique(pair[by_pair], return_index=True, return_inverse=True)
-    reach = np.empty(n)
-    reach[by_pair] = z[by_pair][first][inv]  # [N] highest z of the point's class in its cell
-    return reach >= top[c] - band
+    i = np.floor(np.asarray(xyz[:, 0], np.float64) / cell).astype(np.int64)  # [N]
+    j = np.floor(np.asarray(xyz[:, 1], np.float64) / cell).astype(np.int64)
+    i -= i.min()
+    j -= j.min()
+    c = i * (int(j.max()) + 1) + j  # [N] flat cell index
+    m = int(c.max()) + 1
+    top = _kth_highest(z, c, m, min_points)  # [M], -inf where fewer points
+    # highest z of each (cell, class) pair (classes renumbered 0..L-1)
+    label = np.asarray(label, np.int64)
+    seen = np.bincount(label, minlength=256) > 0  # a look-up, not np.unique's sort
+    lut = np.cumsum(seen) - 1
+    pair = c * int(seen.sum()) + lut[label]  # [N]
+    reach = np.full(m * int(seen.sum()), -np.inf)
+    np.maximum.at(reach, pair, z)
+    return reach[pair] >= top[c] - band
+
+
+def _kth_highest(z: np.ndarray, c: np.ndarray, m: int, k: int) -> np.ndarray:
+    """Per cell 0..m-1 of the points (z [N], cell c [N]): the k-th highest z (ties counted:
+    two points at the highest z make it the 2nd highest too); -inf in cells with fewer than
+    k points. k rounds of a per-cell maximum over the points below the last one."""
+    top = np.full(m, -np.inf)
+    found = np.zeros(m, np.int64)  # points at or above the current level, per cell
+    below = np.full(m, np.inf)  # the level of the previous round
+    for _ in range(k):
+        left = z < below[c]
+        level = np.full(m, -np.inf)
+        np.maximum.at(level, c[left], z[left])
+        at = left & (z == level[c])
+        found += np.bincount(c[at], minlength=m)
+        newly = (found >= k) & ~np.isfinite(top) & np.isfinite(level)
+        top[newly] = level[newly]
+        below = level
+    return top

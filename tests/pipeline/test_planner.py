@@ -59,6 +59,35 @@ def test_capture_without_depth_plans_nerf_depth():
     assert plan.runs("fusion")
 
 
+def test_photos_only_depth_is_stereo_alone_unless_a_field_is_asked_for(tmp_path):
+    # no edits, no NeRF top view: the depth step sweeps stereo and trains no field, and the
+    # nerf step is skipped with its reason
+    phone = _capture(depth=False, poses=False, labels=False)
+    plan = make_plan(phone, default_config())
+    step, nerf = plan.get("depth"), plan.get("nerf")
+    assert step.run and step.work == ("nerf", "stereo")
+    assert "plane-sweep stereo" in step.reason and "no field trained" in step.reason
+    assert not nerf.run and nerf.reason == "no edits and no NeRF baseline asked"
+    # an edit spec trains the nerf step's field (on the fused depth), not a second one for
+    # depth
+    plan = make_plan(phone, default_config(), tmp_path / "spec.yaml")
+    assert plan.get("depth").work == ("nerf", "stereo") and plan.get("nerf").run
+    # the config asks the field to fill stereo's holes: the depth step trains it
+    plan = make_plan(phone, load_config(sets=["nerf.stereo.field_fill=true"]))
+    step = plan.get("depth")
+    assert step.work == ("nerf", "grid") and "nerf.stereo.field_fill" in step.reason
+    # stereo off: only the field can give depth
+    plan = make_plan(phone, load_config(sets=["nerf.stereo.enabled=false"]))
+    assert plan.get("depth").work == ("nerf", "grid")
+
+
+def test_photos_with_given_poses_train_the_field_for_depth():
+    # poses given, no depth: no SfM tracks bound a sweep, so the field learns depth
+    plan = make_plan(_capture(depth=False, poses=True, labels=False), default_config())
+    step = plan.get("depth")
+    assert step.work == ("nerf", "grid") and "no SfM tracks" in step.reason
+
+
 def test_part_of_the_depth_missing_is_an_error():
     # depth for frames 0000 and 0002 but not 0001: a broken capture, not a photos-only one
     cap = _capture()

@@ -127,3 +127,28 @@ def test_shifted_grids_keep_floor_beyond_half_a_cell_from_a_wall():
 
 def test_no_points():
     assert top_view_keep(np.zeros((0, 3)), np.zeros(0, np.uint8), 0.1, 0.1, 2, 2).shape == (0,)
+
+
+def test_ties_at_the_top_count_as_several_points():
+    # z on a 5 cm lattice: many points share a cell's highest z. The k-th highest counts
+    # them all (two points at the top make it the 2nd highest), as a sort does; labels use
+    # ids up to 255
+    rng = np.random.default_rng(2)
+    n = 4000
+    xyz = np.c_[rng.uniform(-1, 1, (n, 2)), np.round(rng.uniform(0, 2, n) / 0.05) * 0.05]
+    lab = rng.choice(np.array([0, 7, 200, 255], np.uint8), n)
+    cell, band = 0.2, 0.05
+    ij = np.floor(xyz[:, :2] / cell).astype(int)
+    for m in (2, 3):
+        got = cell_keep(xyz, lab, cell, band, m)
+        want = np.ones(n, bool)
+        for key in {tuple(k) for k in ij}:
+            idx = np.flatnonzero((ij == key).all(axis=1))
+            if len(idx) < m:
+                continue
+            top = np.sort(xyz[idx, 2])[::-1][m - 1]
+            for c in np.unique(lab[idx]):
+                of_c = idx[lab[idx] == c]
+                want[of_c] = xyz[of_c, 2].max() >= top - band
+        assert 0 < (~want).sum() < n
+        np.testing.assert_array_equal(got, want)

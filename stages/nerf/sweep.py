@@ -1,0 +1,83 @@
+"""NeRF stage, stereo-only implementation: depth for fusion from plane-sweep stereo among
+the photos, without training a field.
+
+The photos-only path's depth. Training the field on the stereo depth and filling stereo's
+holes with its render (`grid`) moved the demo room's plan by under half a point of fwIoU
+for most of the run's time, so the planner picks this implementation when nothing else
+needs a field (no edits, no NeRF top view, `nerf.stereo.field_fill` off). Every view is
+swept (no view is held out: there is no field to score) and its checked readings written to
+depth/<stem>.npy (z-depth, float32 metres, 0 = none, at the sweep's resolution: fusion
+rescales the intrinsics to fit); frames.json points at them. stereo.json holds the facts.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from stages.common.capture import Capture
+from stages.common.errors import BlunfError
+from stages.common.io import read_depth, read_image, write_depth_npy, write_json
+from stages.common.threads import torch_threads
+from stages.nerf.config import NerfConfig, NerfInputs, StereoOutputs
+from stages.nerf.stereo import sweep_depths
+
+log = logging.getLogger(__name__)
+
+
+def run(cfg: NerfConfig, inputs: NerfInputs, out: Path) -> StereoOutputs:
+    """Sweep every posed frame against its neighbours; write the checked depth maps."""
+    log.debug("nerf/stereo: %s", cfg)  # the full config: meta.json
+    out = Path(out)
+    cap = Capture.load(inputs.frames)
+    if not cap.frames:
+        raise BlunfError(f"{inputs.frames}: no frames")
+    if not cap.has_poses:
+        raise BlunfError(f"{inputs.frames}: stereo needs a pose for every frame")
+    t0 = time.perf_counter()
+    images, sparse = [], []
+    for f in cap.frames:
+        img = read_image(f.image)
+        h, w = f.intrinsics.height, f.intrinsics.width
+        if img.shape[:2] != (h, w):
+            raise BlunfError(
+                f"{f.image}: image is {img.shape[1]}x{img.shape[0]}, intrinsics say {w}x{h}"
+            )
+        images.append(img.astype(np.float32) / 255.0)
+        d = read_depth(f.depth, cap.depth_scale, cap.depth_invalid) if f.depth else None
+        sparse.append(d if d is not None else np.zeros((h, w), np.float32))
+    if not any((s > 0).any() for s in sparse):
+        raise BlunfError(
+            f"{inputs.frames}: no SfM track depth to bound the stereo sweep "
+            "(give depth, or poses.impl=sfm)"
+        )
+    with torch_threads(cfg.threads):
+        depths, facts = sweep_depths(
+            images,
+            [f.intrinsics.K for f in cap.frames],
+            [np.asarray(f.pose) for f in cap.frames],
+            sparse,
+            cfg.stereo,
+        )
+    outs = StereoOutputs.at(out)
+    outs.depth.mkdir()
+    frames = []
+    for f, d in zip(cap.frames, depths, strict=True):
+        path = outs.depth / f"{f.stem}.npy"
+        write_depth_npy(path, d)
+        frames.append(replace(f, depth=path))
+    replace(cap.with_frames(frames), depth_scale=1.0, depth_invalid=()).save(outs.frames)
+    facts["frames"] = len(frames)
+    facts["seconds"] = round(time.perf_counter() - t0, 3)
+    write_json(outs.stats, facts)
+    log.info(
+        "nerf/stereo: depth on %.1f %% of the pixels (%.1f %% matched) in %.1f s, no field trained",
+        100 * facts["kept"],
+        100 * facts["matched"],
+        facts["seconds"],
+    )
+    return outs
