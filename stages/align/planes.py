@@ -19,7 +19,6 @@ from stages.align.manhattan import heading_turn, rot_z
 from stages.common.camera import check_pose, depth_to_points
 from stages.common.capture import Capture
 from stages.common.errors import BlunfError
-from stages.common.floor_height import FLOOR_MARGIN, FLOOR_PERCENTILE, floor_and_ceiling
 from stages.common.io import read_depth, write_json
 
 log = logging.getLogger(__name__)
@@ -28,7 +27,10 @@ UP = np.array([0.0, 0.0, 1.0])
 UNDER_FLOOR_MAX = 0.05  # sparse points: a floor has at most this fraction of the points below
 #                         the cameras lying under it (see _sparse_floor): 10 % under the
 #                         counter tops of the photos-only 7-Scenes kitchen; 0.1-2.6 % under
-#                         true floors (stages.common.floor_height.BELOW_FLOOR_MAX)
+#                         true floors (as measured for the poses stage's metric scale)
+FLOOR_MARGIN = 0.05  # ... lying under it by more than this fraction of its depth below them
+FLOOR_PERCENTILE = 2.0  # ... then the floor is the median of this lowest percent of them
+#                         (the poses stage's metric scale takes the same lowest 2 %)
 
 
 def load(inputs: AlignInputs) -> Capture:
@@ -182,7 +184,7 @@ def find_floor(
     and no up-facing normals while counter tops give many: when more than UNDER_FLOOR_MAX of
     the points below the cameras lie under the plane found (none can be seen through a
     floor), the floor is where all of them pile up lowest, whatever their normals
-    (_sparse_floor, as the poses stage's metric scale finds it). Dense depth: unchanged.
+    (_sparse_floor, as the poses stage's metric scale does). Dense depth: unchanged.
     """
     z = points[:, 2]
     horiz = np.abs(normals[:, 2]) >= np.cos(np.radians(cfg.max_tilt_deg))
@@ -217,9 +219,10 @@ def find_floor(
 def _sparse_floor(z: np.ndarray, cam_z: np.ndarray, floor_z: float) -> tuple[float, str]:
     """(floor height, note) for sparse point heights z [N] given the horizontal plane at
     floor_z: kept unless more than UNDER_FLOOR_MAX of the points below the cameras (heights
-    cam_z [C]) lie more than FLOOR_MARGIN of its depth under it. Then the lowest pile of
-    points (floor_height.floor_and_ceiling), else the median of the lowest FLOOR_PERCENTILE %
-    of the points below the cameras (their percentile alone is the top of a thin floor pile)."""
+    cam_z [C]) lie more than FLOOR_MARGIN of its depth under it. Then the floor is the median
+    of the lowest FLOOR_PERCENTILE % of the points below the cameras: a textureless floor
+    gives SfM a thin, spread pile (its percentile alone is the pile's top), and a pile
+    search finds a lower counter or shelf first (7-Scenes kitchen: 0.5 m above the floor)."""
     cam = float(np.median(cam_z))
     below = z[z < cam]  # [M]
     if below.size < 20 or not floor_z < cam:
@@ -227,17 +230,10 @@ def _sparse_floor(z: np.ndarray, cam_z: np.ndarray, floor_z: float) -> tuple[flo
     under = float(np.mean(below < floor_z - FLOOR_MARGIN * (cam - floor_z)))
     if under <= UNDER_FLOOR_MAX:
         return floor_z, ""
-    pts = np.zeros((len(z), 3))
-    pts[:, 2] = z
-    depth, _ = floor_and_ceiling(np.array([[0.0, 0.0, cam]]), UP, pts)
-    if depth is not None:
-        new, how = cam - depth, "the lowest pile of points"
-    else:
-        low = below[below <= np.percentile(below, FLOOR_PERCENTILE)]
-        new, how = float(np.median(low)), f"the lowest {FLOOR_PERCENTILE:g} % of points"
-    return new, (
+    low = below[below <= np.percentile(below, FLOOR_PERCENTILE)]
+    return float(np.median(low)), (
         f"{under:.0%} of the points below the cameras lie under the horizontal plane at "
-        f"{floor_z:.2f} m (no floor): floor from {how}"
+        f"{floor_z:.2f} m (no floor): floor from the lowest {FLOOR_PERCENTILE:g} % of them"
     )
 
 

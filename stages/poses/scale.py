@@ -9,8 +9,12 @@ from __future__ import annotations
 import numpy as np
 
 from stages.common.errors import BlunfError
-from stages.common.floor_height import floor_and_ceiling, floor_depth
 
+FLOOR_PERCENTILE = 2.0  # camera_height: the floor is this low percentile of point heights
+#                         when no horizontal surface piles up points below the cameras
+HEIGHT_BIN = 0.02  # floor / ceiling search: bin of the height histogram, as a fraction of the
+#                    99th percentile of the points' distances below the cameras
+PEAK_FRAC = 0.02  # ... a surface holds this fraction of the points on its side (3 bins)
 X_SPAN = 0.05  # up from the x axes needs their second eigenvalue this fraction of the first
 PRIOR_CAMERA_HEIGHT = 1.45  # metres: median height of a hand-held camera above the floor
 PRIOR_CAMERA_SPREAD = 0.1  # its relative spread (1 sigma). Measured medians: 1.39 m (7-Scenes
@@ -110,6 +114,48 @@ def up_from_cameras(x_axes: np.ndarray, y_axes: np.ndarray) -> tuple[np.ndarray,
     return up, "normal of the cameras' x axes (hand-held cameras are rolled little)"
 
 
+def _peak(h: np.ndarray, bin_w: float, frac: float) -> float | None:
+    """The farthest (largest h) horizontal surface among heights h [N] (> 0, distance below or
+    above the cameras): the largest-h bin whose 3-bin window holds `frac` of them and stands
+    out of its neighbourhood (twice the median window within 10 bins), climbed to its local
+    peak; the median height within 1.5 bins of it. None when no window qualifies."""
+    if h.size < 20:
+        return None
+    idx = np.floor(h / bin_w).astype(np.int64)
+    counts = np.bincount(idx, minlength=3)  # [B]
+    support = np.convolve(counts, np.ones(3, np.int64), mode="same")  # [B]
+    pad = np.pad(support, 10, mode="constant")
+    win = np.lib.stride_tricks.sliding_window_view(pad, 21)  # [B, 21]
+    ok = (support >= frac * h.size) & (support >= 2 * np.median(win, axis=1))
+    cand = np.flatnonzero(ok)
+    if not cand.size:
+        return None
+    i = int(cand[-1])
+    while i > 0 and support[i - 1] > support[i]:
+        i -= 1
+    centre = (i + 0.5) * bin_w
+    return float(np.median(h[np.abs(h - centre) <= 1.5 * bin_w]))
+
+
+def floor_and_ceiling(
+    centers: np.ndarray, up: np.ndarray, points: np.ndarray
+) -> tuple[float | None, float | None]:
+    """(floor's depth below, ceiling's height above) the cameras' median height, in the
+    points' units (None when not found). The floor is the lowest horizontal surface that
+    piles up points (see _peak: counters and tables lie higher, stray points below the floor
+    never pile up), the ceiling the highest above the cameras; heights are binned in
+    HEIGHT_BIN of the 99th percentile of the points' distances below the cameras."""
+    h = np.asarray(points, np.float64).reshape(-1, 3) @ up  # [N]
+    cam = float(np.median(np.asarray(centers, np.float64) @ up))
+    below, above = cam - h[h < cam], h[h > cam] - cam
+    if below.size < 20:
+        return None, None
+    bin_w = HEIGHT_BIN * float(np.percentile(below, 99))
+    floor = _peak(below, bin_w, PEAK_FRAC)
+    ceiling = _peak(above, bin_w, PEAK_FRAC) if above.size >= 20 else None
+    return floor, ceiling
+
+
 def scale_from_camera_height(
     centers: np.ndarray,
     x_axes: np.ndarray,
@@ -124,7 +170,12 @@ def scale_from_camera_height(
             y (image down) axes in the world. points: [N, 3] sparse points.
     """
     up, up_how = up_from_cameras(x_axes, y_axes)
-    floor, how_floor = floor_depth(centers, up, points)
+    floor, _ = floor_and_ceiling(centers, up, points)
+    how_floor = "the lowest horizontal surface the sparse points pile up on"
+    if floor is None:
+        h = np.asarray(points, np.float64).reshape(-1, 3) @ up
+        floor = float(np.median(np.asarray(centers) @ up) - np.percentile(h, FLOOR_PERCENTILE))
+        how_floor = f"the {FLOOR_PERCENTILE:g}th percentile of point heights (no floor found)"
     if not floor > 1e-9:
         raise BlunfError(
             "sfm: scale from camera_height: the cameras are not above the lowest sparse points"
@@ -148,9 +199,8 @@ def scale_from_priors(
     Facts: scale, source ("camera_height_prior", "+ceiling"), uncertainty_rel (1 sigma).
     """
     up, up_how = up_from_cameras(x_axes, y_axes)
-    _, ceiling = floor_and_ceiling(centers, up, points)
-    floor, how_floor = floor_depth(centers, up, points)
-    if not floor > 1e-9:
+    floor, ceiling = floor_and_ceiling(centers, up, points)
+    if floor is None or not floor > 1e-9:
         raise BlunfError(
             "sfm: metric scale: no floor found among the sparse points; set poses.camera_height "
             "or poses.known_distance"
@@ -176,7 +226,7 @@ def scale_from_priors(
             if "room_height" in cues
             else " (no ceiling seen)"
         )
-        + f"; up: {up_how}; floor: {how_floor}",
+        + f"; up: {up_how}",
         "uncertainty_rel": float(1.0 / np.sqrt(sum(w.values()))),
         "per_cue": {k: float(s) for k, (s, _) in cues.items()},
         "camera_height_m": float(floor * scale),
