@@ -53,7 +53,7 @@ def solve(cap: Capture, cfg: AlignConfig, where: Path) -> tuple[np.ndarray, floa
     R = rotation_between(u, UP)
 
     def floor_at(R: np.ndarray) -> Floor:
-        return find_floor(s.points @ R.T, s.normals @ R.T, (centres @ R.T)[:, 2], cfg)
+        return find_floor(s.points @ R.T, s.normals @ R.T, (centres @ R.T)[:, 2], cfg, s.sparse)
 
     for _ in range(REFINE_STEPS):
         fl = floor_at(R)

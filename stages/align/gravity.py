@@ -38,7 +38,7 @@ def solve(cap: Capture, cfg: AlignConfig, where: Path) -> tuple[np.ndarray, floa
     s = sample(cap, cfg, where)
     poses = cap.poses()  # [C, 4, 4]
     cam_z = (poses[:, :3, 3] @ R.T)[:, 2]  # [C]
-    fl = find_floor(s.points @ R.T, s.normals @ R.T, cam_z, cfg)
+    fl = find_floor(s.points @ R.T, s.normals @ R.T, cam_z, cfg, s.sparse)
     cam_dev = angle_deg(R @ cameras_up(poses), UP)
     notes = [fl.note] if fl.note else []
     R, yaw, note = square_up(R, s.normals, cfg)

@@ -24,6 +24,13 @@ from stages.common.io import read_depth, write_json
 log = logging.getLogger(__name__)
 
 UP = np.array([0.0, 0.0, 1.0])
+UNDER_FLOOR_MAX = 0.05  # sparse points: a floor has at most this fraction of the points below
+#                         the cameras lying under it (see _sparse_floor): 10 % under the
+#                         counter tops of the photos-only 7-Scenes kitchen; 0.1-2.6 % under
+#                         true floors (as measured for the poses stage's metric scale)
+FLOOR_MARGIN = 0.05  # ... lying under it by more than this fraction of its depth below them
+FLOOR_PERCENTILE = 2.0  # ... then the floor is the median of this lowest percent of them
+#                         (the poses stage's metric scale takes the same lowest 2 %)
 
 
 def load(inputs: AlignInputs) -> Capture:
@@ -48,6 +55,7 @@ class Samples:
     normals: np.ndarray  # [N, 3] unit normals (sign arbitrary)
     frames: int  # frames sampled
     stride: int = 1  # the smallest pixel stride used (see sample_stride)
+    sparse: bool = False  # some depth map was sparse (SfM tracks of a photos-only capture)
 
 
 def sample(cap: Capture, cfg: AlignConfig, where: Path) -> Samples:
@@ -64,7 +72,7 @@ def sample(cap: Capture, cfg: AlignConfig, where: Path) -> Samples:
         raise no_depth
     n_used = min(cfg.frames_used, len(with_depth))
     idx = np.unique(np.linspace(0, len(with_depth) - 1, n_used).round().astype(int))
-    pts, nrm, strides = [], [], []
+    pts, nrm, strides, sparse = [], [], [], False
     for i in idx:
         f = with_depth[i]
         d = read_depth(f.depth, cap.depth_scale, cap.depth_invalid)  # [H, W] metres, 0 = none
@@ -72,7 +80,9 @@ def sample(cap: Capture, cfg: AlignConfig, where: Path) -> Samples:
         if d.shape != (intr.height, intr.width):
             intr = intr.scaled(d.shape[1], d.shape[0])
         # sparse depth (SfM tracks, photos only): every reading counts
-        stride = sample_stride(d.shape, cfg) if (d > 0).mean() >= 0.5 else 1
+        dense = (d > 0).mean() >= 0.5
+        stride = sample_stride(d.shape, cfg) if dense else 1
+        sparse |= not dense
         strides.append(stride)
         p, _ = depth_to_points(d, intr.K, np.asarray(f.pose), stride)  # [n, 3]
         if len(p) <= cfg.normal_neighbours:
@@ -83,7 +93,7 @@ def sample(cap: Capture, cfg: AlignConfig, where: Path) -> Samples:
         nrm.append(np.asarray(pc.normals))
     if not pts:
         raise no_depth
-    return Samples(np.concatenate(pts), np.concatenate(nrm), len(idx), min(strides))
+    return Samples(np.concatenate(pts), np.concatenate(nrm), len(idx), min(strides), sparse)
 
 
 def sample_stride(shape: tuple[int, ...], cfg: AlignConfig) -> int:
@@ -153,7 +163,11 @@ class Floor:
 
 
 def find_floor(
-    points: np.ndarray, normals: np.ndarray, cam_z: np.ndarray, cfg: AlignConfig
+    points: np.ndarray,
+    normals: np.ndarray,
+    cam_z: np.ndarray,
+    cfg: AlignConfig,
+    sparse: bool = False,
 ) -> Floor:
     """The lowest large horizontal plane below the cameras.
 
@@ -165,6 +179,12 @@ def find_floor(
     holding `min_floor_fraction` of them, climbed to its local peak, is the floor. Counters
     and tables are higher, the ceiling is above the cameras, and scattered noise below the
     floor never piles up into such a peak.
+
+    With `sparse` points (SfM tracks, photos only) a textureless floor may give few points
+    and no up-facing normals while counter tops give many: when more than UNDER_FLOOR_MAX of
+    the points below the cameras lie under the plane found (none can be seen through a
+    floor), the floor is where all of them pile up lowest, whatever their normals
+    (_sparse_floor, as the poses stage's metric scale does). Dense depth: unchanged.
     """
     z = points[:, 2]
     horiz = np.abs(normals[:, 2]) >= np.cos(np.radians(cfg.max_tilt_deg))
@@ -182,6 +202,8 @@ def find_floor(
                 i += 1
             centre = lo + (i + 0.5) * step
             floor_z = float(np.median(zh[np.abs(zh - centre) <= 1.5 * step]))
+    if sparse and floor_z is not None:
+        floor_z, note = _sparse_floor(z, cam_z, floor_z)
     if floor_z is None:
         floor_z = float(np.percentile(z, 1))
         note = (
@@ -191,6 +213,27 @@ def find_floor(
     inl = np.abs(z - floor_z) <= cfg.plane_dist  # [N]
     return Floor(
         floor_z, _plane_normal(points[inl & horiz], cfg.plane_dist), float(inl.mean()), note
+    )
+
+
+def _sparse_floor(z: np.ndarray, cam_z: np.ndarray, floor_z: float) -> tuple[float, str]:
+    """(floor height, note) for sparse point heights z [N] given the horizontal plane at
+    floor_z: kept unless more than UNDER_FLOOR_MAX of the points below the cameras (heights
+    cam_z [C]) lie more than FLOOR_MARGIN of its depth under it. Then the floor is the median
+    of the lowest FLOOR_PERCENTILE % of the points below the cameras: a textureless floor
+    gives SfM a thin, spread pile (its percentile alone is the pile's top), and a pile
+    search finds a lower counter or shelf first (7-Scenes kitchen: 0.5 m above the floor)."""
+    cam = float(np.median(cam_z))
+    below = z[z < cam]  # [M]
+    if below.size < 20 or not floor_z < cam:
+        return floor_z, ""
+    under = float(np.mean(below < floor_z - FLOOR_MARGIN * (cam - floor_z)))
+    if under <= UNDER_FLOOR_MAX:
+        return floor_z, ""
+    low = below[below <= np.percentile(below, FLOOR_PERCENTILE)]
+    return float(np.median(low)), (
+        f"{under:.0%} of the points below the cameras lie under the horizontal plane at "
+        f"{floor_z:.2f} m (no floor): floor from the lowest {FLOOR_PERCENTILE:g} % of them"
     )
 
 

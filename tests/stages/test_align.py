@@ -141,6 +141,52 @@ def test_floor_alone_thinner_than_a_bin():
     assert fl.inlier_fraction == 1.0
 
 
+def _sparse_kitchen(rng: np.random.Generator, floor_n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Sparse (SfM-like) points of a kitchen, z up, floor at z = 0: `floor_n` floor points
+    (+-1 cm) whose normals lie flat (a textureless floor: too few neighbours for a normal), 1500
+    counter-top points at 0.9 m facing up, 400 cabinet-front points (0.05-0.85 m) and 600 wall
+    points (0-2.5 m) facing sideways. Returns points [N, 3] and normals [N, 3]."""
+    side = np.array([1.0, 0.0, 0.0])
+    floor = np.c_[rng.uniform(0, 3, (floor_n, 2)), rng.normal(0.0, 0.01, floor_n)]
+    counter = np.c_[
+        rng.uniform(0, 3, 1500), rng.uniform(2, 2.6, 1500), rng.normal(0.9, 0.003, 1500)
+    ]
+    fronts = np.c_[rng.uniform(0, 3, 400), np.full(400, 2.0), rng.uniform(0.05, 0.85, 400)]
+    walls = np.c_[np.zeros(600), rng.uniform(0, 3, 600), rng.uniform(0, 2.5, 600)]
+    pts = np.concatenate([floor, counter, fronts, walls])
+    normals = np.concatenate(
+        [np.tile(side, (floor_n, 1)), np.tile(UP, (1500, 1)), np.tile(side, (1000, 1))]
+    )
+    return pts, normals
+
+
+def test_sparse_floor_under_counter_tops():
+    """Photos only (sparse points): 60 floor points (2 %) without an up-facing normal under
+    1500 up-facing counter-top points. The horizontal plane alone is the counter top (0.9 m;
+    what dense depth keeps); 13 % of the points below the cameras lie under it, so with
+    sparse points the floor is where the lowest points pile up: z = 0."""
+    pts, normals = _sparse_kitchen(np.random.default_rng(2), 60)
+    cam_z = np.array([1.35, 1.4, 1.45])
+    dense = find_floor(pts, normals, cam_z, AlignConfig())
+    assert dense.z == pytest.approx(0.9, abs=0.02) and dense.note == ""
+    fl = find_floor(pts, normals, cam_z, AlignConfig(), sparse=True)
+    assert fl.z == pytest.approx(0.0, abs=0.03)
+    assert "under the horizontal plane at 0.90 m" in fl.note
+
+
+def test_sparse_true_floor_is_kept():
+    """Sparse points whose floor faces up (and piles up): the floor plane stands, no note,
+    even with 1 % of stray points scattered below it."""
+    rng = np.random.default_rng(3)
+    pts, normals = _sparse_kitchen(rng, 800)
+    normals[:800] = UP
+    stray = np.c_[rng.uniform(0, 3, (30, 2)), rng.uniform(-1.0, -0.1, 30)]
+    pts = np.concatenate([pts, stray])
+    normals = np.concatenate([normals, np.tile(UP, (30, 1))])
+    fl = find_floor(pts, normals, np.array([1.4]), AlignConfig(), sparse=True)
+    assert fl.z == pytest.approx(0.0, abs=0.01) and fl.note == ""
+
+
 @pytest.mark.slow
 def test_kitchen_gravity_and_floor_agree(tmp_path):
     """7-Scenes redkitchen: the floor is a small part of views of counters. Gravity and the
