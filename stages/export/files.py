@@ -18,8 +18,6 @@ from stages.common.plan_picture import plan_png
 from stages.export.config import ExportConfig
 from stages.export.picture import architect_png
 from stages.export.vector import write_dxf, write_geojson, write_svg
-from stages.layout.config import LayoutConfig
-from stages.layout.walls import build_plan
 
 FILES = (
     "blueprint.png",
@@ -39,7 +37,7 @@ class ExportInputs:
     mesh: Path  # fused mesh.ply
     frames: Path  # frames.json with the final (aligned) poses
     layout: Path | None = None  # the layout stage's plan.json, drawn over blueprint.png (None:
-    #                             the plan is read off the blueprint with the default settings)
+    #                             the classes alone)
 
 
 @dataclass(frozen=True)
@@ -79,11 +77,9 @@ def _picture(bp: Blueprint, inputs: ExportInputs, path: Path, title: str) -> Non
     """blueprint.png: the classes with the architectural plan over them; the classes alone
     when the plan has no room (nothing to draw over them)."""
     try:
-        if inputs.layout is not None and Path(inputs.layout).is_file():
-            plan = read_json(inputs.layout)
-        else:
-            mesh = inputs.mesh if Path(inputs.mesh).is_file() else None
-            plan = build_plan(bp, LayoutConfig(), mesh)
+        # the layout stage's plan (a stage reads another's outputs, never its code): without
+        # one, the classes alone
+        plan = read_json(inputs.layout) if inputs.layout and Path(inputs.layout).is_file() else {}
         if plan.get("rooms"):
             architect_png(bp, plan, path, title)
             return

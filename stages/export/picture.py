@@ -1,6 +1,6 @@
 """blueprint.png with the architecture over it: the blueprint's class colours at a readable
 size (at least `LONG_PX` on the long side), the layout's walls black over them, openings as
-gaps, object outlines with sizes, wall lengths, room names and areas (stages/layout/picture.py),
+gaps, object outlines with sizes, wall lengths, room names and areas (stages/common/architect.py),
 and beside it a legend of the classes with a north arrow and a scale bar."""
 
 from __future__ import annotations
@@ -11,11 +11,10 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
+from stages.common.architect import PAD_M, overlay
 from stages.common.blueprint import Blueprint
 from stages.common.capture import UNKNOWN
 from stages.common.plan_picture import class_color
-from stages.layout.draw import PAD_M
-from stages.layout.picture import overlay
 
 LONG_PX = 1400  # the plan's longer side (px)
 MARGIN = 24

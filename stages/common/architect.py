@@ -1,6 +1,6 @@
-"""The plan picture with the architecture over it: the blueprint's class colours (given by the
-caller, e.g. the export stage's PNG colours) drawn at least `long_px` on the long side, the
-walls black over them, openings as gaps, objects outlined, each wall's length written."""
+"""The architectural plan's shapes and its picture, shared by the layout stage (plan.svg,
+plan.dxf) and the export stage (blueprint.png): the walls as one polygon, dimension lines, and
+the blueprint's class colours with the walls, openings, objects and lengths drawn over them."""
 
 from __future__ import annotations
 
@@ -8,10 +8,54 @@ import math
 
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
+from shapely import make_valid, union_all
 from shapely.geometry import Polygon
 
 from stages.common.blueprint import Grid
-from stages.layout.draw import PAD_M, dimension, wall_shapes
+
+PAD_M = 0.8  # metres of paper round the walls (dimension lines live there)
+DIM_OFF = 0.35  # metres: a dimension line's distance outside the wall's outer face
+GRID_M = 1e-4  # metres: the precision grid of the wall overlay
+
+
+def wall_shapes(plan: dict) -> Polygon:
+    """The walls as one (multi)polygon: each wall a band from its face outwards by its
+    thickness, lengthened at both ends by its neighbours' thickness, openings cut out."""
+    bands, cuts = [], []
+    walls = plan["walls"]
+    for w in walls:
+        a, b, t = np.asarray(w["start"]), np.asarray(w["end"]), float(w["thickness"])
+        d = (b - a) / np.linalg.norm(b - a)
+        n = np.array([d[1], -d[0]])
+        same = [v for v in walls if v["room"] == w["room"]]
+        k = same.index(w)
+        tp, tn = same[k - 1]["thickness"], same[(k + 1) % len(same)]["thickness"]
+        a2, b2 = a - d * tp, b + d * tn
+        bands.append(Polygon([a2, b2, b2 + n * t, a2 + n * t]))
+    for o in plan.get("openings", []):
+        w = walls[o["wall"]]
+        p, q = np.asarray(o["start"]), np.asarray(o["end"])
+        d = np.asarray(w["end"]) - np.asarray(w["start"])
+        d = d / np.linalg.norm(d)
+        n = np.array([d[1], -d[0]])
+        t = float(w["thickness"]) + 0.01
+        cuts.append(Polygon([p - n * 0.01, q - n * 0.01, q + n * t, p + n * t]))
+    # overlay on a 0.1 mm grid: GEOS's floating overlay fails on near-coincident edges
+    # ("non-noded intersection") that degenerate plans give; the fixed grid never does
+    g = GRID_M
+    shape = union_all([make_valid(b) for b in bands], grid_size=g)
+    rooms = union_all([make_valid(Polygon(r["polygon"])) for r in plan["rooms"]], grid_size=g)
+    cut = union_all(cuts, grid_size=g)
+    return shape.difference(rooms, grid_size=g).difference(cut, grid_size=g)
+
+
+def dimension(w: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A wall's dimension line (start, end) outside it and the text position (world)."""
+    a, b = np.asarray(w["start"]), np.asarray(w["end"])
+    d = (b - a) / np.linalg.norm(b - a)
+    n = np.array([d[1], -d[0]])
+    off = n * (float(w["thickness"]) + DIM_OFF)
+    return a + off, b + off, (a + b) / 2 + off + n * 0.12
 
 
 def overlay(rgb: np.ndarray, grid: Grid, plan: dict, long_px: int = 1400) -> Image.Image:
