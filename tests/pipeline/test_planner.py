@@ -60,20 +60,21 @@ def test_capture_without_depth_plans_nerf_depth():
 
 
 def test_photos_only_depth_is_stereo_alone_unless_a_field_is_asked_for(tmp_path):
-    # no edits, no NeRF top view: the depth step sweeps stereo and trains no field, and the
-    # nerf step is skipped with its reason
+    # the field's fill off, no edits, no NeRF top view: the depth step sweeps stereo and
+    # trains no field, and the nerf step is skipped with its reason
     phone = _capture(depth=False, poses=False, labels=False)
-    plan = make_plan(phone, default_config())
+    alone = ["nerf.stereo.field_fill=false"]
+    plan = make_plan(phone, load_config(sets=alone))
     step, nerf = plan.get("depth"), plan.get("nerf")
     assert step.run and step.work == ("nerf", "stereo")
     assert "plane-sweep stereo" in step.reason and "no field trained" in step.reason
     assert not nerf.run and nerf.reason == "no edits and no NeRF baseline asked"
     # an edit spec trains the nerf step's field (on the fused depth), not a second one for
     # depth
-    plan = make_plan(phone, default_config(), tmp_path / "spec.yaml")
+    plan = make_plan(phone, load_config(sets=alone), tmp_path / "spec.yaml")
     assert plan.get("depth").work == ("nerf", "stereo") and plan.get("nerf").run
-    # the config asks the field to fill stereo's holes: the depth step trains it
-    plan = make_plan(phone, load_config(sets=["nerf.stereo.field_fill=true"]))
+    # the default: the field fills stereo's holes, so the depth step trains it
+    plan = make_plan(phone, default_config())
     step = plan.get("depth")
     assert step.work == ("nerf", "grid") and "nerf.stereo.field_fill" in step.reason
     # stereo off: only the field can give depth

@@ -138,12 +138,17 @@ def test_report_html_is_self_contained_and_complete(runs):
     assert float(metrics["blueprint.blunf.fwiou"]) == pytest.approx(
         report["metrics"]["blueprint"]["blunf"]["fwiou"], rel=1e-3
     )
-    # the plan is blueprint.png itself; the cameras are drawn over the same picture
+    # the plan is blueprint.png itself; the cameras are drawn over the plain class picture
+    from stages.common.blueprint import Blueprint
+    from stages.common.plan_picture import plan_picture
+
     plan = decode(p.images["Plan"][0])
     png = Image.open(out / "blueprint.png")
     assert plan.size == png.size and np.array_equal(np.asarray(plan), np.asarray(png))
     cams = decode(p.images["Cameras seen from above"][0])
-    assert cams.size == plan.size and not np.array_equal(np.asarray(cams), np.asarray(plan))
+    bare, _ = plan_picture(Blueprint.load(out / "blueprint.npz"))
+    assert cams.size == bare.size
+    assert not np.array_equal(np.asarray(cams.convert("RGB")), np.asarray(bare.convert("RGB")))
     assert len(p.images["Input photos"]) == 8  # every view of the small room
     assert p.images["Architectural drawing"][0].startswith("data:image/svg+xml;base64,")
     assert "Edits" not in p.images and "<h2>Edits</h2>" not in text  # no edits: no section

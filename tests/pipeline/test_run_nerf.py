@@ -107,7 +107,7 @@ def test_photos_only_capture_reaches_a_plan(tmp_path, field):
 
     cap = make_room(tmp_path / "phone", views=30, seed=0, size=(160, 120), photos_only=True)
     out = tmp_path / "run"
-    fill = ["--set", "nerf.stereo.field_fill=true"] if field else []
+    fill = ["--set", f"nerf.stereo.field_fill={str(field).lower()}"]
     r = _run(cap, out, "--config", str(ROOT / "configs" / "phone.yaml"), *fill)
     st = _status(r)
     for name in ("poses:sfm", "fusion:tsdf", "semantics:geometry", "blueprint:blunf"):
