@@ -115,7 +115,7 @@ def _north_arrow(d: ImageDraw.ImageDraw, x: int, y: int, font) -> None:
 
 def _scale_bar(d: ImageDraw.ImageDraw, cell: float, w: int, box: PlanBox, y: int, font) -> None:
     """A bar of a round length (1, 2 or 5 x 10^k metres) close to a third of the plan width."""
-    length = _nice(w * cell / 3.0)
+    length = nice_length(w * cell / 3.0)
     px = max(1, round(length / cell * box.scale))
     x0 = box.x0
     d.rectangle([x0, y, x0 + px, y + 5], fill=INK)
@@ -124,7 +124,7 @@ def _scale_bar(d: ImageDraw.ImageDraw, cell: float, w: int, box: PlanBox, y: int
     d.text((x0 + px + 6, y - 5), f"{length:g} m", fill=INK, font=font)
 
 
-def _nice(x: float) -> float:
+def nice_length(x: float) -> float:
     """The largest of 1, 2, 5 x 10^k not above x (x > 0)."""
     k = math.floor(math.log10(x))
     for m in (5, 2, 1):

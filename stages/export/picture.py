@@ -14,7 +14,7 @@ from PIL import Image, ImageDraw, ImageFont
 from stages.common.architect import PAD_M, overlay
 from stages.common.blueprint import Blueprint
 from stages.common.capture import UNKNOWN
-from stages.common.plan_picture import class_color
+from stages.common.plan_picture import class_color, nice_length
 
 LONG_PX = 1400  # the plan's longer side (px)
 MARGIN = 24
@@ -61,18 +61,9 @@ def architect_png(bp: Blueprint, plan: dict, path: Path, title: str = "") -> tup
     # scale bar: a round length that fits the legend's column
     pad = math.ceil(PAD_M / bp.grid.cell)  # overlay's paper round the raster (cells)
     px_per_m = w / ((bp.grid.shape[1] + 2 * pad) * bp.grid.cell)
-    length = _nice(legend_w / px_per_m)
+    length = nice_length(legend_w / px_per_m)
     y += line
     d.rectangle([x, y, x + round(length * px_per_m), y + 8], fill=INK)
     d.text((x, y + 14), f"{length:g} m", fill=INK, font=font)
     img.save(path)
     return img.size
-
-
-def _nice(x: float) -> float:
-    """The largest of 1, 2, 5 x 10^k not above x (x > 0)."""
-    k = math.floor(math.log10(x))
-    for m in (5, 2, 1):
-        if m * 10.0**k <= x:
-            return float(f"{m * 10.0**k:.12g}")
-    return float(f"{10.0**k:.12g}")
