@@ -80,8 +80,8 @@ class Outcome:
 
 def run_capture(job: Job) -> Outcome:
     """The task: `blunf run` of one capture in this worker process (never raises)."""
-    from pipeline.cli import setup_runtime
     from pipeline.run import run
+    from pipeline.runtime import setup_runtime
 
     n = str(job.threads)  # torch reads these on import, the runner when it sizes its threads
     os.environ.update(OMP_NUM_THREADS=n, MKL_NUM_THREADS=n, BLUNF_THREADS=n)

@@ -20,9 +20,9 @@ def main(spec_path: str) -> int:
     import open3d  # noqa: F401
     import pycolmap  # noqa: F401
 
-    from pipeline.cli import setup_runtime
     from pipeline.config import load_config
     from pipeline.run import run
+    from pipeline.runtime import setup_runtime
     from stages.common.io import read_json, write_json
 
     spec = read_json(Path(spec_path))

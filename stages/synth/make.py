@@ -13,9 +13,9 @@ from stages.common.errors import BlunfError
 from stages.common.io import write_depth_png, write_image, write_json, write_label_png
 from stages.synth.layout import room_layout
 from stages.synth.realism import Realism
-from stages.synth.render import Tracer, intrinsics_for, render, top_down
-from stages.synth.room import CLASSES, IGNORE, build_room, scene_mesh
-from stages.synth.shape import camera_paths
+from stages.synth.render import Tracer, camera_paths, intrinsics_for, render, top_down
+from stages.synth.room import CLASSES, IGNORE, scene_mesh
+from stages.synth.shape import build_shaped_room
 
 log = logging.getLogger(__name__)
 
@@ -98,7 +98,7 @@ def _write(
     )
     for sub in subs:
         (root / sub).mkdir(parents=True)
-    room = build_room(seed, ceiling, doors, shape)
+    room = build_shaped_room(seed, ceiling, doors, shape)
     tracer = Tracer(room.parts)
     intr = intrinsics_for(*size)
     poses = camera_paths(room, views, seed)

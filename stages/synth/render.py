@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import open3d as o3d
@@ -298,3 +298,17 @@ def top_down(room: Room, cell: float = 0.02, margin: float = 0.1) -> Blueprint:
     dirs = np.tile([0.0, 0.0, -1.0], (len(xy), 1))
     labels = tracer.cls[tracer.cast(origins, dirs).part].astype(np.uint8).reshape(grid.shape)
     return Blueprint(labels, grid, dict(CLASSES))
+
+
+def camera_paths(room: Room, views: int, seed: int) -> np.ndarray:
+    """Poses [C, 4, 4]: the rectangular room's loop (camera_path); an L's views split
+    between its arms' loops, the first half on the first."""
+    if not room.loops:
+        return camera_path(room, views, seed)
+    n = [views // len(room.loops) + (i < views % len(room.loops)) for i in range(len(room.loops))]
+    parts = [
+        camera_path(replace(room, loop=loop), k, seed + 7919 * i)
+        for i, (loop, k) in enumerate(zip(room.loops, n, strict=True))
+        if k > 0
+    ]
+    return np.concatenate(parts)

@@ -211,15 +211,9 @@ def _ellipse(cx: float, cy: float, a: float, b: float, n: int = 128) -> Polygon:
     return Polygon(np.stack([cx + a * np.cos(t), cy + b * np.sin(t)], axis=1))
 
 
-def build_room(seed: int, ceiling: bool = True, doors: int = 0, shape: str = "rect") -> Room:
-    """The room of a seed: size, walls, furniture, `doors` doors (stages/synth/doors.py);
-    shape "L": an L-shaped room (stages/synth/shape.py)."""
-    if shape == "L":
-        from stages.synth.shape import build_l_room  # it builds on this module
-
-        return build_l_room(seed, ceiling, doors)
-    if shape != "rect":
-        raise ValueError(f"shape must be rect or L, got {shape!r}")
+def build_room(seed: int, ceiling: bool = True, doors: int = 0) -> Room:
+    """The rectangular room of a seed: size, walls, furniture, `doors` doors
+    (stages/synth/doors.py); stages/synth/shape.py builds the L-shaped rooms on it."""
     rng = np.random.default_rng([seed, 1])
     lx, ly = round(float(rng.uniform(4.0, 7.0)), 3), round(float(rng.uniform(3.5, 6.0)), 3)
     height, wall = round(float(rng.uniform(2.5, 2.8)), 3), round(float(rng.uniform(0.1, 0.15)), 3)

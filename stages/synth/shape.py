@@ -12,7 +12,7 @@ so that the boxes tile the wall band without overlapping.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 import trimesh
@@ -28,6 +28,7 @@ from stages.synth.room import (
     _ellipse,
     _jitter,
     _Layout,
+    build_room,
     furnish,
     furniture_parts,
 )
@@ -141,22 +142,6 @@ def arm_loops(lx: float, ly: float, tiles: tuple) -> tuple[tuple[float, float, f
     return tuple(out)
 
 
-def camera_paths(room: Room, views: int, seed: int) -> np.ndarray:
-    """Poses [C, 4, 4]: the rectangular room's loop (render.camera_path); an L's views split
-    between its arms' loops, the first half on the first."""
-    from stages.synth.render import camera_path  # render builds on room, as this module does
-
-    if not room.loops:
-        return camera_path(room, views, seed)
-    n = [views // len(room.loops) + (i < views % len(room.loops)) for i in range(len(room.loops))]
-    parts = [
-        camera_path(replace(room, loop=loop), k, seed + 7919 * i)
-        for i, (loop, k) in enumerate(zip(room.loops, n, strict=True))
-        if k > 0
-    ]
-    return np.concatenate(parts)
-
-
 def draw_gaps(seed: int, n: int, faces: list[Face]) -> list[Door]:
     """`n` doors in distinct walls long enough for one (the rectangle's draw_doors' stream)."""
     rng = np.random.default_rng([seed, 2])
@@ -254,3 +239,12 @@ def build_l_room(seed: int, ceiling: bool = True, doors: int = 0) -> Room:
         len(lay.placed),
     )
     return Room((lx, ly), height, wall, tuple(parts), loops[0], tuple(gaps), poly, loops)
+
+
+def build_shaped_room(seed: int, ceiling: bool = True, doors: int = 0, shape: str = "rect") -> Room:
+    """The room of a seed in the given outline: "rect" (room.build_room) or "L"."""
+    if shape == "L":
+        return build_l_room(seed, ceiling, doors)
+    if shape != "rect":
+        raise ValueError(f"shape must be rect or L, got {shape!r}")
+    return build_room(seed, ceiling, doors)

@@ -14,8 +14,9 @@ from stages.common.blueprint import Blueprint
 from stages.common.capture import UNKNOWN
 from stages.common.io import read_json
 from stages.synth import make_room
+from stages.synth.render import camera_paths
 from stages.synth.room import FLOOR, WALL, _ellipse, build_room
-from stages.synth.shape import camera_paths, ell, faces_of
+from stages.synth.shape import build_shaped_room, ell, faces_of
 
 
 def test_walls_of_an_outline_tile_its_wall_band():
@@ -47,7 +48,7 @@ def test_walls_of_an_outline_tile_its_wall_band():
 
 @pytest.mark.parametrize("seed", [0, 4])
 def test_l_room_loop_furniture_and_doors_inside(seed):
-    room = build_room(seed, doors=2, shape="L")
+    room = build_shaped_room(seed, doors=2, shape="L")
     inside = Polygon(room.polygon)
     assert len(room.polygon) == 6
     assert len(room.loops) == 2 and room.loop == room.loops[0]
