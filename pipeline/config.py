@@ -241,7 +241,8 @@ def stage_view(stage_cfg: Any, impl: str) -> dict:
     """The part of a stage config that an implementation depends on, for its cache key.
 
     Nested sections named after other implementations (e.g. `blueprint.mvr` while running
-    `blunf`) are left out, so changing one method's settings does not rerun the others.
+    `blunf`) are left out, so changing one method's settings does not rerun the others; those
+    the config lists in SHARED (read by every implementation) stay.
     """
     d = dataclasses.asdict(stage_cfg)
     for f in fields(stage_cfg):
@@ -249,6 +250,7 @@ def stage_view(stage_cfg: Any, impl: str) -> dict:
             is_dataclass(getattr(stage_cfg, f.name))
             and f.name != impl
             and f.name in _impl_names(stage_cfg)
+            and f.name not in getattr(stage_cfg, "SHARED", ())
         ):
             d.pop(f.name)
     d["impl"] = impl

@@ -177,6 +177,9 @@ class DepthCheckConfig:
 class NerfConfig:
     """The radiance field, its sampler and its training (defaults: a few minutes on a CPU)."""
 
+    # sections that every implementation reads although one implementation bears their name
+    # (the `stereo` sweep; `grid` sweeps too before training): they stay in each cache key
+    SHARED: ClassVar[tuple[str, ...]] = ("stereo",)
     impl: str = "grid"  # registry key in stages.nerf.IMPLS: "grid" (occupancy-grid sampler)
     field: FieldConfig = dataclasses.field(default_factory=FieldConfig)  # the network
     sampling: SamplingConfig = dataclasses.field(
