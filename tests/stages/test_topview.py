@@ -92,16 +92,7 @@ def test_matches_a_per_cell_loop_on_random_points():
     cell, band, m = 0.15, 0.3, 3
     got = cell_keep(xyz, lab, cell, band, m)
 
-    want = np.ones(n, bool)
-    ij = np.floor(xyz[:, :2] / cell).astype(int)
-    for key in {tuple(k) for k in ij}:
-        idx = np.flatnonzero((ij == key).all(axis=1))
-        if len(idx) < m:
-            continue
-        top = np.sort(xyz[idx, 2])[::-1][m - 1]
-        for c in np.unique(lab[idx]):
-            of_c = idx[lab[idx] == c]
-            want[of_c] = xyz[of_c, 2].max() >= top - band
+    want = _reference_keep(xyz, lab, cell, band, m)
     assert 0 < (~want).sum() < n  # the case exercises both outcomes
     np.testing.assert_array_equal(got, want)
 
@@ -138,17 +129,24 @@ def test_ties_at_the_top_count_as_several_points():
     xyz = np.c_[rng.uniform(-1, 1, (n, 2)), np.round(rng.uniform(0, 2, n) / 0.05) * 0.05]
     lab = rng.choice(np.array([0, 7, 200, 255], np.uint8), n)
     cell, band = 0.2, 0.05
-    ij = np.floor(xyz[:, :2] / cell).astype(int)
     for m in (2, 3):
         got = cell_keep(xyz, lab, cell, band, m)
-        want = np.ones(n, bool)
-        for key in {tuple(k) for k in ij}:
-            idx = np.flatnonzero((ij == key).all(axis=1))
-            if len(idx) < m:
-                continue
-            top = np.sort(xyz[idx, 2])[::-1][m - 1]
-            for c in np.unique(lab[idx]):
-                of_c = idx[lab[idx] == c]
-                want[of_c] = xyz[of_c, 2].max() >= top - band
+        want = _reference_keep(xyz, lab, cell, band, m)
         assert 0 < (~want).sum() < n
         np.testing.assert_array_equal(got, want)
+
+
+def _reference_keep(xyz: np.ndarray, lab: np.ndarray, cell: float, band: float, m: int):
+    """cell_keep written plainly, cell by cell: a class's points in a cell with at least m
+    points stay when its highest point is within `band` of the cell's m-th highest."""
+    want = np.ones(len(xyz), bool)
+    ij = np.floor(xyz[:, :2] / cell).astype(int)
+    for key in {tuple(k) for k in ij}:
+        idx = np.flatnonzero((ij == key).all(axis=1))
+        if len(idx) < m:
+            continue
+        top = np.sort(xyz[idx, 2])[::-1][m - 1]
+        for c in np.unique(lab[idx]):
+            of_c = idx[lab[idx] == c]
+            want[of_c] = xyz[of_c, 2].max() >= top - band
+    return want
