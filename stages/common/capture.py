@@ -166,6 +166,17 @@ class Capture:
         d["gt"] = absp(d.get("gt"))
         return Capture.from_json(d)
 
+    @staticmethod
+    def load_posed(path: Path, who: str) -> Capture:
+        """Read frames.json and refuse it unless it has frames, each with a pose (`who` names
+        the step that needs them in the error)."""
+        cap = Capture.load(path)
+        if not cap.frames:
+            raise BlunfError(f"{path}: no frames")
+        if not cap.has_poses:
+            raise BlunfError(f"{path}: {who} needs a pose for every frame")
+        return cap
+
 
 def _find(folder: Path, stem: str, exts: tuple[str, ...]) -> Path | None:
     """The file of this stem in folder, None when there is none; two (0003.png and

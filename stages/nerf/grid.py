@@ -21,7 +21,6 @@ import numpy as np
 import torch
 
 from stages.common.capture import Capture
-from stages.common.errors import BlunfError
 from stages.common.io import write_depth_npy, write_image, write_json
 from stages.common.progress import track
 from stages.common.radiance.field import save_field
@@ -50,11 +49,7 @@ def run(cfg: NerfConfig, inputs: NerfInputs, out: Path) -> NerfOutputs:
     """Train on the capture's posed frames; write the model, stats and rendered depth."""
     log.debug("nerf/grid: %s", cfg)  # the full config: meta.json
     out = Path(out)
-    cap = Capture.load(inputs.frames)
-    if not cap.frames:
-        raise BlunfError(f"{inputs.frames}: no frames")
-    if not cap.has_poses:
-        raise BlunfError(f"{inputs.frames}: the NeRF needs a pose for every frame")
+    cap = Capture.load_posed(inputs.frames, "the NeRF")
     t_start = time.perf_counter()
     with torch_threads(cfg.threads):
         torch.manual_seed(cfg.seed)

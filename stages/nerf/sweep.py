@@ -33,11 +33,7 @@ def run(cfg: NerfConfig, inputs: NerfInputs, out: Path) -> StereoOutputs:
     """Sweep every posed frame against its neighbours; write the checked depth maps."""
     log.debug("nerf/stereo: %s", cfg)  # the full config: meta.json
     out = Path(out)
-    cap = Capture.load(inputs.frames)
-    if not cap.frames:
-        raise BlunfError(f"{inputs.frames}: no frames")
-    if not cap.has_poses:
-        raise BlunfError(f"{inputs.frames}: stereo needs a pose for every frame")
+    cap = Capture.load_posed(inputs.frames, "stereo")
     t0 = time.perf_counter()
     images, sparse = [], []
     for f in cap.frames:
