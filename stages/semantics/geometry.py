@@ -86,6 +86,7 @@ def run(cfg: SemanticsConfig, inputs: SemanticsInputs, out: Path) -> SemanticsOu
         "noise_clusters": seg.noise_clusters,  # labelled unknown
         "noise_triangles": seg.noise_triangles,  # labelled unknown
         "floating_clusters": seg.floating_clusters,  # labelled unknown
+        "object_base_z": round(seg.object_base_z, 3),  # clusters stand within object_max_gap of it
         "outside_triangles": seg.outside_triangles,  # objects outside the room: unknown
         "area_m2": {
             name: round(float(seg.area[seg.cls == k].sum()), 3)

@@ -55,6 +55,7 @@ class Segmentation:
     floating_clusters: int = 0  # clusters above object_max_gap (unknown)
     outside_triangles: int = 0  # object triangles outside the room (outside_unknown)
     floor_z: float = 0.0  # median height of the floor triangles (0 when no floor was found)
+    object_base_z: float = 0.0  # height object clusters' lowest points are measured from
 
 
 def triangles(verts: np.ndarray, tris: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -248,13 +249,23 @@ def _objects(
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector((cells + 0.5) * vox))
     lab = np.asarray(pc.cluster_dbscan(cfg.cluster_eps, cfg.cluster_min_points), np.int64)[inv]
     seg.noise_triangles = int((lab < 0).sum())
+    # Without a floor plane, z = 0 is only the align stage's estimate, and from photos alone
+    # the floor and the low fronts that reach it are often not reconstructed at all (plain
+    # surfaces: no stereo): the 7-Scenes kitchen's photos-only mesh starts 0.44 m up, at the
+    # counters, and every cluster "floated" into unknown. There the clusters are measured
+    # from the lowest surface the mesh holds (1st percentile), so what stands lowest still
+    # counts as standing and what hangs above it (wall cabinets, lamps) still does not.
+    base = seg.floor_z
+    if not (seg.cls == FLOOR).any():
+        base = max(base, float(np.percentile(c[rest, 2], 1)))
+    seg.object_base_z = base
     found = []
     for k in np.unique(lab[lab >= 0]):
         members = rest[lab == k]
         a = float(area[members].sum())
         if a < cfg.object_min_area:
             seg.noise_clusters += 1
-        elif c[members, 2].min() - seg.floor_z > cfg.object_max_gap:
+        elif c[members, 2].min() - base > cfg.object_max_gap:
             seg.floating_clusters += 1
         else:
             found.append((a, int(members.min()), members))
