@@ -130,6 +130,8 @@ def main(argv: list[str] | None = None) -> int:
         format="%(asctime)s %(name)s: %(message)s",
         datefmt="%H:%M:%S",
     )
+    if not args.verbose:  # ezdxf logs a line per DXF dictionary it creates: 26 per run
+        logging.getLogger("ezdxf").setLevel(logging.WARNING)
     # bars on a terminal, else a log line every ~10 % (stages/common/progress.py)
     configure_progress("off" if getattr(args, "quiet", False) else "auto")
     try:

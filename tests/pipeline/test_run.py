@@ -129,6 +129,22 @@ def test_module_entry_point_matches_console_script(tmp_path):
     assert r.stderr.strip().startswith("blunf: error:") and "Traceback" not in r.stderr
 
 
+def test_a_run_logs_a_short_story(tiny_room, tmp_path):
+    """A whole run on the console: a line or two per stage, none from the libraries' chatter
+    (ezdxf announced each of the 13 DXF dictionaries it created, twice per run)."""
+    out = tmp_path / "run"
+    r = subprocess.run(
+        [sys.executable, "-m", "pipeline", "run", str(tiny_room), "--out", str(out), *FAST],
+        capture_output=True,
+        text=True,
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    lines = r.stderr.strip().splitlines()
+    assert not [x for x in lines if "ezdxf" in x or "ACAD" in x], lines
+    stages = len(json.loads((out / "report.json").read_text())["stages"])
+    assert len(lines) <= 5 * stages, "\n".join(lines)
+
+
 def test_killed_stage_leaves_no_entry(tiny_room, tmp_path):
     """A crash inside a stage leaves only a temp folder, swept on the next run."""
     from pipeline.cache import Cache
