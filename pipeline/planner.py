@@ -69,15 +69,22 @@ def _derive_labels(cfg: Config) -> bool:
 
 
 def _depth_step(cfg: Config, missing: str, tracks: bool) -> Step:
-    """The photos-only depth step: plane-sweep stereo alone (the nerf stage's `stereo`
-    implementation, no field trained) unless the config asks the field to fill stereo's holes
-    or turns stereo off, or there are no SfM tracks to bound the sweep (poses given: the
-    field then learns depth from the photos alone). A field for edits or the NeRF top view is
-    the nerf step's, trained later on the fused depth: it never needs this step's field."""
+    """The photos-only depth step: plane-sweep stereo (the nerf stage's `stereo`
+    implementation), which trains a field to fill stereo's holes only when the sweep covers
+    too little of the views (`nerf.stereo.field_fill` auto; off: never), unless the config
+    asks for the field always (field_fill true: the `grid` implementation) or turns stereo
+    off, or there are no SfM tracks to bound the sweep (poses given: the field then learns
+    depth from the photos alone). A field for edits or the NeRF top view is the nerf step's,
+    trained later on the fused depth: it never needs this step's field."""
     st = cfg["nerf"].stereo
     head = f"no depth (e.g. frame {missing!r}): "
-    if st.enabled and not st.field_fill and tracks:
-        why = "plane-sweep stereo among the photos, no field trained (nerf.stereo.field_fill off)"
+    if st.enabled and st.field_fill is not True and tracks:
+        why = "plane-sweep stereo among the photos, " + (
+            "no field trained (nerf.stereo.field_fill off)"
+            if st.field_fill is False
+            else "a field trained to fill its holes only if it covers under "
+            f"{100 * st.field_fill_below:.0f} % of the pixels (nerf.stereo.field_fill auto)"
+        )
         return Step("depth", "nerf", True, head + why, work=("nerf", "stereo"))
     why = (
         "the NeRF, trained on the photos"

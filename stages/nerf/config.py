@@ -11,7 +11,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
-from typing import ClassVar
+from typing import ClassVar, Literal
 
 from stages.common.errors import BlunfError
 from stages.common.radiance.config import FieldConfig, SamplingConfig
@@ -125,14 +125,17 @@ class StereoConfig:
     fuse: bool = True  # depth for fusion: the stereo reading where there is one (full
     #                    resolution), the field's render elsewhere (held-out views: the
     #                    render only)
-    field_fill: bool = True  # photos only: train the field on the stereo depth and fill
-    #                 stereo's holes with its render (the `grid` path below); off: the
-    #                 stereo readings alone feed fusion and no field trains unless an edit or
-    #                 the NeRF top view asks for one (nerf/sweep.py). Measured: the demo room
-    #                 (60 views 320x240, phone.yaml) fwIoU 84.6 off against 84.5 on with 0.38x
-    #                 the depth step's CPU time; the real 7-Scenes kitchen (20 frames at 240
-    #                 px) 0.0 off against 30.3 on (stereo gives depth to 27 % of its pixels:
-    #                 white walls and floor), so on by default
+    field_fill: bool | Literal["auto"] = "auto"  # photos only: train the field on the
+    #                 stereo depth and fill stereo's holes with its render (grid.fit); false:
+    #                 the stereo readings alone feed fusion and no field trains unless an
+    #                 edit or the NeRF top view asks for one (nerf/sweep.py); auto: the
+    #                 field trains only when stereo gives depth to fewer than
+    #                 field_fill_below of the pixels. Measured: the demo room (60 views
+    #                 320x240, phone.yaml; stereo covers ~79 %) fwIoU 84.6 off against 84.5
+    #                 on with 0.38x the depth step's CPU time; the real 7-Scenes kitchen (20
+    #                 frames at 240 px; stereo covers 19 %: white walls and floor) 0.1 off
+    #                 against 30.8 on
+    field_fill_below: float = 0.5  # auto: the stereo coverage under which the field trains
     check: int = 1  # ... a rendered reading is kept only where this many other views'
     #                 stereo readings agree with it (tol) and none sees through it (0, or
     #                 stereo too sparse to train on: every rendered reading). Demo room,
@@ -157,6 +160,10 @@ class StereoConfig:
             raise BlunfError(f"nerf.stereo.window must be odd and >= 3, got {self.window}")
         if not 0 < self.max_cost <= 2:
             raise BlunfError(f"nerf.stereo.max_cost must be in (0, 2], got {self.max_cost}")
+        if not 0.0 <= self.field_fill_below <= 1.0:
+            raise BlunfError(
+                f"nerf.stereo.field_fill_below must be in [0, 1], got {self.field_fill_below}"
+            )
         if self.check < 0:
             raise BlunfError(f"nerf.stereo.check: must be >= 0, got {self.check}")
 

@@ -48,8 +48,15 @@ log = logging.getLogger(__name__)
 def run(cfg: NerfConfig, inputs: NerfInputs, out: Path) -> NerfOutputs:
     """Train on the capture's posed frames; write the model, stats and rendered depth."""
     log.debug("nerf/grid: %s", cfg)  # the full config: meta.json
-    out = Path(out)
-    cap = Capture.load_posed(inputs.frames, "the NeRF")
+    return fit(cfg, Capture.load_posed(inputs.frames, "the NeRF"), Path(out))
+
+
+def fit(
+    cfg: NerfConfig, cap: Capture, out: Path, swept: dict[int, np.ndarray] | None = None
+) -> NerfOutputs:
+    """Train on `cap`'s posed frames into `out`. `swept` ({view index: stereo depth}, from
+    the stereo implementation's sweep of every view) stands for this stage's own sweep of
+    the training views when the capture's depth is sparse."""
     t_start = time.perf_counter()
     with torch_threads(cfg.threads):
         torch.manual_seed(cfg.seed)
@@ -62,10 +69,14 @@ def run(cfg: NerfConfig, inputs: NerfInputs, out: Path) -> NerfOutputs:
             100 * coverage,
             "sparse" if photos_only else "dense",
         )
-        stereo: dict | None = None
-        swept: dict[int, np.ndarray] = {}  # view index -> checked stereo depth [H, W]
-        if photos_only and cfg.stereo.enabled and views.depth[tr[0]] is not None:
+        stereo: dict | None = None  # swept: view index -> checked stereo depth [H, W]
+        if photos_only and swept is not None:
+            stereo = {"swept_by": "stereo"}  # its facts: the stereo implementation's
+            swept = _take_depth(cap, views, {i: swept[i] for i in tr})
+        elif photos_only and cfg.stereo.enabled and views.depth[tr[0]] is not None:
             stereo, swept = _stereo_depth(cap, views, tr, cfg)
+        else:
+            swept = {}
         dense = depth_coverage(views, tr) >= cfg.train.dense_depth  # trains as with dense depth
         pts = depth_points(cap, views, tr, cfg.box.depth_stride if dense else 1)
         lo, hi = scene_box(cap.poses()[:, :3, 3], pts, cfg)
@@ -158,10 +169,7 @@ def _stereo_depth(
         sparse,
         cfg.stereo,
     )
-    # the field trains on every pixel: a sweep at a lower resolution, block by block
-    depths = [d if d.shape == s else upsample_depth(d, s) for d, s in zip(depths, hw, strict=True)]
-    for i, d, sp in zip(idx, depths, sparse, strict=True):
-        views.depth[i] = torch.from_numpy(np.where(d > 0, d, sp).astype(np.float32).reshape(-1))
+    swept = _take_depth(cap, views, dict(zip(idx, depths, strict=True)))
     facts["seconds"] = round(time.perf_counter() - t0, 3)
     log.info(
         "nerf: stereo depth on %.1f %% of training pixels (%.1f %% matched) in %.1f s",
@@ -169,4 +177,20 @@ def _stereo_depth(
         100 * facts["matched"],
         facts["seconds"],
     )
-    return facts, dict(zip(idx, depths, strict=True))
+    return facts, swept
+
+
+def _take_depth(cap: Capture, views: Views, swept: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+    """Each swept view's depth becomes its stereo depth where it has one (upsampled to the
+    view's pixels: the field trains on every pixel), its SfM track depth elsewhere. Returns
+    the stereo depths at the views' pixels."""
+    out = {}
+    for i, d in swept.items():
+        k = cap.frames[i].intrinsics
+        hw = (k.height, k.width)
+        full = d if d.shape == hw else upsample_depth(d, hw)
+        sp = views.depth[i].view(hw).numpy()  # type: ignore[union-attr]
+        depth = np.where(full > 0, full, sp).astype(np.float32)
+        views.depth[i] = torch.from_numpy(depth.reshape(-1))
+        out[i] = full
+    return out

@@ -21,9 +21,10 @@ import numpy as np
 
 from stages.common.capture import Capture
 from stages.common.errors import BlunfError
-from stages.common.io import read_depth, read_image, write_depth_npy, write_json
+from stages.common.io import read_depth, read_image, read_json, write_depth_npy, write_json
 from stages.common.threads import torch_threads
-from stages.nerf.config import NerfConfig, NerfInputs, StereoOutputs
+from stages.nerf.config import NerfConfig, NerfInputs, StereoConfig, StereoOutputs
+from stages.nerf.grid import fit
 from stages.nerf.stereo import sweep_depths
 
 log = logging.getLogger(__name__)
@@ -66,14 +67,43 @@ def run(cfg: NerfConfig, inputs: NerfInputs, out: Path) -> StereoOutputs:
         path = outs.depth / f"{f.stem}.npy"
         write_depth_npy(path, d)
         frames.append(replace(f, depth=path))
-    replace(cap.with_frames(frames), depth_scale=1.0, depth_invalid=()).save(outs.frames)
     facts["frames"] = len(frames)
-    facts["seconds"] = round(time.perf_counter() - t0, 3)
-    write_json(outs.stats, facts)
+    facts["sweep_seconds"] = round(time.perf_counter() - t0, 3)
+    fill = field_fill_needed(cfg.stereo, facts["kept"])
+    facts["field_fill"] = fill
     log.info(
-        "nerf/stereo: depth on %.1f %% of the pixels (%.1f %% matched) in %.1f s, no field trained",
+        "nerf/stereo: depth on %.1f %% of the pixels (%.1f %% matched) in %.1f s; %s",
         100 * facts["kept"],
         100 * facts["matched"],
-        facts["seconds"],
+        facts["sweep_seconds"],
+        fill,
     )
+    if fill.startswith("field"):  # fit() keeps the stereo readings and renders the rest
+        (out / "field").mkdir()
+        field = fit(cfg, cap, out / "field", dict(enumerate(depths)))
+        facts["field"] = read_json(field.stats)
+        Capture.load(field.frames).save(outs.frames)
+    else:
+        replace(cap.with_frames(frames), depth_scale=1.0, depth_invalid=()).save(outs.frames)
+    facts["seconds"] = round(time.perf_counter() - t0, 3)
+    write_json(outs.stats, facts)
     return outs
+
+
+def field_fill_needed(st: StereoConfig, kept: float) -> str:
+    """Whether the field trains to fill stereo's holes, and why (a line for the log and the
+    report): always with field_fill true, never with false; with "auto" when stereo gave
+    depth to fewer than field_fill_below of the pixels."""
+    if st.field_fill is True:
+        return "field trained to fill the rest (nerf.stereo.field_fill)"
+    if st.field_fill is False:
+        return "no field trained (nerf.stereo.field_fill off)"
+    if kept < st.field_fill_below:
+        return (
+            f"field trained to fill the rest: stereo covers {100 * kept:.0f} % of the pixels, "
+            f"under nerf.stereo.field_fill_below {100 * st.field_fill_below:.0f} %"
+        )
+    return (
+        f"no field trained: stereo covers {100 * kept:.0f} % of the pixels "
+        f"(nerf.stereo.field_fill_below {100 * st.field_fill_below:.0f} %)"
+    )

@@ -73,10 +73,21 @@ def test_photos_only_depth_is_stereo_alone_unless_a_field_is_asked_for(tmp_path)
     # depth
     plan = make_plan(phone, load_config(sets=alone), tmp_path / "spec.yaml")
     assert plan.get("depth").work == ("nerf", "stereo") and plan.get("nerf").run
-    # the default: the field fills stereo's holes, so the depth step trains it
+    # the default: stereo first, the field only if stereo covers too little (decided by the
+    # stereo implementation once it has swept: nerf/sweep.py)
     plan = make_plan(phone, default_config())
     step = plan.get("depth")
+    assert step.work == ("nerf", "stereo") and "field_fill auto" in step.reason
+    assert "under 50 %" in step.reason
+    # field_fill true: the field always, trained by the grid implementation
+    plan = make_plan(phone, load_config(sets=["nerf.stereo.field_fill=true"]))
+    step = plan.get("depth")
     assert step.work == ("nerf", "grid") and "nerf.stereo.field_fill" in step.reason
+    # not a boolean nor auto: one line naming the key
+    with pytest.raises(BlunfError, match="nerf.stereo.field_fill"):
+        load_config(sets=["nerf.stereo.field_fill=sometimes"])
+    with pytest.raises(BlunfError, match="field_fill_below"):
+        load_config(sets=["nerf.stereo.field_fill_below=1.5"])
     # stereo off: only the field can give depth
     plan = make_plan(phone, load_config(sets=["nerf.stereo.enabled=false"]))
     assert plan.get("depth").work == ("nerf", "grid")

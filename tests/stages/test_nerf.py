@@ -384,6 +384,39 @@ def test_stereo_gives_the_sparse_path_dense_depth(tiny_room, tmp_path):
     assert taken > 0
 
 
+def test_stereo_implementation_trains_the_field_only_when_stereo_covers_too_little(
+    tiny_room, tmp_path
+):
+    # the photos-only default (nerf.stereo.field_fill auto): the stereo implementation sweeps
+    # every view, then trains the field to fill the holes only under field_fill_below. At
+    # 96x72 the sweep keeps ~14 % of the pixels: under 50 % the field trains, under 10 % not.
+    cap = read_layout(tiny_room)
+    sparse = _sparse_copy(cap, tmp_path / "sparse", keep=0.01)
+    cfg = tune(FAST, train__max_steps=DENSE_STEPS, depth_render_scale=1)
+    got = {}
+    for below in (0.5, 0.1):
+        folder = tmp_path / f"below_{below}"
+        folder.mkdir()
+        c = tune(cfg, stereo__field_fill="auto", stereo__field_fill_below=below)
+        outs = IMPLS["stereo"](c, NerfInputs(_frames(sparse, tmp_path)), folder)
+        got[below] = (read_json(outs.stats), Capture.load(outs.frames), folder)
+    st, frames, folder = got[0.5]
+    assert 0.1 < st["kept"] < 0.5
+    assert st["field_fill"].startswith("field trained") and "under" in st["field_fill"]
+    assert (folder / "field" / "model.pt").is_file() and st["field"]["steps"] == DENSE_STEPS
+    # fusion's depth: the field's render, which fills stereo's holes
+    filled = swept = 0
+    for f in frames.frames:
+        assert Path(f.depth).parent == folder / "field" / "depth"
+        filled += int((np.load(f.depth) > 0).sum())
+        swept += int((np.load(folder / "depth" / f"{f.stem}.npy") > 0).sum())
+    assert filled > 2 * swept, (filled, swept)
+    st, frames, folder = got[0.1]
+    assert st["field_fill"].startswith("no field trained") and "field" not in st
+    assert not (folder / "field").exists()
+    assert all(Path(f.depth).parent == folder / "depth" for f in frames.frames)
+
+
 def test_upsample_depth_repeats_blocks_and_edges():
     d = np.array([[1.0, 2.0], [3.0, 0.0]], np.float32)
     got = upsample_depth(d, (5, 5))  # 2 x 2 blocks, the fifth row and column repeat the fourth
