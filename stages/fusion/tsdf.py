@@ -63,7 +63,7 @@ def run(cfg: FusionConfig, inputs: FusionInputs, out: Path) -> FusionOutputs:
         raise BlunfError(_nothing(cap, cfg, inputs.frames))
     empty = [f.stem for f, bc in zip(cap.frames, coords, strict=True) if bc is None]
     if empty:
-        notes.append(f"{len(empty)} frames without valid depth skipped (first {empty[0]!r})")
+        notes.append(f"{len(empty)} frames with no fusable depth skipped (first {empty[0]!r})")
         log.warning("fusion: %s", notes[-1])
 
     vbg = _grid(cfg, n_blocks)
@@ -185,7 +185,7 @@ def _depth(f: Frame, cap: Capture, cfg: FusionConfig) -> tuple[np.ndarray, Intri
 
 
 def _blocks(cap: Capture, cfg: FusionConfig) -> tuple[list[o3c.Tensor | None], int, float]:
-    """Per frame the voxel blocks its depth touches ([M, 3] int32; None without valid depth),
+    """Per frame the voxel blocks its depth touches ([M, 3] int32; None when it touches none),
     the size of their union, and the mean fraction of valid depth pixels."""
     probe = _grid(cfg, 1)  # only computes block coordinates, stores nothing
     coords: list[o3c.Tensor | None] = []
@@ -197,9 +197,18 @@ def _blocks(cap: Capture, cfg: FusionConfig) -> tuple[list[o3c.Tensor | None], i
         if not valid[-1]:  # Open3D aborts on a frame that touches no block
             coords.append(None)
             continue
-        bc = probe.compute_unique_block_coordinates(
-            _image(depth), o3d_intrinsic(k), o3d_extrinsic(f), 1.0, cfg.depth_max, cfg.trunc_voxels
-        )
+        try:
+            bc = probe.compute_unique_block_coordinates(
+                _image(depth),
+                o3d_intrinsic(k),
+                o3d_extrinsic(f),
+                1.0,
+                cfg.depth_max,
+                cfg.trunc_voxels,
+            )
+        except RuntimeError:  # "No block is touched": too few readings for Open3D's probe
+            coords.append(None)
+            continue
         coords.append(bc)
         b = bc.numpy().astype(np.int64) + 2**20  # [M, 3] block coordinates, made >= 0
         seen.update((b[:, 0] << 42 | b[:, 1] << 21 | b[:, 2]).tolist())

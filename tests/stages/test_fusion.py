@@ -193,6 +193,26 @@ def test_frame_without_depth_or_with_bad_pose_is_named(tmp_path):
         fuse(tmp_path / "nanpose.json", tmp_path / "o2")
 
 
+def test_a_frame_whose_few_readings_touch_no_block_is_skipped(tmp_path):
+    """Open3D's block probe reads every 4th pixel and aborts the whole fusion when a frame
+    touches no block: a rendered photos-only frame with a handful of readings off that grid
+    (seen in a loaded run whose field trained 35 steps) is skipped and named, as a frame
+    without depth is."""
+    frames = room_capture(tmp_path / "cap")
+    cap = Capture.load(frames)
+    fs = list(cap.frames)
+    d = read_depth(fs[2].depth, cap.depth_scale)
+    few = np.zeros_like(d)
+    few[13, 21], few[22, 17] = d[13, 21], d[22, 17]  # off the probe's 4-pixel grid
+    assert (few > 0).sum() == 2
+    write_depth_png(tmp_path / "few.png", few)  # millimetres, as the room's other frames
+    fs[2] = replace(fs[2], depth=tmp_path / "few.png")
+    cap.with_frames(fs).save(tmp_path / "few.json")
+    outs = fuse(tmp_path / "few.json", tmp_path / "out")
+    facts = json.loads(outs.stats.read_text())
+    assert facts["frames_fused"] == len(fs) - 1 and "'v02'" in facts["notes"], facts
+
+
 def test_all_depth_invalid_is_an_error(tmp_path):
     frames = room_capture(tmp_path / "cap")
     # every reading beyond depth_max: nothing to fuse
