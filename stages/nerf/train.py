@@ -32,7 +32,8 @@ log = logging.getLogger(__name__)
 def train(
     cfg: NerfConfig, model: RadianceField, rays: Rays, held: Rays | None, dense: bool = True
 ) -> dict:
-    """Optimise the model on `rays`; stop on a held-out plateau, the time budget or max_steps.
+    """Optimise the model on `rays`; stop on a held-out plateau, the time budget (once past
+    min_steps) or max_steps.
     `dense`: the depth covers most pixels (sensor or fused), not just SfM tracks."""
     if cfg.losses.rgb not in RGB_LOSSES:
         raise BlunfError(f"nerf.losses.rgb must be one of {RGB_LOSSES}, got {cfg.losses.rgb!r}")
@@ -63,7 +64,7 @@ def train(
         if tc.max_steps > 0 and step >= tc.max_steps:
             stop = "steps"
             break
-        if tc.time_budget > 0 and train_s >= tc.time_budget:
+        if tc.time_budget > 0 and train_s >= tc.time_budget and step >= tc.min_steps:
             stop = "time"
             break
         t0, c0 = time.perf_counter(), time.process_time()

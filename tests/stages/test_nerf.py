@@ -87,6 +87,17 @@ def dense_run(room8, tmp_path_factory) -> tuple[Capture, NerfOutputs]:
     return cap, IMPLS["grid"](cfg, NerfInputs(_frames(cap, tmp)), tmp / "out")
 
 
+def test_time_budget_stops_training_only_past_min_steps(room8, tmp_path):
+    # a budget spent before the first step (a loaded machine, in the extreme) still trains
+    # min_steps; the stop is the budget's
+    cfg = tune(FAST, train__max_steps=0, train__time_budget=1e-6, train__min_steps=12)
+    outs = IMPLS["grid"](cfg, NerfInputs(_frames(read_layout(room8), tmp_path)), tmp_path)
+    stats = read_json(outs.stats)
+    assert stats["steps"] == 12 and stats["stop_reason"] == "time"
+    with pytest.raises(BlunfError, match="min_steps"):
+        tune(FAST, train__min_steps=-1)
+
+
 # ---- dense depth ---------------------------------------------------------------------------
 
 
