@@ -57,7 +57,9 @@ class SemanticsConfig:
     # filled at z = 0, the align stage's floor, inside the convex hull of the surface and the
     # cameras, by rays pointing at least floor_fill_min_drop_deg below the horizontal that
     # cross within floor_fill_reach metres of the camera along the floor (floorfill.py).
-    # A mesh with a floor plane is filled as above, unbounded by these
+    # A mesh with a floor plane is filled as above, unbounded by these. 7-Scenes kitchen from
+    # its photos (20 frames at 240 px, no floor in its mesh): floor IoU 0 -> 40.8, fwIoU
+    # 30.8 -> 40.8; 20 or 30 degrees and 3 m or more: the same within 0.1, 40 degrees 39.1
     floor_fill_no_plane: bool = True
     floor_fill_min_drop_deg: float = 30.0
     floor_fill_reach: float = 3.0
