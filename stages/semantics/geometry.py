@@ -207,9 +207,10 @@ def _room(
     """Where the floor may be seen through the surface and how far a ray may reach it: the
     footprint of the floor and wall triangles, any reach. Without a floor plane (z = 0, the
     align stage's floor, stands in for it) the convex hull of the surface and the cameras,
-    within the config's reach (floorfill.py), or nothing when floor_fill_no_plane is off."""
-    if not (seg.cls == FLOOR).any():
-        if not cfg.floor_fill_no_plane:
+    within the config's reach (floorfill.py), or nothing when floor_fill_no_plane is off; with
+    floor_fill_hull, that hull and reach at the found floor's height too."""
+    if cfg.floor_fill_hull or not (seg.cls == FLOOR).any():
+        if not (cfg.floor_fill_no_plane or (seg.cls == FLOOR).any()):
             return None, None
         c = triangles(verts, tris)[0]  # [T, 3] centres
         cams = np.array([f.pose[:3, 3] for f in cap.frames if f.pose is not None])  # [N, 3]

@@ -133,3 +133,17 @@ def test_a_mesh_with_a_floor_plane_is_filled_as_before(tmp_path):
         for f, g in zip(first.frames, cap.frames, strict=True):
             np.testing.assert_array_equal(read_label(f.label), read_label(g.label))
             np.testing.assert_array_equal(np.load(f.depth), np.load(g.depth))
+
+
+def test_floor_fill_hull_bounds_a_found_floor_by_the_hull_and_the_walls(tmp_path):
+    """semantics.floor_fill_hull: the holed room's floor (found) is filled inside the hull of
+    the surface and the cameras; its walls still stop the rays through the doorway."""
+    inputs = _holed_room(tmp_path)
+    base, _ = _run(inputs, tmp_path / "base", SemanticsConfig())
+    cap, stats = _run(inputs, tmp_path / "hull", SemanticsConfig(floor_fill_hull=True))
+    assert stats["floor_fill"]["room"].startswith("hull")
+    assert stats["floor_fill"]["room_m2"] == pytest.approx(4.0 * 3.0, rel=0.1)
+    down, door, _ = (read_label(f.label) for f in cap.frames)
+    assert (down[10:14, 14:18] == FLOOR).all()  # straight down into the hole
+    np.testing.assert_array_equal(door, read_label(base.frames[1].label))  # the doorway
+    assert (door[11:13, 15:17] == UNKNOWN).all()
