@@ -61,8 +61,8 @@ class SemanticsConfig:
     # its photos (20 frames at 240 px, no floor in its mesh): floor IoU 0 -> 40.8, fwIoU
     # 30.8 -> 40.8; 20 or 30 degrees and 3 m or more: the same within 0.1, 40 degrees 39.1
     floor_fill_no_plane: bool = True
-    floor_fill_min_drop_deg: float = 30.0
-    floor_fill_reach: float = 3.0
+    floor_fill_min_drop_deg: float = 30.0  # degrees below the horizontal
+    floor_fill_reach: float = 3.0  # metres from the camera, along the floor
     # with a floor plane too, the room is that hull within that reach (the found walls still
     # stop rays) rather than the floor and wall triangles' footprint, which is small where
     # stereo found the floor in patches. Replica office0 from its photos (30 frames at 240 px,
