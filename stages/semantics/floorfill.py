@@ -12,6 +12,17 @@ left the room through a hole in the wall (a doorway, a window, an unseen patch):
 beyond is not this room's. So is a crossing outside the room's footprint: the cells
 (`cell` metres) holding floor or wall triangle centres, closed by one cell and with their
 enclosed holes filled (scipy.ndimage).
+
+A mesh with no floor plane (photos alone: stereo finds nothing on a plain floor; the
+7-Scenes kitchen's fused surface starts at the counters) gives neither a floor height nor a
+footprint. There the floor is the align stage's, z = 0 (the sparse SfM points' lowest
+surface), and the room is the convex hull of the fused surface and the cameras (the free
+space the views look through lies between them; a concave room's hull takes in the corner
+outside its walls). Without walls to stop rays there, a `Reach` bounds each ray: it must
+point down at least `min_drop_deg` (a grazing ray's crossing moves far for a small error in
+the floor's height or the pose) and cross within `max_dist` metres of the camera along the
+floor. A ray that passes under a counter through a cabinet front stereo missed paints
+floor under it; the project stage's top view lets the counter top seen above it win.
 """
 
 from __future__ import annotations
@@ -20,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
+from skimage.morphology import convex_hull_image
 
 from stages.semantics.segment import in_extent
 
@@ -34,10 +46,12 @@ class Footprint:
     mask: np.ndarray
 
     @classmethod
-    def of(cls, xy: np.ndarray, cell: float, max_cells: int = 4_000_000) -> Footprint:
+    def of(cls, xy: np.ndarray, cell: float, max_cells: int = 4_000_000, hull: bool = False
+           ) -> Footprint:  # fmt: skip
         """The hole-filled, one-cell-closed occupancy of points xy [N, 2] (N >= 1), on cells
         of `cell` metres, or coarser ones when a stray point far out would need more than
-        about `max_cells` (memory stays bounded; the walls still bound the fill)."""
+        about `max_cells` (memory stays bounded; the walls still bound the fill). With
+        `hull`, the occupancy's convex hull instead."""
         xy = np.asarray(xy, np.float64)
         span = np.ptp(xy, axis=0) + 4 * cell  # [2]
         cell = max(cell, float(np.sqrt(span[0] * span[1] / max_cells)))
@@ -46,6 +60,8 @@ class Footprint:
         shape = (int(ij[:, 1].max()) + 3, int(ij[:, 0].max()) + 3)
         occ = np.zeros(shape, bool)
         occ[ij[:, 1], ij[:, 0]] = True
+        if hull:
+            return cls(origin, float(cell), convex_hull_image(occ))
         occ = ndimage.binary_closing(occ, np.ones((3, 3), bool))
         return cls(origin, float(cell), ndimage.binary_fill_holes(occ))
 
@@ -57,6 +73,14 @@ class Footprint:
         col = np.where(inside, ij[..., 0], 0).astype(np.int64)
         row = np.where(inside, ij[..., 1], 0).astype(np.int64)
         return inside & self.mask[row, col]
+
+
+@dataclass(frozen=True)
+class Reach:
+    """How far a ray may reach the floor when no floor plane bounds the fill (see above)."""
+
+    min_drop_deg: float  # the ray points at least this far below the horizontal
+    max_dist: float  # metres from the camera to the crossing, along the floor
 
 
 def _through(wall: dict, o: np.ndarray, d: np.ndarray, t_end: np.ndarray, pad: float
@@ -78,6 +102,7 @@ def floor_through(
     room: Footprint,
     margin: float,
     walls: tuple[dict, ...] = (),
+    reach: Reach | None = None,
 ) -> np.ndarray:
     """Depth at which each ray meets the floor plane, where the floor is seen through the
     surface; 0 elsewhere.
@@ -90,6 +115,8 @@ def floor_through(
             a hit within it is the floor itself, already labelled.
         walls: the room's wall planes (the segmentation's plane dicts), which no ray may pass
             through on its way to the floor.
+        reach: when given, rays pointing down less steeply or crossing farther from the
+            camera than it allows are not filled either.
 
     Returns:
         float32 [...]: the crossing's ray parameter for the rays that point down, cross the
@@ -104,6 +131,10 @@ def floor_through(
     ok = down & (t > 0) & beyond
     xy = o[..., :2] + t[..., None] * d[..., :2]
     ok &= room.contains(xy)
+    if reach is not None:
+        steep = -d[..., 2] >= np.sin(np.radians(reach.min_drop_deg)) * length
+        near = t * np.linalg.norm(d[..., :2], axis=-1) <= reach.max_dist
+        ok &= steep & near
     for wall in walls:
         ok &= ~_through(wall, o, d, t, margin)
     return np.where(ok, t, 0.0).astype(np.float32)

@@ -30,7 +30,7 @@ from stages.semantics.config import (
     SemanticsInputs,
     SemanticsOutputs,
 )
-from stages.semantics.floorfill import Footprint, floor_through
+from stages.semantics.floorfill import Footprint, Reach, floor_through
 from stages.semantics.segment import Segmentation, segment, triangles
 from stages.semantics.wallfill import wall_through
 
@@ -61,14 +61,14 @@ def run(cfg: SemanticsConfig, inputs: SemanticsInputs, out: Path) -> SemanticsOu
     outs = SemanticsOutputs.at(out)
     outs.labels.mkdir(parents=True, exist_ok=True)
     outs.instances.mkdir(parents=True, exist_ok=True)
-    room = _room(verts, tris, seg, cfg) if cfg.floor_fill else None
+    room, reach = _room(verts, tris, seg, cap, cfg) if cfg.floor_fill else (None, None)
     if room is not None and cfg.outside_unknown:
         out_obj = (seg.cls == OBJECT) & ~room.contains(triangles(verts, tris)[0][:, :2])
         seg.cls[out_obj] = UNKNOWN
         seg.instance[out_obj] = 0
         seg.outside_triangles = int(out_obj.sum())
     t0 = time.perf_counter()
-    frames, pixels = _render(mesh, seg, cap, outs, room, cfg.plane_dist, cfg.wall_fill)
+    frames, pixels = _render(mesh, seg, cap, outs, (room, reach), cfg)
     t_render = time.perf_counter() - t0
     sem = replace(cap, frames=tuple(frames), classes=dict(CLASSES), ignore=IGNORE)
     sem.save(outs.frames)
@@ -88,6 +88,14 @@ def run(cfg: SemanticsConfig, inputs: SemanticsInputs, out: Path) -> SemanticsOu
         "floating_clusters": seg.floating_clusters,  # labelled unknown
         "object_base_z": round(seg.object_base_z, 3),  # clusters stand within object_max_gap of it
         "outside_triangles": seg.outside_triangles,  # objects outside the room: unknown
+        # the floor fill's room: the floor and wall triangles' footprint, or without a floor
+        # plane the hull of the surface and the cameras, rays bounded by a reach (m²: cells)
+        "floor_fill": None
+        if room is None
+        else {
+            "room": "floor and walls" if reach is None else "hull of surface and cameras",
+            "room_m2": round(float(room.mask.sum()) * room.cell**2, 2),
+        },
         "area_m2": {
             name: round(float(seg.area[seg.cls == k].sum()), 3)
             for k, name in [*CLASSES.items(), (UNKNOWN, "unknown")]
@@ -127,16 +135,18 @@ def _render(
     seg: Segmentation,
     cap: Capture,
     outs: SemanticsOutputs,
-    room: Footprint | None,
-    margin: float,
-    wall_fill: bool = False,
+    fill: tuple[Footprint | None, Reach | None],
+    cfg: SemanticsConfig,
 ) -> tuple[list[Frame], dict[str, float]]:
     """Class and instance maps of every view; returns the frames pointing at them and the
     fraction of pixels per class over all views (and of floor seen through the surface).
 
-    With a room, the floor seen through the surface within it (floorfill.py, `margin` metres
-    beyond the plane) is labelled floor, and each view's depth is written with it; with
-    wall_fill, so are the walls seen through it (wallfill.py), the nearer crossing winning."""
+    With a room (fill: the room and the rays' reach, floorfill.py), the floor seen through
+    the surface within it (plane_dist metres beyond the plane) is labelled floor, and each
+    view's depth is written with it; with wall_fill, so are the walls seen through it
+    (wallfill.py), the nearer crossing winning."""
+    room, reach = fill
+    margin = cfg.plane_dist
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(mesh)
     cls = np.append(seg.cls, np.uint8(UNKNOWN))  # [T + 1]: the last entry is "no hit"
@@ -157,10 +167,10 @@ def _render(
         if room is not None:
             t = hit["t_hit"].numpy()  # [H, W]: the depth (Open3D's rays have camera z = 1)
             r = rays.numpy()
-            floor = floor_through(r, t, seg.floor_z, room, margin, walls)  # [H, W]
+            floor = floor_through(r, t, seg.floor_z, room, margin, walls, reach)  # [H, W]
             wall = (
                 wall_through(r, t, walls, seg.floor_z, room, margin)[0]
-                if wall_fill
+                if cfg.wall_fill
                 else np.zeros_like(t)
             )
             wall = np.where((wall > 0) & ((floor == 0) | (wall < floor)), wall, 0.0)
@@ -191,12 +201,22 @@ def _render(
     }
 
 
-def _room(verts: np.ndarray, tris: np.ndarray, seg: Segmentation, cfg: SemanticsConfig
-          ) -> Footprint | None:  # fmt: skip
-    """Where the floor may be seen through the surface: the footprint of the floor and wall
-    triangles (None without a floor: no plane to fill)."""
+def _room(
+    verts: np.ndarray, tris: np.ndarray, seg: Segmentation, cap: Capture, cfg: SemanticsConfig
+) -> tuple[Footprint | None, Reach | None]:
+    """Where the floor may be seen through the surface and how far a ray may reach it: the
+    footprint of the floor and wall triangles, any reach. Without a floor plane (z = 0, the
+    align stage's floor, stands in for it) the convex hull of the surface and the cameras,
+    within the config's reach (floorfill.py), or nothing when floor_fill_no_plane is off; with
+    floor_fill_hull, that hull and reach at the found floor's height too."""
+    if cfg.floor_fill_hull or not (seg.cls == FLOOR).any():
+        if not (cfg.floor_fill_no_plane or (seg.cls == FLOOR).any()):
+            return None, None
+        c = triangles(verts, tris)[0]  # [T, 3] centres
+        cams = np.array([f.pose[:3, 3] for f in cap.frames if f.pose is not None])  # [N, 3]
+        xy = np.concatenate([c[:, :2], cams[:, :2]])
+        reach = Reach(cfg.floor_fill_min_drop_deg, cfg.floor_fill_reach)
+        return Footprint.of(xy, cfg.floor_fill_cell, hull=True), reach
     keep = (seg.cls == FLOOR) | (seg.cls == WALL)
-    if not (seg.cls == FLOOR).any():
-        return None
     c = triangles(verts, tris[keep])[0]  # [K, 3] centres
-    return Footprint.of(c[:, :2], cfg.floor_fill_cell)
+    return Footprint.of(c[:, :2], cfg.floor_fill_cell), None
