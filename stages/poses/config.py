@@ -25,6 +25,9 @@ class PosesConfig:
     sequential_overlap: int = 10  # sequential: match each image to this many next
     max_features: int = 8192  # SIFT features kept per image
     max_image_size: int = 1600  # SIFT runs on images downscaled to this longest side (pixels)
+    full_size_images: bool = True  # SIFT on the capture's own images (up to max_image_size)
+    #                                when ingest downscaled them; poses, intrinsics and the
+    #                                model are given at the working size either way
     self_calibrate: bool = False  # estimate intrinsics (unreliable indoors)
     threads: int = 0  # CPU threads for extraction, matching and mapping; 0 = every core we may use
     min_registered_frac: float = 0.5  # fail when fewer than this fraction of the images register
