@@ -53,7 +53,7 @@ def test_self_calibrated_sfm_on_full_size_images_at_the_working_size(
     got, facts = _sfm(frames, tmp_path / "out", self_calibrate=True)
     true = Capture.load(frames).frames[0].intrinsics  # the synth's exact focal, at 60x45
     gt = {s: np.asarray(p) for s, p in read_json(room / "gt" / "poses.json").items()}
-    m = pose_metrics({f.stem: f.pose for f in got.frames}, gt)
+    m = pose_metrics({f.stem: f.pose for f in got.frames}, gt)  # type: ignore[misc]
     assert facts["images"] == {"full_size": 12, "sizes": [[240, 180]], "working": [[60, 45]]}
     assert m["registered"] == 12 and m["ate_rmse_m"] < 0.03
     # the scale from depth reads the 60x45 depth maps under the keypoints: scaled wrongly,
