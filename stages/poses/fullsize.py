@@ -1,12 +1,12 @@
 """SfM on the capture's full-size images while every other stage works on downscaled ones.
 
 Ingest downscales the frames to its working size (ingest.max_side, photo_max_side) and names
-the full-size file in `Frame.original`. SIFT finds more features, better placed, at full size
-(pycolmap still caps the longer side at poses.max_image_size), and the poses do not depend on
-the resolution. `sfm_frames` gives the frames as SfM sees them (the full-size images, their
-intrinsics scaled up); `to_working_size` scales the model's cameras and keypoints back down,
-so that everything after mapping (self-calibrated intrinsics, sparse depth, the metric scale
-from depth, the written model) is in the pixels of the images the later stages read.
+the full-size file in `Frame.original`. SIFT finds more features, better placed, on it (read
+at most poses.full_size_max_side long), and the poses do not depend on the resolution.
+`sfm_frames` gives the frames as SfM sees them (the full-size images, their intrinsics scaled
+up); `to_working_size` scales the model's cameras and keypoints back down, so that everything
+after mapping (self-calibrated intrinsics, sparse depth, the metric scale from depth, the
+written model) is in the pixels of the images the later stages read.
 """
 
 from __future__ import annotations
@@ -59,6 +59,14 @@ def sfm_frames(frames: tuple[Frame, ...], full: bool) -> tuple[Frame, ...]:
             continue
         out.append(replace(f, image=src, intrinsics=k.scaled(w, h)))
     return tuple(out)
+
+
+def max_side(cfg_max: int, cap: int, seen: tuple[Frame, ...], working: tuple[Frame, ...]) -> int:
+    """SIFT's longest image side: max_image_size, lowered to `cap` (poses.full_size_max_side,
+    never below a working size) when SfM reads some original."""
+    if cap <= 0 or all(a.image == b.image for a, b in zip(seen, working, strict=True)):
+        return cfg_max
+    return min(cfg_max, max(cap, *(max(_size(f)) for f in working)))
 
 
 def facts(seen: tuple[Frame, ...], working: tuple[Frame, ...]) -> dict:

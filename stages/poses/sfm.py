@@ -57,6 +57,8 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
     pycolmap.set_random_seed(cfg.seed)
     seen = fullsize.sfm_frames(cap.frames, cfg.full_size_images)  # the images SfM reads
     names = _link_images(seen, img_dir)  # COLMAP image name of each frame
+    side = fullsize.max_side(cfg.max_image_size, cfg.full_size_max_side, seen, cap.frames)
+    sift_cfg = replace(cfg, max_image_size=side)
     facts: dict = {"impl": "sfm", "total": n, "threads": threads}
     guessed = calib.unknown(cap.frames)  # intrinsics not given: SfM estimates them
     refine = cfg.self_calibrate or guessed
@@ -64,7 +66,7 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
     clock = [(time.perf_counter(), time.process_time())]  # (wall, CPU of all threads)
     with _colmap_log_level():  # pycolmap extracts and matches in one call each: elapsed only
         with progress("sfm extract"):
-            facts["camera"] = _extract(cfg, seen, names, db, img_dir, threads)
+            facts["camera"] = _extract(sift_cfg, seen, names, db, img_dir, threads)
         clock.append((time.perf_counter(), time.process_time()))
         with progress("sfm match"):
             facts["matching"], facts["matching_detail"] = _match(cfg, db, n, threads)
@@ -76,7 +78,7 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
     facts["cpu_seconds"] = {k: b[1] - a[1] for k, a, b in spans}
     facts["mapper"] = cfg.mapper
     facts["models"] = len(recs)
-    facts["images"] = fullsize.facts(seen, cap.frames)
+    facts["images"] = fullsize.facts(seen, cap.frames) | {"max_side": side}
 
     recs = sorted(recs, key=lambda r: r.num_reg_images(), reverse=True)  # largest first
     rec = recs[0] if recs else None

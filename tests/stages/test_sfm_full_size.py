@@ -15,6 +15,7 @@ from stages.ingest import IMPLS as INGEST
 from stages.ingest.config import IngestConfig
 from stages.ingest.select import IngestInputs
 from stages.poses import IMPLS, PosesConfig, PosesInputs
+from stages.poses.fullsize import max_side, sfm_frames
 from stages.poses.sfm import sparse_depth
 from stages.synth import make_room
 
@@ -27,6 +28,17 @@ def small(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     room = make_room(tmp / "room", views=12, seed=0, size=(240, 180))
     frames = INGEST["auto"](IngestConfig(max_side=60), IngestInputs(room), tmp / "ingest").frames
     return room, frames
+
+
+def test_sift_reads_originals_at_most_full_size_max_side(small: tuple[Path, Path]) -> None:
+    working = Capture.load(small[1]).frames
+    seen = sfm_frames(working, full=True)
+    assert seen[0].image == working[0].original and seen[0].intrinsics.width == 240
+    assert max_side(1600, 480, seen, working) == 480  # the cap (pycolmap keeps 240 as is)
+    assert max_side(1600, 32, seen, working) == 60  # never below the working size
+    assert max_side(1600, 0, seen, working) == 1600  # no cap: max_image_size
+    assert max_side(1600, 480, working, working) == 1600  # no original read: as before
+    assert sfm_frames(working, full=False) == working
 
 
 def _sfm(frames: Path, out: Path, **cfg) -> tuple[Capture, dict]:
@@ -54,7 +66,8 @@ def test_self_calibrated_sfm_on_full_size_images_at_the_working_size(
     true = Capture.load(frames).frames[0].intrinsics  # the synth's exact focal, at 60x45
     gt = {s: np.asarray(p) for s, p in read_json(room / "gt" / "poses.json").items()}
     m = pose_metrics({f.stem: f.pose for f in got.frames}, gt)  # type: ignore[misc]
-    assert facts["images"] == {"full_size": 12, "sizes": [[240, 180]], "working": [[60, 45]]}
+    want = {"full_size": 12, "sizes": [[240, 180]], "working": [[60, 45]], "max_side": 480}
+    assert facts["images"] == want
     assert m["registered"] == 12 and m["ate_rmse_m"] < 0.03
     # the scale from depth reads the 60x45 depth maps under the keypoints: scaled wrongly,
     # they would sample the wrong pixels (or none), and the scale would be off
