@@ -40,6 +40,8 @@ class Frame:
     calib: str = "given"  # where the intrinsics came from: given | exif | prior (a guess SfM
     #                       refines) | self-calibrated (estimated by SfM)
     camera: str = ""  # frames sharing one physical camera (device and image size), for SfM
+    original: Path | None = None  # the full-size image `image` was downscaled from (ingest's
+    #                               max_side): SfM may read it; `intrinsics` are `image`'s
 
 
 @dataclass(frozen=True)
@@ -100,6 +102,7 @@ class Capture:
                     "pose": np.asarray(f.pose).tolist() if f.pose is not None else None,
                 }
                 | ({"calib": f.calib, "camera": f.camera} if f.calib != "given" else {})
+                | ({"original": str(f.original)} if f.original else {})
                 for f in self.frames
             ],
         }
@@ -117,6 +120,7 @@ class Capture:
                 instance=Path(f["instance"]) if f.get("instance") else None,
                 calib=f.get("calib", "given"),
                 camera=f.get("camera", ""),
+                original=Path(f["original"]) if f.get("original") else None,
             )
             for f in d["frames"]
         )
@@ -146,8 +150,9 @@ class Capture:
 
         d = self.to_json()
         for f in d["frames"]:
-            for k in ("image", "depth", "label", "instance"):
-                f[k] = rel(f[k])
+            for k in ("image", "depth", "label", "instance", "original"):
+                if k in f:
+                    f[k] = rel(f[k])
         d["gt"] = rel(d["gt"])
         write_json(path, d)
 
@@ -161,7 +166,7 @@ class Capture:
             return None if p is None else str(base / p)
 
         for f in d["frames"]:
-            for k in ("image", "depth", "label", "instance"):
+            for k in ("image", "depth", "label", "instance", "original"):
                 f[k] = absp(f.get(k))
         d["gt"] = absp(d.get("gt"))
         return Capture.from_json(d)

@@ -181,7 +181,8 @@ def _raw_depth(p: Path) -> np.ndarray:
 
 
 def resize_frame(f: Frame, max_side: int, dst: Path) -> Frame:
-    """Downscale a frame so its longer side is max_side; depth, labels, instances by nearest."""
+    """Downscale a frame so its longer side is max_side; depth, labels, instances by nearest.
+    The full-size image stays named in `original` (SfM reads it)."""
     W, H = f.intrinsics.width, f.intrinsics.height
     s = max_side / max(W, H)
     if s >= 1.0:
@@ -214,7 +215,10 @@ def resize_frame(f: Frame, max_side: int, dst: Path) -> Frame:
         instance = dst / "instances" / f"{f.stem}.png"
         write_label_png(instance, _nearest(read_label(f.instance), w, h))
     intr = f.intrinsics.scaled(w, h)
-    return replace(f, image=image, depth=depth, label=label, instance=instance, intrinsics=intr)
+    full = f.original or f.image
+    return replace(
+        f, image=image, depth=depth, label=label, instance=instance, intrinsics=intr, original=full
+    )
 
 
 def run(cfg: IngestConfig, inputs: IngestInputs, out: Path) -> IngestOutputs:

@@ -1,4 +1,5 @@
 """Poses from photos: pycolmap SIFT + matching + incremental or global mapping, metric scale.
+SIFT reads the capture's full-size images when ingest downscaled them (fullsize.py).
 
 Pixel convention: COLMAP puts the centre of the top-left pixel at (0.5, 0.5), the project at
 (0, 0) (camera.py), so principal points and keypoints are shifted by 0.5 at the boundary.
@@ -22,7 +23,7 @@ from stages.common.capture import Capture, Frame
 from stages.common.errors import BlunfError
 from stages.common.io import image_size, read_depth, write_depth_npy, write_json
 from stages.common.progress import progress
-from stages.poses import calib
+from stages.poses import calib, fullsize
 from stages.poses import models as models_detail
 from stages.poses import scale as scale_mod
 from stages.poses.config import PosesConfig, PosesInputs, PosesOutputs
@@ -54,7 +55,10 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
     img_dir.mkdir(parents=True)
     threads = cfg.threads or len(os.sched_getaffinity(0))
     pycolmap.set_random_seed(cfg.seed)
-    names = _link_images(cap.frames, img_dir)  # COLMAP image name of each frame
+    seen = fullsize.sfm_frames(cap.frames, cfg.full_size_images)  # the images SfM reads
+    names = _link_images(seen, img_dir)  # COLMAP image name of each frame
+    side = fullsize.max_side(cfg.max_image_size, cfg.full_size_max_side, seen, cap.frames)
+    sift_cfg = replace(cfg, max_image_size=side)
     facts: dict = {"impl": "sfm", "total": n, "threads": threads}
     guessed = calib.unknown(cap.frames)  # intrinsics not given: SfM estimates them
     refine = cfg.self_calibrate or guessed
@@ -62,7 +66,7 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
     clock = [(time.perf_counter(), time.process_time())]  # (wall, CPU of all threads)
     with _colmap_log_level():  # pycolmap extracts and matches in one call each: elapsed only
         with progress("sfm extract"):
-            facts["camera"] = _extract(cfg, cap.frames, names, db, img_dir, threads)
+            facts["camera"] = _extract(sift_cfg, seen, names, db, img_dir, threads)
         clock.append((time.perf_counter(), time.process_time()))
         with progress("sfm match"):
             facts["matching"], facts["matching_detail"] = _match(cfg, db, n, threads)
@@ -74,6 +78,7 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
     facts["cpu_seconds"] = {k: b[1] - a[1] for k, a, b in spans}
     facts["mapper"] = cfg.mapper
     facts["models"] = len(recs)
+    facts["images"] = fullsize.facts(seen, cap.frames) | {"max_side": side}
 
     recs = sorted(recs, key=lambda r: r.num_reg_images(), reverse=True)  # largest first
     rec = recs[0] if recs else None
@@ -94,13 +99,14 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
             + (f" SfM made {len(recs)} models: {split}" if len(recs) > 1 else "")
         )
     assert rec is not None
+    fullsize.to_working_size(rec, names, cap.frames)  # from here on, the frames' pixels
     unregistered = [stems[i] for i in sorted(set(range(n)) - set(kept))]
     if unregistered:
         log.warning("sfm: %d of %d images did not register: %s", n - k, n, unregistered)
     facts.update(registered=k, unregistered=unregistered)
     if refine:
         cams = sorted({rec.image(ids[names[i]]).camera_id for i in kept})
-        facts["camera"]["estimated"] = [_intrinsics_of(rec.camera(c)).to_json() for c in cams]
+        facts["camera"]["estimated"] = [calib.intrinsics_of(rec.camera(c)).to_json() for c in cams]
     if guessed:
         facts["intrinsics"] = calib.report(rec, cap.frames, {i: ids[names[i]] for i in kept})
     else:
@@ -123,7 +129,7 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
         w2c[:3] = im.cam_from_world().matrix()  # [3, 4]
         f = replace(cap.frames[i], pose=np.linalg.inv(w2c))
         if refine:
-            intr = _intrinsics_of(rec.camera(im.camera_id))
+            intr = calib.intrinsics_of(rec.camera(im.camera_id))
             f = replace(f, intrinsics=intr, calib="self-calibrated")
         intr = f.intrinsics
         if f.depth is None:  # photos only: the tracks' depths are all the depth there is
@@ -192,12 +198,6 @@ def _colmap_camera(intr: Intrinsics) -> tuple[str, str]:
     else:
         raise BlunfError(f"intrinsics: {len(dist)} distortion coefficients (want 4, 5 or 8)")
     return model, ",".join(repr(float(v)) for v in base + extra)
-
-
-def _intrinsics_of(cam: pycolmap.Camera) -> Intrinsics:
-    """Project intrinsics of a self-calibrated SIMPLE_RADIAL camera."""
-    f, cx, cy, k = (float(v) for v in cam.params)
-    return Intrinsics(f, f, cx - 0.5, cy - 0.5, int(cam.width), int(cam.height), (k, 0.0, 0.0, 0.0))
 
 
 def _extract(

@@ -145,6 +145,7 @@ def test_stage_downscales_with_nearest_depth_and_labels(tmp_path):
     # corner (-0.5, -0.5) (pixel centres are integers): (8 + 0.5) / 2 - 0.5, (6 + 0.5) / 2 - 0.5
     assert f.intrinsics == Intrinsics(5.0, 5.5, 3.75, 2.75, 8, 6)
     assert f.image.is_relative_to(tmp_path / "out") and read_image(f.image).shape == (6, 8, 3)
+    assert f.original == src / "images" / "0001.png"  # full size, for SfM (frames.json keeps it)
     # Nearest neighbour at half size: output pixel j samples input floor((j + 0.5) * 2) = 2j + 1.
     np.testing.assert_allclose(read_depth(f.depth), _depth(1)[1::2, 1::2], atol=1e-6)
     np.testing.assert_array_equal(read_label(f.label), _labels(1)[1::2, 1::2])
@@ -154,6 +155,7 @@ def test_stage_keeps_frames_smaller_than_max_side(tmp_path):
     src = make_capture(tmp_path / "cap", n=2)
     cap = run_stage(src, tmp_path / "out", max_side=64)
     assert cap.frames[0].image == src / "images" / "0000.png" and cap.frames[0].intrinsics == INTR
+    assert cap.frames[0].original is None
 
 
 def test_bad_config_values(tmp_path):
