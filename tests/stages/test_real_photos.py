@@ -1,9 +1,16 @@
-"""A real capture from its photos alone (slow): the plan from the colour images and
-intrinsics only, scored against the plan the same frames give with their sensor depth and
-poses, as `python -m pipeline.bench.real` scores it (reference cells beyond the reference's
-points excluded). The test holds the figure measured at its settings, less a noise margin
-(the SfM and RANSAC samples move a plan by a point or two between runs). Small settings keep
-it near three minutes of one core: 20 frames at 240 px, 50 NeRF steps, the MVR plan."""
+"""The real captures from their photos alone (slow): the plan from the colour images and
+intrinsics only, scored against the plan the same frames give with their sensor depth (and
+the kitchen's poses), as `python -m pipeline.bench.real` scores it (reference cells beyond
+the reference's points excluded). Each test holds the figures measured at its settings, less
+a noise margin (the SfM and RANSAC samples move a plan by a point or two between runs).
+Small settings keep each near three minutes of one core: 20 frames at 240 px, 50 NeRF steps,
+the MVR plan.
+
+The office has no poses: the reference's come from SfM too (with depth for the scale), so
+the pose errors between its two runs say nothing and only registration is held. SfM reads
+its renders' own 600x340 images (poses.full_size_images) while the rest works at 240 px:
+from the 240x136 images alone 9 of these 20 frames registered (three models), too few for a
+plan."""
 
 from __future__ import annotations
 
@@ -36,19 +43,34 @@ WALLS = ["semantics.wall_min_height=0.7", "semantics.wall_min_area=0.5"]
 KITCHEN = {"fwiou": 38.1, "floor": 32.4, "object": 41.3}
 
 
+# measured on Replica office0, these settings: fwIoU 26.4 / 25.6 / 29.9, floor 30.1 / 30.1 /
+# 28.8, object 24.4 / 24.1 / 27.9 (20 of 20 registered, scale x1.244 from the priors: the
+# virtual camera rides at 1.76 m, not the 1.45 m of a hand-held phone; the third run with
+# the photos-only depth step's field trained by its stereo coverage rule); the lowest are
+# held. Wall (17.8 / 9.3 / 46.8: a few thin bands of cells) is too noisy to hold.
+OFFICE = {"fwiou": 25.6, "floor": 28.8, "object": 24.1}
+
+
 @pytest.mark.slow
-def test_kitchen_photos_only_plan_against_the_sensor_plan(tmp_path):
+@pytest.mark.parametrize(
+    "name, capture, bars, registered",
+    [
+        ("kitchen", "7scenes-redkitchen", KITCHEN, 19),
+        ("office", "replica-office0", OFFICE, 18),  # of 20 (measured: 20 each)
+    ],
+)
+def test_photos_only_plan_against_the_sensor_plan(tmp_path, name, capture, bars, registered):
     from pipeline.bench.real import measure, summary
 
-    src = shared_capture("7scenes-redkitchen")
+    src = shared_capture(capture)
     common = ["ingest.max_side=240", "run.methods=[mvr]"]
     photo = ["--config", "configs/phone.yaml"]
     for s in [*common, *WALLS, "nerf.train.time_budget=0", "nerf.train.max_steps=50"]:
         photo += ["--set", s]
     ref = [x for s in common for x in ("--set", s)]
     res = measure(src, tmp_path, photo, ref, frames=20)
-    print(f"\nkitchen: {summary(res)}")
+    print(f"\n{name}: {summary(res)}")
     got = {"fwiou": res["plan"]["fwiou"], **res["plan"]["per_class"]}
-    assert res["poses"]["registered"] >= 19
-    for key, value in KITCHEN.items():
+    assert res["poses"]["registered"] >= registered
+    for key, value in bars.items():
         assert got[key] >= value - MARGIN, (key, got)
