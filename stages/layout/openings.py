@@ -2,7 +2,8 @@
 wall's face at a few heights (Open3D's ray casting). Where no ray meets the wall along a
 stretch at least `min_opening` wide, it is a door (up to `door_max` wide) or a passage when a
 ray cast down in the wall's middle meets the floor there (the floor runs through), and a
-window where the lowest ray meets the wall and the others do not."""
+window where the lowest ray meets the wall and the others do not, with the wall met on both
+sides of it at their heights."""
 
 from __future__ import annotations
 
@@ -76,6 +77,9 @@ def mesh_openings(
                 if width < cfg.min_opening:
                     continue
                 kind, s0, s1 = kind_of, i * BIN, j * BIN
+                if kind == "window" and not all(w[:i].any() and w[j:].any() for w in wall[1:]):
+                    continue  # no wall seen beside it at a height it is open at: a wall the
+                    # views saw only low down (far off, at a slant), not a hole in one
                 if kind == "door":
                     if floor[i:j].mean() < 0.4:
                         continue

@@ -32,9 +32,9 @@ class _Mesh:
         self.verts.append(np.array([a, b, c, d], np.float64))
         self.tris.append(np.array([[0, 1, 2], [0, 2, 3]]) + n)
 
-    def wall(self, p, q) -> None:  # noqa: ANN001
-        """A vertical face from p to q (xy), facing left of p -> q."""
-        self.quad((*q, 0.0), (*p, 0.0), (*p, H), (*q, H))
+    def wall(self, p, q, z0: float = 0.0, z1: float = H) -> None:  # noqa: ANN001
+        """A vertical face from p to q (xy), z0 to z1 high, facing left of p -> q."""
+        self.quad((*q, z0), (*p, z0), (*p, z1), (*q, z1))
 
     def floor(self, x0, y0, x1, y1) -> None:  # noqa: ANN001
         self.quad((x0, y0, 0.0), (x1, y0, 0.0), (x1, y1, 0.0), (x0, y1, 0.0))
@@ -72,6 +72,23 @@ def test_a_door_is_read_where_the_face_starts_not_where_a_fused_jamb_closes_it()
     xs = sorted((door["start"][0], door["end"][0]))
     assert xs == pytest.approx([1.0, 1.9], abs=0.01)
     assert door["width"] == pytest.approx(0.9, abs=0.01)
+
+
+def test_a_window_is_a_hole_in_a_wall_not_a_wall_seen_only_low_down():
+    t = 0.12
+    seen_low = _Mesh()  # the views saw this wall up to 0.8 m only (far off, at a slant)
+    seen_low.wall((0.0, 0.0), (3.0, 0.0), 0.0, 0.8)
+    seen_low.floor(0.0, 0.0, 3.0, 2.0)
+    window = _Mesh()  # a 1 m window from x = 1 to 2, 0.8 to 2.0 m high
+    window.wall((0.0, 0.0), (1.0, 0.0))
+    window.wall((2.0, 0.0), (3.0, 0.0))
+    window.wall((1.0, 0.0), (2.0, 0.0), 0.0, 0.8)
+    window.wall((1.0, 0.0), (2.0, 0.0), 2.0, H)
+    window.floor(0.0, 0.0, 3.0, 2.0)
+    wall = {"start": [0.0, 0.0], "end": [3.0, 0.0], "thickness": t}
+    assert mesh_openings([wall], *seen_low.arrays(), LayoutConfig()) == []
+    (o,) = mesh_openings([wall], *window.arrays(), LayoutConfig())
+    assert o["kind"] == "window" and o["width"] == pytest.approx(1.0, abs=0.03)
 
 
 def _room_mesh(shadow: tuple[float, float, float, float]) -> _Mesh:
