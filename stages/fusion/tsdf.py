@@ -197,9 +197,18 @@ def _blocks(cap: Capture, cfg: FusionConfig) -> tuple[list[o3c.Tensor | None], i
         if not valid[-1]:  # Open3D aborts on a frame that touches no block
             coords.append(None)
             continue
-        bc = probe.compute_unique_block_coordinates(
-            _image(depth), o3d_intrinsic(k), o3d_extrinsic(f), 1.0, cfg.depth_max, cfg.trunc_voxels
-        )
+        try:
+            bc = probe.compute_unique_block_coordinates(
+                _image(depth),
+                o3d_intrinsic(k),
+                o3d_extrinsic(f),
+                1.0,
+                cfg.depth_max,
+                cfg.trunc_voxels,
+            )
+        except RuntimeError:  # a handful of readings (8 of a photos-only view's) touch none
+            coords.append(None)
+            continue
         coords.append(bc)
         b = bc.numpy().astype(np.int64) + 2**20  # [M, 3] block coordinates, made >= 0
         seen.update((b[:, 0] << 42 | b[:, 1] << 21 | b[:, 2]).tolist())
