@@ -134,3 +134,23 @@ def test_floor_no_view_saw_inside_the_walls_is_the_room_outside_them_is_none(tmp
     assert len(plan["rooms"]) == 1, plan["rooms"]
     assert s["corner_f1"] == s["angle_f1"] == 1.0, s
     assert s["wall_length_err_m"] <= 0.02, s
+
+
+def test_a_closed_space_of_objects_is_no_room():
+    # east of a 4 x 3 m room, a 1.5 x 3 m closed space labelled object with a 0.5 x 0.5 m
+    # speck of floor (stereo's noise behind a photos-only plan's walls)
+    t = 0.12
+    grid = Grid.covering(np.array([-0.3, -0.3]), np.array([6.0, 3.3]), 0.02)
+    c = grid.centers()
+    labels = np.full(grid.shape, UNKNOWN, np.uint8)
+    for poly, k in (
+        (box(-t, -t, 5.6 + t, 3 + t), 1),
+        (box(0, 0, 4, 3), 0),
+        (box(4 + t, 0, 5.6, 3), 2),
+        (box(4.5, 1.0, 5.0, 1.5), 0),
+    ):
+        labels[contains_xy(poly, c[..., 0], c[..., 1])] = k
+    bp = Blueprint(labels, grid, {0: "floor", 1: "wall", 2: "object"})
+    plan = build_plan(bp, LayoutConfig(face_offset=0.0))
+    assert len(plan["rooms"]) == 1
+    assert plan["rooms"][0]["area"] == pytest.approx(12.0, rel=0.01)
