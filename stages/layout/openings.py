@@ -2,7 +2,8 @@
 wall's face at a few heights (Open3D's ray casting). Where no ray meets the wall along a
 stretch at least `min_opening` wide, it is a door (up to `door_max` wide) or a passage when a
 ray cast down in the wall's middle meets the floor there (the floor runs through), and a
-window where the lowest ray meets the wall and the others do not."""
+window where the lowest ray meets the wall and the others do not, with the wall met on both
+sides of it at their heights."""
 
 from __future__ import annotations
 
@@ -15,6 +16,12 @@ HEIGHTS = (0.3, 1.0, 1.5)  # metres: the horizontal rays (below a window sill, a
 INSET = 0.05  # metres: rays start this far inside the room
 BIN = 0.02  # metres: ray spacing along a wall
 BEYOND = (0.04, 0.08, 0.12)  # metres beyond the face: where the floor is looked for
+JAMB_HEIGHTS = (0.2, 0.5, 0.8, 1.1, 1.4, 1.7)  # metres: where a door's edges are read
+STEP = 0.005  # metres: ray spacing there
+FACE = 0.01  # metres: a surface this close to the face's depth is the face
+MAX_BEVEL = 0.12  # metres: how far a door's edge moves from where the gap closes
+AROUND = 16  # horizontal rays cast round a point to tell whether the walls enclose it
+ENCLOSED = 0.75  # share of them that must meet a surface from its front
 
 
 def _tensor(a: np.ndarray) -> o3d.core.Tensor:
@@ -45,15 +52,7 @@ def mesh_openings(
         d = (b - a) / length
         n = np.array([d[1], -d[0]])  # outwards
         s = np.arange(BIN / 2, length, BIN)
-        xy = a + s[:, None] * d - n * INSET  # [S, 2]
-        rays = np.concatenate(
-            [
-                np.concatenate([xy, np.full((len(s), 1), h), np.tile([*n, 0.0], (len(s), 1))], 1)
-                for h in HEIGHTS
-            ]
-        ).astype(np.float32)
-        hit = scene.cast_rays(_tensor(rays))["t_hit"].numpy().reshape(len(HEIGHTS), -1)
-        wall = hit <= INSET + t + 0.05  # [H, S]
+        wall = _depth(scene, (a, d, n), s, HEIGHTS) <= t + 0.05  # [H, S]
         # the floor beyond the face: rays cast down at a few depths into the wall line (a
         # fused threshold has holes: measured half of it on a 30-view room); a wall that the
         # views did not see, behind furniture, has none
@@ -73,16 +72,21 @@ def mesh_openings(
             ("door", ~wall.any(0)),
             ("window", wall[0] & ~wall[1:].any(0)),
         ):
-            for i, j in _runs(open_):
+            for i, j in _runs(np.asarray(open_)):
                 width = (j - i) * BIN
                 if width < cfg.min_opening:
                     continue
-                kind = kind_of
+                kind, s0, s1 = kind_of, i * BIN, j * BIN
+                if kind == "window" and not all(w[:i].any() and w[j:].any() for w in wall[1:]):
+                    continue  # no wall seen beside it at a height it is open at: a wall the
+                    # views saw only low down (far off, at a slant), not a hole in one
                 if kind == "door":
                     if floor[i:j].mean() < 0.4:
                         continue
+                    s0, s1 = _jambs(scene, (a, d, n), (s0, s1), t)
+                    width = s1 - s0
                     kind = "door" if width <= cfg.door_max else "passage"
-                p, q = a + (i * BIN) * d, a + (j * BIN) * d
+                p, q = a + s0 * d, a + s1 * d
                 out.append(
                     {
                         "kind": kind,
@@ -93,6 +97,67 @@ def mesh_openings(
                     }
                 )
     return out
+
+
+def _depth(
+    scene: o3d.t.geometry.RaycastingScene, face: tuple, s: np.ndarray, heights: tuple
+) -> np.ndarray:
+    """Depth behind the face (a, d, n: start, direction, outward normal) of the first surface
+    met by rays cast out from INSET inside the room at each of `s` (metres along the face) and
+    `heights` [H, S] (inf: nothing met)."""
+    a, d, n = face
+    xy = a + s[:, None] * d - n * INSET  # [S, 2]
+    rays = np.concatenate(
+        [
+            np.concatenate([xy, np.full((len(s), 1), h), np.tile([*n, 0.0], (len(s), 1))], 1)
+            for h in heights
+        ]
+    ).astype(np.float32)
+    return scene.cast_rays(_tensor(rays))["t_hit"].numpy().reshape(len(heights), -1) - INSET
+
+
+def _jambs(
+    scene: o3d.t.geometry.RaycastingScene, face: tuple, span: tuple, t: float
+) -> tuple[float, float]:
+    """A door's two edges (metres along the face) read at STEP where the face itself starts,
+    not where some surface closes the wall line: a fused jamb leans into the gap (the TSDF
+    rounds a convex corner seen at a slant outwards: measured up to 7 cm along the wall and
+    4-7 cm deep behind the face on the procedural rooms). From just inside the gap outwards,
+    at each of JAMB_HEIGHTS, the edge is the first ray that meets a surface within FACE of
+    the face's own depth (its median 15-30 cm along past the edge); the median over the
+    heights. An edge moves by at most MAX_BEVEL."""
+    out = []
+    for edge, sign in ((span[0], -1.0), (span[1], 1.0)):
+        s = edge + sign * np.arange(-BIN, MAX_BEVEL + STEP / 2, STEP)
+        depth = _depth(scene, face, s, JAMB_HEIGHTS)  # [H, S]
+        ref = _depth(scene, face, edge + sign * np.arange(0.15, 0.3, BIN), JAMB_HEIGHTS)
+        found = []
+        for row, r in zip(depth, ref, strict=True):
+            r = r[r <= t + 0.05]
+            if len(r) < 3:
+                continue
+            at = np.nonzero(row <= np.median(r) + FACE)[0]
+            if len(at) and at[0] > 0:
+                found.append(s[at[0]] - sign * STEP / 2)
+        out.append(float(np.median(found)) if found else edge)
+    return out[0], out[1]
+
+
+def enclosed(scene: o3d.t.geometry.RaycastingScene, xy: np.ndarray, z: float = 1.0) -> np.ndarray:
+    """Whether the mesh's walls enclose each floor point [N, 2] -> [N] bool: at least ENCLOSED
+    of AROUND horizontal rays at height z meet a surface from its front (a fused surface faces
+    the views that saw it, the room's inside). From outside the walls the rays meet their
+    backs or nothing; through a doorway a few of them leave the room."""
+    if len(xy) == 0:
+        return np.zeros(0, bool)
+    a = np.arange(AROUND) * 2 * np.pi / AROUND
+    dirs = np.stack([np.cos(a), np.sin(a), np.zeros(AROUND)], 1)
+    o = np.concatenate([xy, np.full((len(xy), 1), z)], 1)
+    rays = np.concatenate([np.repeat(o, AROUND, 0), np.tile(dirs, (len(xy), 1))], 1)
+    hit = scene.cast_rays(_tensor(rays.astype(np.float32)))
+    t = hit["t_hit"].numpy().reshape(-1, AROUND)
+    facing = (hit["primitive_normals"].numpy().reshape(-1, AROUND, 3) * dirs).sum(-1) < 0
+    return (np.isfinite(t) & facing).mean(1) >= ENCLOSED
 
 
 def ceiling(scene: o3d.t.geometry.RaycastingScene, floor_xy: np.ndarray) -> float | None:

@@ -65,10 +65,19 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
     closed = close_lines(wall, int(round(cfg.max_opening / cell)), run, across)
     region, n = ndi.label((fr.labels != UNKNOWN) & ~closed)
     area = ndi.sum_labels(np.ones_like(region), region, np.arange(1, n + 1)) * cell**2
+    # a room has floor: a closed space of objects (stereo's noise behind a photos-only plan's
+    # walls, labelled object there) with specks of floor is none
+    floor = (
+        np.full(n, np.inf)
+        if fid is None
+        else ndi.sum_labels(fr.labels == fid, region, np.arange(1, n + 1)) * cell**2
+    )
     faces: list[tuple[int, np.ndarray, np.ndarray]] = []
     for k in np.argsort(-area):
         if area[k] < cfg.min_room_area:
             break
+        if floor[k] < cfg.min_room_area:
+            continue
         # the closing also fills the notches of a ragged wall face: one cell back, up to the
         # wall cells themselves (measured: 1 cm inward on each side of a room 23 deg off axis)
         mask = ndi.binary_fill_holes(region == k + 1)

@@ -12,10 +12,10 @@ from pipeline.cli import main
 from stages.synth import make_room
 
 # 60 views of 320x240 (half of them on each arm's loop), the default settings. Measured on
-# seed 0: room / corner / angle F1 1.0, wall length 1.86 cm, both doors found, the worst door
-# width 6.9 cm off: the fused door edges close a few cm of the gap in the notch's walls, so the
-# width bar here is 9 cm, not the 5 cm target. Seed 4 (not held here) gives corner / angle F1
-# 0.77 / 0.62: its north arm's west wall is seen only at a slant from the loops.
+# seed 0: room / corner / angle F1 1.0, wall length 1.8 cm, both doors found, the worst door
+# width 1.3 cm off (6.9 cm before the doors' edges were read where the wall's face starts:
+# the fused jambs lean into the gap). Seed 4 (not held here): F1 1.0 / 1.0 / 1.0, wall
+# length 1.4 cm, door width 3.1 cm.
 VIEWS, SIZE = 60, (320, 240)
 
 
@@ -29,7 +29,7 @@ def test_l_room_with_doors_meets_the_layout_targets(tmp_path):
     assert s["room_f1"] >= 0.95 and s["corner_f1"] >= 0.9 and s["angle_f1"] >= 0.9, s
     assert s["wall_length_err_m"] <= 0.03, s
     assert s["doors_found"] == s["doors_total"] == 2, s
-    assert s["door_width_err_m"] <= 0.09, s
+    assert s["door_width_err_m"] <= 0.04, s
     plan = json.loads((out / "plan.json").read_text())
     assert len(plan["rooms"]) == 1 and len(plan["rooms"][0]["polygon"]) == 6
     print(f"L room seed 0: {s}, {time.perf_counter() - t0:.0f} s")

@@ -1,0 +1,156 @@
+"""The layout stage against a mesh shaped as fusion leaves it: surfaces one-sided, facing the
+room (the side the views saw), a door's jamb leaning into the gap, floor missing where no view
+saw it. Exact layouts built by hand, scored against their truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from shapely import contains_xy
+from shapely.geometry import box
+
+from stages.common.blueprint import Blueprint, Grid
+from stages.common.capture import UNKNOWN
+from stages.evaluate.layout import score_layout
+from stages.layout import LayoutConfig
+from stages.layout.openings import enclosed, mesh_openings, scene_of
+from stages.layout.walls import build_plan
+
+H = 2.5  # wall height, metres
+
+
+class _Mesh:
+    """Triangles [T, 3] over vertices [V, 3], built from one-sided quads."""
+
+    def __init__(self) -> None:
+        self.verts: list[np.ndarray] = []
+        self.tris: list[np.ndarray] = []
+
+    def quad(self, a, b, c, d) -> None:  # noqa: ANN001
+        """A quad a-b-c-d (counter-clockwise seen from the side it faces)."""
+        n = sum(len(v) for v in self.verts)
+        self.verts.append(np.array([a, b, c, d], np.float64))
+        self.tris.append(np.array([[0, 1, 2], [0, 2, 3]]) + n)
+
+    def wall(self, p, q, z0: float = 0.0, z1: float = H) -> None:  # noqa: ANN001
+        """A vertical face from p to q (xy), z0 to z1 high, facing left of p -> q."""
+        self.quad((*q, z0), (*p, z0), (*p, z1), (*q, z1))
+
+    def floor(self, x0, y0, x1, y1) -> None:  # noqa: ANN001
+        self.quad((x0, y0, 0.0), (x1, y0, 0.0), (x1, y1, 0.0), (x0, y1, 0.0))
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.concatenate(self.verts), np.concatenate(self.tris)
+
+
+def _write_ply(path, verts: np.ndarray, tris: np.ndarray) -> None:  # noqa: ANN001
+    import trimesh
+
+    trimesh.Trimesh(verts, tris, process=False).export(path)
+
+
+def test_a_door_is_read_where_the_face_starts_not_where_a_fused_jamb_closes_it():
+    # the south wall's face at y = 0 (the room north of it), 0.12 m thick, a door from x = 1.0
+    # to 1.9; its west jamb as fusion rounds a corner seen at a slant: the face bends back from
+    # x = 0.98 to 4 cm deep at x = 1.05, 5 cm into the gap, then runs back to the wall's far side
+    m = _Mesh()
+    t = 0.12
+    m.wall((1.9, 0.0), (3.0, 0.0))
+    m.wall((1.9, -t), (1.9, 0.0))  # the east jamb, facing the gap
+    m.wall((0.0, 0.0), (0.98, 0.0))
+    m.wall((0.98, 0.0), (1.05, -0.04))  # the lean, facing the room
+    m.wall((1.05, -0.04), (1.05, -t))
+    m.wall((0.6, -1.0 - t), (2.3, -1.0 - t))  # a wall a metre past the door, facing it
+    m.floor(0.0, 0.0, 3.0, 2.0)
+    m.floor(1.0, -t, 1.9, 0.0)  # the floor runs through the door
+    verts, tris = m.arrays()
+    wall = {"start": [0.0, 0.0], "end": [3.0, 0.0], "thickness": t}
+    (door,) = mesh_openings([wall], verts, tris, LayoutConfig())
+    assert door["kind"] == "door"
+    # where every ray passes the wall line the gap starts 5 cm late (the width 0.85); the
+    # face's own depth ends at the true jamb
+    xs = sorted((door["start"][0], door["end"][0]))
+    assert xs == pytest.approx([1.0, 1.9], abs=0.01)
+    assert door["width"] == pytest.approx(0.9, abs=0.01)
+
+
+def test_a_window_is_a_hole_in_a_wall_not_a_wall_seen_only_low_down():
+    t = 0.12
+    seen_low = _Mesh()  # the views saw this wall up to 0.8 m only (far off, at a slant)
+    seen_low.wall((0.0, 0.0), (3.0, 0.0), 0.0, 0.8)
+    seen_low.floor(0.0, 0.0, 3.0, 2.0)
+    window = _Mesh()  # a 1 m window from x = 1 to 2, 0.8 to 2.0 m high
+    window.wall((0.0, 0.0), (1.0, 0.0))
+    window.wall((2.0, 0.0), (3.0, 0.0))
+    window.wall((1.0, 0.0), (2.0, 0.0), 0.0, 0.8)
+    window.wall((1.0, 0.0), (2.0, 0.0), 2.0, H)
+    window.floor(0.0, 0.0, 3.0, 2.0)
+    wall = {"start": [0.0, 0.0], "end": [3.0, 0.0], "thickness": t}
+    assert mesh_openings([wall], *seen_low.arrays(), LayoutConfig()) == []
+    (o,) = mesh_openings([wall], *window.arrays(), LayoutConfig())
+    assert o["kind"] == "window" and o["width"] == pytest.approx(1.0, abs=0.03)
+
+
+def _room_mesh(shadow: tuple[float, float, float, float]) -> _Mesh:
+    """A 4 x 3 m room of fused surfaces: walls facing in, the floor missing over `shadow`
+    (x0, y0, x1, y1), a stretch against the north wall no view saw."""
+    m = _Mesh()
+    corners = [(0.0, 0.0), (4.0, 0.0), (4.0, 3.0), (0.0, 3.0)]
+    for p, q in zip(corners, corners[1:] + corners[:1], strict=True):
+        m.wall(p, q)  # counter-clockwise: facing into the room
+    x0, y0, x1, y1 = shadow
+    m.floor(0.0, 0.0, 4.0, y0)
+    m.floor(0.0, y0, x0, 3.0)
+    m.floor(x1, y0, 4.0, 3.0)
+    return m
+
+
+def test_floor_no_view_saw_inside_the_walls_is_the_room_outside_them_is_none(tmp_path):
+    t = 0.12
+    shadow = (1.5, 2.2, 2.7, 3.0)  # 1.2 x 0.8 m against the north wall (behind a bed)
+    verts, tris = _room_mesh(shadow).arrays()
+    scene = scene_of(verts, tris)
+    # inside the walls every way meets a wall's face; beyond the east wall its back
+    inside = enclosed(scene, np.array([[2.1, 2.6], [0.3, 0.3], [4.8, 1.5], [5.6, 0.2]]))
+    assert inside.tolist() == [True, True, False, False]
+
+    # the plan: the room's floor, walls 0.12 m thick, and east of it the field's floor filling
+    # a closed space of 1.5 x 3 m that no view saw (as an L's notch)
+    grid = Grid.covering(np.array([-0.3, -0.3]), np.array([6.0, 3.3]), 0.02)
+    c = grid.centers()
+    labels = np.full(grid.shape, UNKNOWN, np.uint8)
+    for poly, k in (
+        (box(-t, -t, 5.6 + t, 3 + t), 1),
+        (box(0, 0, 4, 3), 0),
+        (box(4 + t, 0, 5.6, 3), 0),
+    ):
+        labels[contains_xy(poly, c[..., 0], c[..., 1])] = k
+    bp = Blueprint(labels, grid, {0: "floor", 1: "wall"})
+    _write_ply(tmp_path / "mesh.ply", verts, tris)
+    plan = build_plan(bp, LayoutConfig(face_offset=0.0), tmp_path / "mesh.ply")
+    gt = {"rooms": [{"polygon": [[0, 0], [4, 0], [4, 3], [0, 3]]}], "openings": []}
+    s = score_layout(plan, gt)
+    # one room, its outline along the north wall behind the shadow (not round it)
+    assert len(plan["rooms"]) == 1, plan["rooms"]
+    assert s["corner_f1"] == s["angle_f1"] == 1.0, s
+    assert s["wall_length_err_m"] <= 0.02, s
+
+
+def test_a_closed_space_of_objects_is_no_room():
+    # east of a 4 x 3 m room, a 1.5 x 3 m closed space labelled object with a 0.5 x 0.5 m
+    # speck of floor (stereo's noise behind a photos-only plan's walls)
+    t = 0.12
+    grid = Grid.covering(np.array([-0.3, -0.3]), np.array([6.0, 3.3]), 0.02)
+    c = grid.centers()
+    labels = np.full(grid.shape, UNKNOWN, np.uint8)
+    for poly, k in (
+        (box(-t, -t, 5.6 + t, 3 + t), 1),
+        (box(0, 0, 4, 3), 0),
+        (box(4 + t, 0, 5.6, 3), 2),
+        (box(4.5, 1.0, 5.0, 1.5), 0),
+    ):
+        labels[contains_xy(poly, c[..., 0], c[..., 1])] = k
+    bp = Blueprint(labels, grid, {0: "floor", 1: "wall", 2: "object"})
+    plan = build_plan(bp, LayoutConfig(face_offset=0.0))
+    assert len(plan["rooms"]) == 1
+    assert plan["rooms"][0]["area"] == pytest.approx(12.0, rel=0.01)
