@@ -24,10 +24,11 @@ import pytest
 from PIL import Image
 
 from pipeline.cli import main
-from pipeline.render import run_files
+from pipeline.render import Scene, run_files
 from stages.common.blueprint import Blueprint
 from stages.common.capture import Capture
 from stages.common.io import read_image, read_label
+from stages.edit.spec import parse_spec
 
 pytestmark = pytest.mark.slow
 
@@ -306,3 +307,41 @@ def _click_world(page: Page, run: Path, view: int, xy, shape) -> None:
     ActionChains(page.d).move_to_element_with_offset(
         canvas, u - wc / 2, v - hc / 2
     ).click().perform()
+
+
+# The fast path against the volume render on this run (measured: see the README's "The fast
+# render path"); bars a few dB / points under what was measured
+FAST_PSNR = 27.0  # unedited input views, 8-bit PSNR
+FAST_CHANGED_IOU = 0.8  # the pixels a removal changes, fast against volume
+
+
+def test_fast_render_agrees_with_the_volume_render(tiny_run, tmp_path) -> None:
+    # no browser: the studio's engine (pipeline.render.Scene) on the trained run, the fast
+    # path (fused mesh ray-cast, colour at the hit) against the volume render
+    cap, run = tiny_run
+    scene = Scene(run_files(run))
+    for v in (0, 5, 10):
+        pose, intr = scene.view(v)
+        vol, fast = scene.render(pose, intr).rgb, scene.render(pose, intr, fast=True).rgb
+        assert _psnr(fast, vol) >= FAST_PSNR, v
+    view, stem, chair, target = _pick(cap, run)
+    inst = read_label(cap / "gt" / "instances" / f"{stem}.png")
+    spec = parse_spec(
+        {"edits": [{"select": {"click": list(target)}, "op": "remove"}], "views": [view]},
+        tmp_path / "spec.yaml",
+    )
+    pose, intr = scene.view(view)
+    changed = {}
+    for fast in (False, True):
+        before = scene.render(pose, intr, fast=fast).rgb.astype(np.int16)
+        after = scene.render(pose, intr, spec.edits, fast=fast).rgb.astype(np.int16)
+        changed[fast] = np.abs(after - before).max(axis=2) > CHANGED
+    both = (changed[True] & changed[False]).sum() / max(1, (changed[True] | changed[False]).sum())
+    assert both >= FAST_CHANGED_IOU
+    # ... and what the fast path changes is the chair (its ground-truth mask)
+    mask = inst == chair
+    assert (changed[True] & mask).sum() / max(1, (changed[True] | mask).sum()) >= 0.75
+    # `blunf render --fast` writes the fast view
+    out = tmp_path / "fast.png"
+    assert main(["render", str(run), "--view", str(view), "--fast", "--out", str(out)]) == 0
+    assert _psnr(read_image(out), scene.render(pose, intr, fast=True).rgb) >= 50.0
