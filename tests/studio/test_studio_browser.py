@@ -323,7 +323,7 @@ def test_fast_render_agrees_with_the_volume_render(tiny_run, tmp_path) -> None:
     for v in (0, 5, 10):
         pose, intr = scene.view(v)
         vol, fast = scene.render(pose, intr).rgb, scene.render(pose, intr, fast=True).rgb
-        assert _psnr(fast, vol) >= FAST_PSNR, v
+        assert _psnr(fast, vol) >= FAST_PSNR, f"view {v}: {_psnr(fast, vol):.2f} dB"
     view, stem, chair, target = _pick(cap, run)
     inst = read_label(cap / "gt" / "instances" / f"{stem}.png")
     spec = parse_spec(
@@ -337,10 +337,11 @@ def test_fast_render_agrees_with_the_volume_render(tiny_run, tmp_path) -> None:
         after = scene.render(pose, intr, spec.edits, fast=fast).rgb.astype(np.int16)
         changed[fast] = np.abs(after - before).max(axis=2) > CHANGED
     both = (changed[True] & changed[False]).sum() / max(1, (changed[True] | changed[False]).sum())
-    assert both >= FAST_CHANGED_IOU
+    assert both >= FAST_CHANGED_IOU, f"removal: changed-pixel IoU {both:.3f}"
     # ... and what the fast path changes is the chair (its ground-truth mask)
     mask = inst == chair
-    assert (changed[True] & mask).sum() / max(1, (changed[True] | mask).sum()) >= 0.75
+    gt_iou = (changed[True] & mask).sum() / max(1, (changed[True] | mask).sum())
+    assert gt_iou >= 0.75, f"fast removal: changed-pixel IoU {gt_iou:.3f} with the chair's mask"
     # `blunf render --fast` writes the fast view
     out = tmp_path / "fast.png"
     assert main(["render", str(run), "--view", str(view), "--fast", "--out", str(out)]) == 0
