@@ -309,21 +309,29 @@ def _click_world(page: Page, run: Path, view: int, xy, shape) -> None:
     ).click().perform()
 
 
-# The fast path against the volume render on this run (measured: see the README's "The fast
-# render path"); bars a few dB / points under what was measured
-FAST_PSNR = 27.0  # unedited input views, 8-bit PSNR
-FAST_CHANGED_IOU = 0.8  # the pixels a removal changes, fast against volume
+# The fast path against the volume render on this run, measured at its 12 views: 8-bit PSNR
+# 30.4-32.2 dB but at view 4 (15.0 dB: the volume render leaves the top of the wall black, the
+# field has no density there, where the fused mesh has the wall and the fast render shows
+# it); closer to the photos than the volume render at every view (+0.4 to +3.7 dB). The
+# pixels the removal of _pick's chair changes: IoU 0.96 with the volume render's, 0.93 with
+# the chair's ground-truth mask (the volume render's: 0.96). Bars a few dB / points lower.
+FAST_PSNR = 28.0  # median over the views checked
+FAST_CHANGED_IOU = 0.9  # the pixels a removal changes, fast against volume
 
 
 def test_fast_render_agrees_with_the_volume_render(tiny_run, tmp_path) -> None:
     # no browser: the studio's engine (pipeline.render.Scene) on the trained run, the fast
-    # path (fused mesh ray-cast, colour at the hit) against the volume render
+    # path (fused mesh ray-cast, colour at the hit) against the volume render and the photos
     cap, run = tiny_run
     scene = Scene(run_files(run))
-    for v in (0, 5, 10):
+    psnrs = []
+    for v in (0, 4, 5, 10):
         pose, intr = scene.view(v)
         vol, fast = scene.render(pose, intr).rgb, scene.render(pose, intr, fast=True).rgb
-        assert _psnr(fast, vol) >= FAST_PSNR, f"view {v}: {_psnr(fast, vol):.2f} dB"
+        photo = read_image(cap / "images" / f"{scene.cap.frames[v].stem}.png")
+        psnrs.append(_psnr(fast, vol))
+        assert _psnr(fast, photo) >= _psnr(vol, photo), f"view {v}: further from the photo"
+    assert np.median(psnrs) >= FAST_PSNR, psnrs
     view, stem, chair, target = _pick(cap, run)
     inst = read_label(cap / "gt" / "instances" / f"{stem}.png")
     spec = parse_spec(
@@ -341,7 +349,7 @@ def test_fast_render_agrees_with_the_volume_render(tiny_run, tmp_path) -> None:
     # ... and what the fast path changes is the chair (its ground-truth mask)
     mask = inst == chair
     gt_iou = (changed[True] & mask).sum() / max(1, (changed[True] | mask).sum())
-    assert gt_iou >= 0.75, f"fast removal: changed-pixel IoU {gt_iou:.3f} with the chair's mask"
+    assert gt_iou >= 0.85, f"fast removal: changed-pixel IoU {gt_iou:.3f} with the chair's mask"
     # `blunf render --fast` writes the fast view
     out = tmp_path / "fast.png"
     assert main(["render", str(run), "--view", str(view), "--fast", "--out", str(out)]) == 0
