@@ -109,6 +109,9 @@ def parser() -> argparse.ArgumentParser:
     v.add_argument("--edits", type=Path, help="edit spec (YAML)")
     v.add_argument("--scale", type=float, default=1.0, help="fraction of the resolution")
     v.add_argument("--out", type=Path, required=True, help="PNG to write")
+    v.add_argument("--fast", action="store_true",
+                   help="ray-cast the fused mesh, the field asked near its hits (the studio's "
+                   "preview), instead of the volume render")  # fmt: skip
 
     t = sub.add_parser("studio", help="edit a run in the browser (local web page)")
     t.add_argument("run_dir", type=Path)
@@ -238,7 +241,9 @@ def _dispatch(args: argparse.Namespace) -> int:
         from pipeline.render import render_command
 
         setup_runtime()
-        r = render_command(args.run_dir, args.view, args.camera, args.edits, args.scale, args.out)
+        r = render_command(
+            args.run_dir, args.view, args.camera, args.edits, args.scale, args.out, args.fast
+        )
         print(json.dumps(r))
         return 0
     if args.cmd == "studio":

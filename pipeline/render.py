@@ -14,6 +14,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -26,6 +27,9 @@ from stages.common.io import read_json
 from stages.edit.config import EditConfig
 from stages.edit.select import select_cells
 from stages.edit.spec import Edit
+
+if TYPE_CHECKING:
+    from pipeline.surface_render import SurfaceRenderer
 
 TRAIN_HINT = (
     "blunf run CAPTURE --out {run} --config configs/edit.yaml --edits {run}/edits/studio.yaml"
@@ -173,6 +177,9 @@ class Scene:
         self.colors = None if rgba is None else rgba[:, :3].astype(np.float64) / 255.0
         self.model = None if files.model is None else _load_model(files.model)
         self._resolved: dict[tuple, object] = {}
+        self._surface: SurfaceRenderer | None = (
+            None  # the fast path (pipeline.surface_render), made on first use
+        )
 
     @property
     def has_field(self) -> bool:
@@ -204,11 +211,28 @@ class Scene:
             )
         return self._resolved[key]
 
+    def surface(self) -> SurfaceRenderer:
+        """The fast path's renderer (`pipeline.surface_render`), made once."""
+        from pipeline.surface_render import SurfaceRenderer
+
+        if self.model is None:
+            raise BlunfError(f"{self.files.run}: the run has no trained NeRF to render")
+        if self._surface is None:
+            self._surface = SurfaceRenderer(self.model, self.verts, np.asarray(self.mesh.faces))
+        return self._surface
+
     def render(
-        self, pose: np.ndarray, intr: Intrinsics, edits: Sequence[Edit] = (), before: bool = False
+        self,
+        pose: np.ndarray,
+        intr: Intrinsics,
+        edits: Sequence[Edit] = (),
+        before: bool = False,
+        fast: bool = False,
     ) -> Rendered:
         """The view with `edits` applied (none when `before`), as the edit stage's `after`
-        picture: field edits rendered, mask selections blended half with magenta."""
+        picture: field edits rendered, mask selections blended half with magenta. `fast`:
+        through the fused mesh's ray cast, the field asked at its hits
+        (`pipeline.surface_render`), instead of the volume render."""
         from stages.common.threads import torch_threads
         from stages.edit.nerf import _overlay, _u8
         from stages.edit.render import render_view_edited
@@ -218,23 +242,33 @@ class Scene:
                 f"{self.files.run}: the run has no trained NeRF to render; train one with "
                 + TRAIN_HINT.format(run=self.files.run)
             )
+        model = self.model
         t0 = time.perf_counter()
         with torch_threads(self.cfg.threads):
             fes = [] if before else [self._field_edit(e) for e in edits]
             field_ops = [fe for fe in fes if fe.op != "mask"]
             masks = [fe.extent for fe in fes if fe.op == "mask"]
-            res = render_view_edited(self.model, pose, intr, field_ops, self.cfg.chunk)
+            sr = self.surface() if fast else None
+
+            def view(ops: list, ext: list) -> dict[str, np.ndarray]:
+                if sr is not None:
+                    return sr.render_view(pose, intr, ops, ext)
+                return render_view_edited(model, pose, intr, ops, self.cfg.chunk, ext)
+
+            # masks are those of the unedited scene, as the edit stage draws them
+            res = view(field_ops, [] if field_ops else masks)
+            if masks and field_ops:
+                res["masks"] = view([], masks)["masks"]
             rgb = res["rgb"]
-            if masks:  # masks are those of the unedited scene, as the edit stage draws them
-                m = render_view_edited(self.model, pose, intr, (), self.cfg.chunk, masks)["masks"]
-                for k in range(len(masks)):
-                    rgb = _overlay(rgb, m[k] >= self.cfg.mask_threshold)
+            for k in range(len(masks)):
+                rgb = _overlay(rgb, res["masks"][k] >= self.cfg.mask_threshold)
         return Rendered(_u8(rgb), time.perf_counter() - t0)
 
 
 def render_command(run: Path, view: int | None, camera: Path | None, spec: Path | None,
-                   scale: float, out: Path) -> dict:  # fmt: skip
-    """`blunf render`: write one (edited) view as a PNG; returns what was done."""
+                   scale: float, out: Path, fast: bool = False) -> dict:  # fmt: skip
+    """`blunf render`: write one (edited) view as a PNG; returns what was done. `fast`:
+    through the fused mesh's ray cast (`pipeline.surface_render`), not the volume render."""
     from stages.common.io import write_image
     from stages.edit.spec import load_spec
 
@@ -257,7 +291,11 @@ def render_command(run: Path, view: int | None, camera: Path | None, spec: Path 
     intr = scaled(intr, scale)
     for e in edits:  # a selection off the plan fails before any render
         scene.selection(e)
-    scene.render(pose, scaled(intr, 0.125), edits)  # warm-up: resolves the edits
-    r = scene.render(pose, intr, edits)
+    scene.render(pose, scaled(intr, 0.125), edits, fast=fast)  # warm-up: resolves the edits
+    r = scene.render(pose, intr, edits, fast=fast)
     write_image(out, r.rgb)
-    return {"out": str(out), "size": [intr.width, intr.height], "seconds": round(r.seconds, 3)}
+    res = {"out": str(out), "size": [intr.width, intr.height], "seconds": round(r.seconds, 3),
+           "path": "fast" if fast else "volume"}  # fmt: skip
+    if fast:
+        res["volume_rendered"] = round(scene.surface().last_fallback, 4)
+    return res

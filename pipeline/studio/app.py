@@ -5,8 +5,10 @@ cameras as frusta (a click on one jumps there). A click on the floor selects the
 component under it (`Session.click_ray`); the panel applies edits, undo / redo, save / load.
 Each tab's background is the NeRF's render from that tab's camera with the edits applied
 (`pipeline.render.Scene.render`): a quarter-resolution preview while the camera moves, the
-full view once it rests. Every tab shares one session (the panel and the scene are the
-server's), each has its own camera and render.
+full view once it rests; both through the fast path (the fused mesh ray-cast, the field
+asked at the hits: `pipeline/surface_render.py`) unless "Full view" says volume. Saved
+views are volume rendered, as `blunf run` renders them. Every tab shares one session (the
+panel and the scene are the server's), each has its own camera and render.
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ REST = 0.3  # seconds without camera motion before the full view is rendered
 MAX_POINTS = 60000  # points of the fused surface sent to the page
 OPS = ("remove", "recolor", "retexture", "sketch", "mask")
 HIGHLIGHT = (255, 0, 255, 170)
+FULL_PATHS = ("fast", "volume")  # how the full view is rendered (the first: the default)
 
 
 class ClientView:
@@ -97,14 +100,16 @@ class ClientView:
                 time.sleep(0.5)
 
     def _key(self) -> tuple | None:
-        """What a render depends on: the camera, the edits, the before / after switch."""
+        """What a render depends on: the camera, the edits, the before / after switch, the
+        full view's path."""
         cam = self.client.camera
         try:
             state = (tuple(np.round(cam.position, 5)), tuple(np.round(cam.wxyz, 5)),
                      round(cam.fov, 5), cam.image_width, cam.image_height)  # fmt: skip
         except AssertionError:  # no camera state from the page yet
             return None
-        return (state, self.studio.session.version, self.studio.before.value)
+        st = self.studio
+        return (state, st.session.version, st.before.value, st.full_path.value)
 
     def _tick(self) -> None:
         st = self.studio
@@ -117,15 +122,21 @@ class ClientView:
         if self.drawn is not None and self.drawn[0] == key and (self.drawn[1] or not full):
             return
         pose, intr = self.camera(full)
-        r = st.session.scene.render(pose, intr, st.session.parsed(), before=key[2])
+        fast = not full or st.full_path.value == "fast"
+        scene = st.session.scene
+        r = scene.render(pose, intr, st.session.parsed(), before=key[2], fast=fast)
         self.client.scene.set_background_image(r.rgb, format="png")
         if self._key() != key:  # changed while rendering: shown, but not counted as done
             return
         self.drawn = (key, full)
         what = "full" if full else "preview"
+        how = "volume render"
+        if fast:
+            how = f"fast path, {scene.surface().last_fallback:.0%} of the rays volume rendered"
         st.renders += 1
         st.timing.content = (
             f"{what} {intr.width}x{intr.height}: {r.seconds * 1000:.0f} ms (render {st.renders})"
+            f"  \n{how}"
         )
 
 
@@ -251,6 +262,9 @@ class Studio:
             names = [f"{i}: {f.stem}" for i, f in enumerate(sess.scene.cap.frames)]
             self.view_pick = gui.add_dropdown("Input view", tuple(names))
             gui.add_button("Go to view").on_click(lambda ev: self._do(lambda: self._go(ev)))
+            # the preview always takes the fast path (pipeline/surface_render.py); the full
+            # view too by default (measured in the README: "The fast render path")
+            self.full_path = gui.add_dropdown("Full view", FULL_PATHS)
             self.timing = gui.add_markdown("render: -")
         with gui.add_folder("File"):
             gui.add_button("Save").on_click(lambda _: self._do(self._save))
