@@ -154,6 +154,7 @@ def scaled(intr: Intrinsics, s: float) -> Intrinsics:
 class Rendered:
     rgb: np.ndarray  # [H, W, 3] uint8
     seconds: float
+    volume_rendered: float | None = None  # fast path: the fraction of rays volume rendered
 
 
 class Scene:
@@ -262,7 +263,9 @@ class Scene:
             rgb = res["rgb"]
             for k in range(len(masks)):
                 rgb = _overlay(rgb, res["masks"][k] >= self.cfg.mask_threshold)
-        return Rendered(_u8(rgb), time.perf_counter() - t0)
+        # per render, not the renderer's: each studio tab renders on its own thread
+        share = float(res["fallback"].mean()) if sr is not None else None
+        return Rendered(_u8(rgb), time.perf_counter() - t0, share)
 
 
 def render_command(run: Path, view: int | None, camera: Path | None, spec: Path | None,
@@ -297,5 +300,5 @@ def render_command(run: Path, view: int | None, camera: Path | None, spec: Path 
     res = {"out": str(out), "size": [intr.width, intr.height], "seconds": round(r.seconds, 3),
            "path": "fast" if fast else "volume"}  # fmt: skip
     if fast:
-        res["volume_rendered"] = round(scene.surface().last_fallback, 4)
+        res["volume_rendered"] = round(r.volume_rendered or 0.0, 4)
     return res

@@ -85,8 +85,8 @@ def bench(run: Path, spec: Path, views: list[int], repeats: int) -> dict:
     def pair(v: int, eds) -> tuple[np.ndarray, np.ndarray, float]:
         pose, intr = scene.view(v)
         vol = scene.render(pose, at(intr, size), eds).rgb
-        fst = scene.render(pose, at(intr, size), eds, fast=True).rgb
-        return vol, fst, scene.surface().last_fallback
+        fst = scene.render(pose, at(intr, size), eds, fast=True)
+        return vol, fst.rgb, fst.volume_rendered or 0.0
 
     unedited = []
     for v in views:

@@ -132,7 +132,7 @@ class ClientView:
         what = "full" if full else "preview"
         how = "volume render"
         if fast:
-            how = f"fast path, {scene.surface().last_fallback:.0%} of the rays volume rendered"
+            how = f"fast path, {r.volume_rendered or 0.0:.0%} of the rays volume rendered"
         st.renders += 1
         st.timing.content = (
             f"{what} {intr.width}x{intr.height}: {r.seconds * 1000:.0f} ms (render {st.renders})"
