@@ -333,7 +333,7 @@ def test_fast_render_agrees_with_the_volume_render(tiny_run, tmp_path) -> None:
         r_vol, r_fast = scene.render(pose, intr), scene.render(pose, intr, fast=True)
         vol, fast = r_vol.rgb, r_fast.rgb
         # each render says how much of it the volume render drew (a tab's own, not the last)
-        assert r_vol.volume_rendered is None and 0.0 <= r_fast.volume_rendered < 0.05
+        assert r_vol.volume_rendered is None and 0.0 <= r_fast.volume_rendered < 0.25
         photo = read_image(cap / "images" / f"{scene.cap.frames[v].stem}.png")
         psnrs.append(_psnr(fast, vol))
         assert _psnr(fast, photo) >= _psnr(vol, photo), f"view {v}: further from the photo"
