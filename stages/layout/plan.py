@@ -4,7 +4,8 @@ plan.json: {"units": "m", "angle_deg": the room's direction, "rooms": [{name, po
 (counter-clockwise interior outline), area}], "walls": [{start, end (interior face, room on
 the left), length, thickness, room}], "openings": [{kind door|passage, wall, start, end,
 width}], "objects": [{instance, class, name, polygon, center, width, depth, angle_deg, height,
-shape rect|polygon}]}.
+shape rect|polygon}], "objects_outside": how many object footprints lay outside every room
+(left out of the drawing; the BluNF plan keeps them)}.
 """
 
 from __future__ import annotations
@@ -220,6 +221,25 @@ def objects(bp: Blueprint, cfg: LayoutConfig, top: Callable | None = None) -> li
             }
         )
     return out
+
+
+def in_rooms(objs: list[dict], rooms: list[dict], pad: float) -> tuple[list[dict], int]:
+    """The objects whose footprint lies at least half inside a room (its outline grown by
+    `pad` metres: a footprint against a wall's face may reach past the traced outline), and
+    how many were left out: furniture of the next room seen through a doorway, stereo's
+    noise behind a wall. Without rooms every object is kept."""
+    if not rooms:
+        return objs, 0
+    area = Polygon(rooms[0]["polygon"]).buffer(pad)
+    for r in rooms[1:]:
+        area = area.union(Polygon(r["polygon"]).buffer(pad))
+    kept = []
+    for o in objs:
+        fp = Polygon(o["polygon"])
+        fp = fp if fp.is_valid else fp.buffer(0)  # a traced outline may touch itself
+        if fp.area > 0 and fp.intersection(area).area >= 0.5 * fp.area:
+            kept.append(o)
+    return kept, len(objs) - len(kept)
 
 
 def _outline(m: np.ndarray, bp: Blueprint, hull: Polygon) -> Polygon:

@@ -20,7 +20,7 @@ from stages.common.io import write_json
 from stages.layout.config import LayoutConfig, LayoutInputs, LayoutOutputs
 from stages.layout.draw import write_dxf, write_svg
 from stages.layout.openings import ceiling, enclosed, heights, mesh_openings, scene_of
-from stages.layout.plan import architecture, objects
+from stages.layout.plan import architecture, in_rooms, objects
 
 log = logging.getLogger(__name__)
 
@@ -51,6 +51,10 @@ def build_plan(bp: Blueprint, cfg: LayoutConfig, mesh: Path | None = None) -> di
         plan = architecture(bp, cfg)
         plan["openings"] = _distinct(plan["openings"])
         plan["objects"] = objects(bp, cfg)
+    # the drawing is of the rooms: what lies outside them stays in the BluNF plan only
+    plan["objects"], plan["objects_outside"] = in_rooms(
+        plan["objects"], plan["rooms"], 2 * bp.grid.cell
+    )
     return plan
 
 

@@ -238,6 +238,23 @@ def test_a_removed_object_leaves_the_plan(tmp_path):
     assert edited["rooms"] == plan["rooms"]
 
 
+def test_objects_outside_the_rooms_are_left_out_of_the_drawing():
+    # a room whose walls are 0.12 m thick; a chair beyond the south wall (the next room's,
+    # seen through a doorway), a cabinet against the east wall's inner face
+    bp = _raster([box(0, 0, 4, 3)], 0.12, [], 0.0)
+    c = bp.grid.centers()
+    labels = bp.labels.copy()
+    chair = box(1.2, -0.3, 1.8, -0.14)  # 0.6 x 0.16 m outside the wall band
+    cabinet = box(3.4, 1.0, 4.0, 2.0)
+    labels[contains_xy(chair, c[..., 0], c[..., 1])] = 2
+    labels[contains_xy(cabinet, c[..., 0], c[..., 1])] = 3
+    classes = {**bp.classes, 2: "chair", 3: "cabinet"}
+    plan = build_plan(Blueprint(labels, bp.grid, classes), GT_PLAN)
+    assert len(plan["rooms"]) == 1
+    assert [o["class"] for o in plan["objects"]] == ["cabinet"]
+    assert plan["objects_outside"] == 1
+
+
 def test_blueprint_png_draws_the_walls_over_the_classes(tmp_path):
     t = 0.12
     ell = Polygon([(0, 0), (5, 0), (5, 2.5), (2.4, 2.5), (2.4, 4.5), (0, 4.5)])
