@@ -116,7 +116,6 @@ class SurfaceRenderer:
         self.vertices = np.asarray(vertices, np.float64)
         self.faces = np.asarray(faces, np.int64)
         self._casters: dict[tuple[int, ...], MeshCaster] = {}
-        self.last_fallback = 0.0  # fraction of the last view's rays volume rendered
 
     def caster(self, removes: Sequence[FieldEdit]) -> MeshCaster:
         """The mesh without the removed faces, ray-cast ready (kept for the same removals)."""
@@ -200,7 +199,6 @@ class SurfaceRenderer:
                 res[k][fb] = vol[k]
             res["masks"][:, fb] = vol["masks"]
         res["fallback"] = fallback
-        self.last_fallback = float(fallback.float().mean()) if r else 0.0
         return res
 
     def volume_rays(
@@ -239,7 +237,6 @@ class SurfaceRenderer:
                 parts[k].append(out[k])
         h, w = intr.height, intr.width
         fb = torch.cat(parts["fallback"])
-        self.last_fallback = float(fb.float().mean()) if len(fb) else 0.0
         return {
             "rgb": torch.cat(parts["rgb"]).view(h, w, 3).clamp(0, 1).numpy(),
             "depth": torch.cat(parts["depth"]).view(h, w).numpy(),

@@ -49,6 +49,17 @@ def _write_ply(path, verts: np.ndarray, tris: np.ndarray) -> None:  # noqa: ANN0
     trimesh.Trimesh(verts, tris, process=False).export(path)
 
 
+def _plan(parts: list, classes: dict) -> Blueprint:
+    """A 2 cm blueprint over [-0.3, 6] x [-0.3, 3.3] m: each (polygon, class) painted in turn
+    over unknown."""
+    grid = Grid.covering(np.array([-0.3, -0.3]), np.array([6.0, 3.3]), 0.02)
+    c = grid.centers()
+    labels = np.full(grid.shape, UNKNOWN, np.uint8)
+    for poly, k in parts:
+        labels[contains_xy(poly, c[..., 0], c[..., 1])] = k
+    return Blueprint(labels, grid, classes)
+
+
 def test_a_door_is_read_where_the_face_starts_not_where_a_fused_jamb_closes_it():
     # the south wall's face at y = 0 (the room north of it), 0.12 m thick, a door from x = 1.0
     # to 1.9; its west jamb as fusion rounds a corner seen at a slant: the face bends back from
@@ -116,16 +127,10 @@ def test_floor_no_view_saw_inside_the_walls_is_the_room_outside_them_is_none(tmp
 
     # the plan: the room's floor, walls 0.12 m thick, and east of it the field's floor filling
     # a closed space of 1.5 x 3 m that no view saw (as an L's notch)
-    grid = Grid.covering(np.array([-0.3, -0.3]), np.array([6.0, 3.3]), 0.02)
-    c = grid.centers()
-    labels = np.full(grid.shape, UNKNOWN, np.uint8)
-    for poly, k in (
-        (box(-t, -t, 5.6 + t, 3 + t), 1),
-        (box(0, 0, 4, 3), 0),
-        (box(4 + t, 0, 5.6, 3), 0),
-    ):
-        labels[contains_xy(poly, c[..., 0], c[..., 1])] = k
-    bp = Blueprint(labels, grid, {0: "floor", 1: "wall"})
+    bp = _plan(
+        [(box(-t, -t, 5.6 + t, 3 + t), 1), (box(0, 0, 4, 3), 0), (box(4 + t, 0, 5.6, 3), 0)],
+        {0: "floor", 1: "wall"},
+    )
     _write_ply(tmp_path / "mesh.ply", verts, tris)
     plan = build_plan(bp, LayoutConfig(face_offset=0.0), tmp_path / "mesh.ply")
     gt = {"rooms": [{"polygon": [[0, 0], [4, 0], [4, 3], [0, 3]]}], "openings": []}
@@ -140,17 +145,15 @@ def test_a_closed_space_of_objects_is_no_room():
     # east of a 4 x 3 m room, a 1.5 x 3 m closed space labelled object with a 0.5 x 0.5 m
     # speck of floor (stereo's noise behind a photos-only plan's walls)
     t = 0.12
-    grid = Grid.covering(np.array([-0.3, -0.3]), np.array([6.0, 3.3]), 0.02)
-    c = grid.centers()
-    labels = np.full(grid.shape, UNKNOWN, np.uint8)
-    for poly, k in (
-        (box(-t, -t, 5.6 + t, 3 + t), 1),
-        (box(0, 0, 4, 3), 0),
-        (box(4 + t, 0, 5.6, 3), 2),
-        (box(4.5, 1.0, 5.0, 1.5), 0),
-    ):
-        labels[contains_xy(poly, c[..., 0], c[..., 1])] = k
-    bp = Blueprint(labels, grid, {0: "floor", 1: "wall", 2: "object"})
+    bp = _plan(
+        [
+            (box(-t, -t, 5.6 + t, 3 + t), 1),
+            (box(0, 0, 4, 3), 0),
+            (box(4 + t, 0, 5.6, 3), 2),
+            (box(4.5, 1.0, 5.0, 1.5), 0),
+        ],
+        {0: "floor", 1: "wall", 2: "object"},
+    )
     plan = build_plan(bp, LayoutConfig(face_offset=0.0))
     assert len(plan["rooms"]) == 1
     assert plan["rooms"][0]["area"] == pytest.approx(12.0, rel=0.01)
