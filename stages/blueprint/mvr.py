@@ -27,7 +27,7 @@ def run(cfg: BlueprintConfig, inputs: BlueprintInputs, out: Path) -> BlueprintOu
     """Majority vote of the projected labels per cell."""
     if cfg.mvr.min_votes < 1:
         raise BlunfError(f"blueprint.mvr.min_votes must be >= 1, got {cfg.mvr.min_votes}")
-    log.info("blueprint/mvr: %s", cfg.mvr)
+    log.debug("blueprint/mvr: %s", cfg.mvr)
     t0 = time.perf_counter()
     xyz, label, _, classes = read_points(inputs.points)
     grid = read_grid(inputs.grid)

@@ -227,7 +227,7 @@ def write_svg(
 
     ET.indent(svg)
     ET.ElementTree(svg).write(path, encoding="utf-8", xml_declaration=True)
-    log.info("wrote %s: %d components", path, len(polys))
+    log.info("export: %s, %d components", Path(path).name, len(polys))
 
 
 def _coords(ring: np.ndarray) -> list[list[float]]:
@@ -272,7 +272,7 @@ def write_geojson(
         "features": features,
     }
     Path(path).write_text(json.dumps(data, separators=(",", ":")) + "\n")
-    log.info("wrote %s: %d features", path, len(features))
+    log.info("export: %s, %d features", Path(path).name, len(features))
 
 
 def _nearest_aci(rgb: tuple[int, int, int]) -> int:
@@ -315,4 +315,4 @@ def write_dxf(
                     ring[:-1].tolist(), close=True, dxfattribs={"layer": layers[cid]}
                 )
     doc.saveas(path)
-    log.info("wrote %s: %d layers", path, len(layers))
+    log.info("export: %s, %d layers", Path(path).name, len(layers))

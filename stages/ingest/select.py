@@ -225,7 +225,7 @@ def run(cfg: IngestConfig, inputs: IngestInputs, out: Path) -> IngestOutputs:
     """Read the capture, keep cfg.frames views, check them, downscale to cfg.max_side."""
     from stages.ingest import load  # the package imports this module for its registry
 
-    log.info("ingest: %s on %s", cfg, inputs.capture)
+    log.debug("ingest: %s on %s", cfg, inputs.capture)
     _check_config(cfg)
     out = Path(out)
     work = out / "import"

@@ -16,7 +16,7 @@ log = logging.getLogger(__name__)
 
 def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
     """Check that every frame has a pose and write the capture back unchanged."""
-    log.info("poses: given (%s)", cfg)
+    log.debug("poses: given (%s)", cfg)
     cap = Capture.load(inputs.frames)
     if not cap.frames:
         raise BlunfError(f"{inputs.frames}: the capture has no frames")

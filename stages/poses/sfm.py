@@ -39,7 +39,7 @@ SELF_CALIB_WARNING = (
 
 def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
     """Register the capture's photos, scale the model to metres, write frames.json + sfm.json."""
-    log.info("poses: sfm %s", cfg)
+    log.debug("poses: sfm %s", cfg)
     cap = Capture.load(inputs.frames)
     n = len(cap.frames)
     if n == 0:

@@ -131,7 +131,8 @@ def test_module_entry_point_matches_console_script(tmp_path):
 
 def test_a_run_logs_a_short_story(tiny_room, tmp_path):
     """A whole run on the console: a line or two per stage, none from the libraries' chatter
-    (ezdxf announced each of the 13 DXF dictionaries it created, twice per run)."""
+    (ezdxf announced each of the 13 DXF dictionaries it created, twice per run), no stage's
+    whole config (the runner names the settings that differ) and no temporary paths."""
     out = tmp_path / "run"
     r = subprocess.run(
         [sys.executable, "-m", "pipeline", "run", str(tiny_room), "--out", str(out), *FAST],
@@ -141,6 +142,7 @@ def test_a_run_logs_a_short_story(tiny_room, tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     lines = r.stderr.strip().splitlines()
     assert not [x for x in lines if "ezdxf" in x or "ACAD" in x], lines
+    assert not [x for x in lines if "Config(" in x or ".tmp-" in x], lines
     stages = len(json.loads((out / "report.json").read_text())["stages"])
     assert len(lines) <= 5 * stages, "\n".join(lines)
 
