@@ -29,7 +29,7 @@ from stages.edit.select import select_cells
 from stages.edit.spec import Edit
 
 if TYPE_CHECKING:
-    from pipeline.surface_render import SurfaceRenderer
+    from stages.edit.surface import SurfaceRenderer
 
 TRAIN_HINT = (
     "blunf run CAPTURE --out {run} --config configs/edit.yaml --edits {run}/edits/studio.yaml"
@@ -179,7 +179,7 @@ class Scene:
         self.model = None if files.model is None else _load_model(files.model)
         self._resolved: dict[tuple, object] = {}
         self._surface: SurfaceRenderer | None = (
-            None  # the fast path (pipeline.surface_render), made on first use
+            None  # the fast path (stages.edit.surface), made on first use
         )
 
     @property
@@ -213,8 +213,8 @@ class Scene:
         return self._resolved[key]
 
     def surface(self) -> SurfaceRenderer:
-        """The fast path's renderer (`pipeline.surface_render`), made once."""
-        from pipeline.surface_render import SurfaceRenderer
+        """The fast path's renderer (`stages.edit.surface`), made once."""
+        from stages.edit.surface import SurfaceRenderer
 
         if self.model is None:
             raise BlunfError(f"{self.files.run}: the run has no trained NeRF to render")
@@ -233,7 +233,7 @@ class Scene:
         """The view with `edits` applied (none when `before`), as the edit stage's `after`
         picture: field edits rendered, mask selections blended half with magenta. `fast`:
         through the fused mesh's ray cast, the field asked at its hits
-        (`pipeline.surface_render`), instead of the volume render."""
+        (`stages.edit.surface`), instead of the volume render."""
         from stages.common.threads import torch_threads
         from stages.edit.nerf import _overlay, _u8
         from stages.edit.render import render_view_edited
@@ -271,7 +271,7 @@ class Scene:
 def render_command(run: Path, view: int | None, camera: Path | None, spec: Path | None,
                    scale: float, out: Path, fast: bool = False) -> dict:  # fmt: skip
     """`blunf render`: write one (edited) view as a PNG; returns what was done. `fast`:
-    through the fused mesh's ray cast (`pipeline.surface_render`), not the volume render."""
+    through the fused mesh's ray cast (`stages.edit.surface`), not the volume render."""
     from stages.common.io import write_image
     from stages.edit.spec import load_spec
 

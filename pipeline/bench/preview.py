@@ -1,4 +1,4 @@
-"""The fast render path (`pipeline.surface_render`) against the volume render, on a run.
+"""The fast render path (`stages.edit.surface`) against the volume render, on a run.
 
     python -m pipeline.bench.preview RUN --edits SPEC [--views 0,7,14] [--repeats 3]
         [--threads 2] [--out DIR]

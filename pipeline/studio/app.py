@@ -6,7 +6,7 @@ component under it (`Session.click_ray`); the panel applies edits, undo / redo, 
 Each tab's background is the NeRF's render from that tab's camera with the edits applied
 (`pipeline.render.Scene.render`): a quarter-resolution preview while the camera moves, the
 full view once it rests; both through the fast path (the fused mesh ray-cast, the field
-asked at the hits: `pipeline/surface_render.py`) unless "Full view" says volume. Saved
+asked at the hits: `stages/edit/surface.py`) unless "Full view" says volume. Saved
 views are volume rendered, as `blunf run` renders them. Every tab shares one session (the
 panel and the scene are the server's), each has its own camera and render.
 """
@@ -262,7 +262,7 @@ class Studio:
             names = [f"{i}: {f.stem}" for i, f in enumerate(sess.scene.cap.frames)]
             self.view_pick = gui.add_dropdown("Input view", tuple(names))
             gui.add_button("Go to view").on_click(lambda ev: self._do(lambda: self._go(ev)))
-            # the preview always takes the fast path (pipeline/surface_render.py); the full
+            # the preview always takes the fast path (stages/edit/surface.py); the full
             # view too by default (measured in the README: "The fast render path")
             self.full_path = gui.add_dropdown("Full view", FULL_PATHS)
             self.timing = gui.add_markdown("render: -")

@@ -9,6 +9,7 @@ from typing import ClassVar
 from stages.common.errors import BlunfError
 
 REMOVED_LABELS = ("floor", "unknown")
+RENDERS = ("volume", "surface")
 
 
 @dataclass(frozen=True)
@@ -30,6 +31,10 @@ class EditConfig:
     mask_threshold: float = 0.5  # a pixel is selected when its weight inside the extent >= this
     change_threshold: float = 0.02  # a pixel changed when a channel moved more than this (RGB 0-1)
     render_scale: float = 1.0  # renders at this fraction of the frames' resolution
+    # "volume": every ray marched through the field; "surface": the fused mesh ray-cast and
+    # the field asked at the hit (stages/edit/surface.py: the studio's fast path), so what an
+    # edit changes is outlined by the mesh, and the colours need a less trained field
+    render: str = "volume"
     gif_frames: int = 24  # frames of the orbit GIF when the spec's views are frame indices
     gif_scale: float = 0.5  # ... rendered at this fraction of the frames' resolution (a
     #                         spec's own orbit is the views themselves, at render_scale)
@@ -50,6 +55,8 @@ class EditConfig:
             raise BlunfError(
                 f"edit.removed_label: must be one of {REMOVED_LABELS}, got {self.removed_label!r}"
             )
+        if self.render not in RENDERS:
+            raise BlunfError(f"edit.render: must be one of {RENDERS}, got {self.render!r}")
         for name in ("render_scale", "gif_scale"):
             if not 0 < getattr(self, name) <= 4:
                 raise BlunfError(f"edit.{name}: must be in (0, 4], got {getattr(self, name)}")

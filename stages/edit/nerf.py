@@ -15,6 +15,7 @@ from __future__ import annotations
 import logging
 import pickle
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -26,7 +27,7 @@ from scipy import ndimage
 
 from stages.common.blueprint import Blueprint
 from stages.common.camera import Intrinsics
-from stages.common.capture import UNKNOWN, Capture
+from stages.common.capture import Capture
 from stages.common.components import component_map
 from stages.common.errors import BlunfError
 from stages.common.io import (
@@ -50,8 +51,9 @@ from stages.edit.ops import (
     vertex_colors,
 )
 from stages.edit.render import orbit_poses, render_view_edited
-from stages.edit.select import Extent, extent_of, select_cells
+from stages.edit.select import Extent, edited_plan, extent_of, select_cells
 from stages.edit.spec import Edit, EditSpec, check_views, load_spec
+from stages.edit.surface import SurfaceRenderer
 
 log = logging.getLogger(__name__)
 
@@ -60,6 +62,9 @@ ORBIT_TARGET_Z = 0.5  # default orbit: cameras look at this height above the cam
 SEPARATOR = 4  # white pixels between before and after
 REF_POINTS = 20000  # surface points at most whose field colour sets a selection's reference
 FILL_RING = 0.2  # metres round a removed footprint whose fused floor's colour fills under it
+
+
+Draw = Callable[..., dict]  # (pose, intr, edits, masks=()) -> render_view_edited's dict
 
 
 @dataclass(frozen=True)
@@ -108,12 +113,13 @@ def run(cfg: EditConfig, inputs: EditInputs, out: Path) -> EditOutputs:
                 }
             )
         views = _views(spec, cap, cfg)
-        scored = _render_views(cfg, model, views, edits, outs, inputs.gt, records)
+        draw = _drawer(cfg, model, mesh)
+        scored = _render_views(cfg, draw, views, edits, outs, inputs.gt, records)
         t_gif = time.perf_counter()
-        _gif(cfg, model, spec, cap, edits, scored["orbit_frames"], outs.gif)
+        _gif(cfg, draw, spec, cap, edits, scored["orbit_frames"], outs.gif)
         gif_seconds = time.perf_counter() - t_gif
 
-    new_bp, n_changed = _edited_plan(cfg, bp, spec, cells)
+    new_bp, n_changed = edited_plan(cfg, bp, spec, cells)
     new_bp.save(outs.blueprint)
     plan_png(new_bp, outs.blueprint_png, title="edited")
     mesh_new, mesh_stats = edit_mesh(mesh, mesh_edits)
@@ -136,6 +142,7 @@ def run(cfg: EditConfig, inputs: EditInputs, out: Path) -> EditOutputs:
             },
             "mesh": mesh_stats,
             "render": {
+                "path": cfg.render,
                 "size": [views[0].intr.width, views[0].intr.height],
                 "renders": scored["renders"],
                 "seconds": round(scored["seconds"], 3),
@@ -288,9 +295,20 @@ def _overlay(rgb: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return np.where(mask[..., None], 0.5 * rgb + 0.5 * MASK_TINT, rgb)
 
 
+def _drawer(cfg: EditConfig, model, mesh: trimesh.Trimesh) -> Draw:
+    """The view renderer `cfg.render` names, called as
+    draw(pose, intr, edits, masks) -> render_view_edited's dict."""
+    if cfg.render == "surface":
+        fast = SurfaceRenderer(model, np.asarray(mesh.vertices), np.asarray(mesh.faces))
+        return lambda pose, intr, ops, masks=(): fast.render_view(pose, intr, ops, masks, cfg.chunk)
+    return lambda pose, intr, ops, masks=(): render_view_edited(
+        model, pose, intr, ops, cfg.chunk, masks
+    )
+
+
 def _render_views(
     cfg: EditConfig,
-    model,
+    draw: Draw,
     views: list[View],
     edits: list[FieldEdit],
     outs: EditOutputs,
@@ -307,12 +325,12 @@ def _render_views(
     renders = 0
     orbit_frames = []
     for k, v in enumerate(track(views, "edit render", unit="view")):
-        before = render_view_edited(model, v.pose, v.intr, (), cfg.chunk, extents)
+        before = draw(v.pose, v.intr, (), extents)
         renders += 1
         sel = before["masks"] >= cfg.mask_threshold  # [E, H, W]
         after = before["rgb"]
         if field_ops:
-            after = render_view_edited(model, v.pose, v.intr, field_ops, cfg.chunk)["rgb"]
+            after = draw(v.pose, v.intr, field_ops)["rgb"]
             renders += 1
         after_field = after  # the field edits' render, before any mask overlay
         for i, e in enumerate(edits):
@@ -330,7 +348,7 @@ def _render_views(
             elif len(field_ops) == 1:  # rendered above already
                 single = after_field
             else:  # this edit alone
-                single = render_view_edited(model, v.pose, v.intr, [e], cfg.chunk)["rgb"]
+                single = draw(v.pose, v.intr, [e])["rgb"]
                 renders += 1
             scores[i].add(before["rgb"], single, sel[i], inst)
         log.info("edit/nerf: view %d/%d (%s) rendered", k + 1, len(views), v.name)
@@ -346,7 +364,7 @@ def _u8(rgb: np.ndarray) -> np.ndarray:
 
 def _gif(
     cfg: EditConfig,
-    model,
+    draw: Draw,
     spec: EditSpec,
     cap: Capture,
     edits: list[FieldEdit],
@@ -365,33 +383,10 @@ def _gif(
         field_ops = [e for e in edits if e.op != "mask"]
         masks = [e.extent for e in edits if e.op == "mask"]
         for pose in track(poses, "edit orbit", unit="frame"):
-            r = render_view_edited(model, pose, intr, field_ops, cfg.chunk, masks)
+            r = draw(pose, intr, field_ops, masks)
             rgb = r["rgb"]
             for m in r["masks"]:
                 rgb = _overlay(rgb, m >= cfg.mask_threshold)
             frames.append(_u8(rgb))
     imgs = [Image.fromarray(f) for f in frames]
     imgs[0].save(path, save_all=True, append_images=imgs[1:], duration=cfg.gif_ms, loop=0)
-
-
-# ---- the edited plan ----------------------------------------------------------------------
-def _edited_plan(
-    cfg: EditConfig, bp: Blueprint, spec: EditSpec, cells: list[np.ndarray]
-) -> tuple[Blueprint, int]:
-    """The plan with removed selections relabelled (floor or unknown; no instance). Returns
-    it and the number of cells changed."""
-    lab = bp.labels.copy()
-    inst = None if bp.instances is None else bp.instances.copy()
-    floor_ids = [k for k, n in bp.classes.items() if n == cfg.floor_class]
-    for e, sel in zip(spec.edits, cells, strict=True):
-        if e.op != "remove":
-            continue
-        if cfg.removed_label == "floor" and floor_ids:
-            is_floor = np.isin(bp.labels, floor_ids)
-            lab[sel & ~is_floor] = floor_ids[0]
-            lab[sel & is_floor] = UNKNOWN
-        else:
-            lab[sel] = UNKNOWN
-        if inst is not None:
-            inst[sel] = 0
-    return Blueprint(lab, bp.grid, dict(bp.classes), inst), int((lab != bp.labels).sum())

@@ -29,7 +29,7 @@ from stages.common.capture import UNKNOWN
 from stages.common.components import class_name
 from stages.common.errors import BlunfError
 from stages.edit.config import EditConfig
-from stages.edit.spec import Selector
+from stages.edit.spec import EditSpec, Selector
 
 NEIGHBOURS = [(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1) if (dr, dc) != (0, 0)]
 
@@ -211,3 +211,26 @@ def _grow(zlo: np.ndarray, zhi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         new_lo = np.where(free, np.minimum(new_lo, nl), new_lo)
         new_hi = np.where(free, np.maximum(new_hi, nh), new_hi)
     return new_lo, new_hi
+
+
+# ---- the edited plan ----------------------------------------------------------------------
+def edited_plan(
+    cfg: EditConfig, bp: Blueprint, spec: EditSpec, cells: list[np.ndarray]
+) -> tuple[Blueprint, int]:
+    """The plan with removed selections relabelled (floor or unknown; no instance). Returns
+    it and the number of cells changed."""
+    lab = bp.labels.copy()
+    inst = None if bp.instances is None else bp.instances.copy()
+    floor_ids = [k for k, n in bp.classes.items() if n == cfg.floor_class]
+    for e, sel in zip(spec.edits, cells, strict=True):
+        if e.op != "remove":
+            continue
+        if cfg.removed_label == "floor" and floor_ids:
+            is_floor = np.isin(bp.labels, floor_ids)
+            lab[sel & ~is_floor] = floor_ids[0]
+            lab[sel & is_floor] = UNKNOWN
+        else:
+            lab[sel] = UNKNOWN
+        if inst is not None:
+            inst[sel] = 0
+    return Blueprint(lab, bp.grid, dict(bp.classes), inst), int((lab != bp.labels).sum())

@@ -12,10 +12,10 @@ import pytest
 import torch
 import trimesh
 
-from pipeline.surface_render import SurfaceOptions, SurfaceRenderer, kept_faces
 from stages.common.radiance.config import SamplingConfig
 from stages.common.radiance.field import field_of
 from stages.edit.render import render_view_edited
+from stages.edit.surface import SurfaceOptions, SurfaceRenderer, kept_faces
 from tests.stages.edit_scene import (
     BOX_A,
     BOX_B,
