@@ -75,6 +75,7 @@ def _valid_other(cfg, name, value):
         "pe",
         "unknown",
         "field",
+        "surface",
         "sqrt",
     ):
         if cand == value:
@@ -131,7 +132,9 @@ def test_other_methods_settings_do_not_change_a_methods_key():
     )
 
 
-@pytest.mark.parametrize("name", ["default.yaml", "fast.yaml", "phone.yaml", "edit.yaml"])
+@pytest.mark.parametrize(
+    "name", ["default.yaml", "fast.yaml", "phone.yaml", "edit.yaml", "edit-fast.yaml"]
+)
 def test_shipped_configs_load(name):
     # make demo and the README use these: each is valid, and says something
     from pathlib import Path
@@ -143,6 +146,9 @@ def test_shipped_configs_load(name):
         assert cfg["nerf"].train.edge_batch == 0.5
         assert default_config()["nerf"].train.edge_batch == 0.0
         assert cfg["nerf"].train.max_steps == 1000 and cfg["nerf"].train.time_budget == 0
+    if name == "edit-fast.yaml":
+        assert cfg["edit"].render == "surface" and default_config()["edit"].render == "volume"
+        assert cfg["nerf"].train.max_steps == 200
 
 
 @pytest.mark.parametrize(
@@ -154,6 +160,7 @@ def test_shipped_configs_load(name):
         (["blueprint.blunf.encoding=fourier"], "blueprint.blunf.encoding"),
         (["blueprint.blunf.balance=even"], "blueprint.blunf.balance"),
         (["blueprint.mvr.min_votes=0"], "blueprint.mvr.min_votes"),
+        (["edit.render=raster"], "edit.render"),
     ],
 )
 def test_settings_no_stage_could_use_fail_at_load(sets, named):

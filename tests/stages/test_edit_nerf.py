@@ -52,7 +52,7 @@ views: [0, 6]
 
 
 @pytest.fixture(scope="module")
-def edited(tmp_path_factory) -> tuple[Path, Path, EditOutputs]:
+def edited(tmp_path_factory) -> tuple[Path, Path, EditOutputs, EditInputs]:
     tmp = tmp_path_factory.mktemp("edit_e2e")
     room = make_room(tmp / "room", views=8, seed=3, size=(96, 72))
     frames = tmp / "frames.json"
@@ -78,11 +78,11 @@ def edited(tmp_path_factory) -> tuple[Path, Path, EditOutputs]:
     out = tmp / "edit"
     out.mkdir()
     cfg = EditConfig(gif_frames=3, threads=1)
-    return room, fused.mesh, IMPLS["nerf"](cfg, inputs, out)
+    return room, fused.mesh, IMPLS["nerf"](cfg, inputs, out), inputs
 
 
 def test_outputs_written(edited):
-    room, _, outs = edited
+    room, _, outs, _ = edited
     assert outs == EditOutputs.at(outs.stats.parent)
     for name in ("0000", "0006"):
         img = Image.open(outs.views / f"{name}.png")
@@ -95,7 +95,7 @@ def test_outputs_written(edited):
 
 
 def test_plan_and_mesh_edits(edited):
-    room, mesh_in, outs = edited
+    room, mesh_in, outs, _ = edited
     before = Blueprint.load(room / "gt" / "blueprint.npz")
     after = Blueprint.load(outs.blueprint)
     # chair_2's component became floor; every other cell is unchanged (the other chairs too)
@@ -123,7 +123,7 @@ def test_plan_and_mesh_edits(edited):
 
 
 def test_metrics_and_masks(edited):
-    room, _, outs = edited
+    room, _, outs, _ = edited
     stats = read_json(outs.stats)
     ms = stats["metrics"]["edit"]
     assert [m["op"] for m in ms] == ["remove", "recolor", "retexture", "mask"]
@@ -147,3 +147,26 @@ def test_metrics_and_masks(edited):
     mask = read_label(outs.masks / "0000_0.png") > 0
     assert (inst[mask] == 3).mean() > 0.8 and mask[inst == 3].mean() > 0.8
     assert (mask & (inst == 2)).sum() <= 0.01 * (inst == 2).sum()
+
+
+def test_surface_render_path_changes_what_the_volume_render_changes(edited, tmp_path):
+    """edit.render=surface (the fused mesh ray-cast, the field asked at the hit) on the same
+    NeRF and spec: the same plan; in view 0, which the 8-view mesh covers, each edit changes
+    the pixels the volume render changes, within a few points of its IoU against the ground
+    truth (measured: remove 0.932 against 0.959, mask 0.949 against 0.992). In view 6 chair_2
+    stands at the image's edge, half in front of the near views, and the fusion missed its
+    near side: the rays pass on to the floor and the mask there is 0.62 against 0.98, the
+    path's known limit (what the mesh lacks, it cannot outline)."""
+    room, _, outs, inputs = edited
+    out = tmp_path / "surface"
+    out.mkdir()
+    fast = IMPLS["nerf"](EditConfig(gif_frames=3, threads=1, render="surface"), inputs, out)
+    a, b = read_json(outs.stats), read_json(fast.stats)
+    assert (a["render"]["path"], b["render"]["path"]) == ("volume", "surface")
+    bp_a, bp_b = Blueprint.load(outs.blueprint), Blueprint.load(fast.blueprint)
+    assert np.array_equal(bp_a.labels, bp_b.labels)
+    for va, vb in zip(a["metrics"]["edit"], b["metrics"]["edit"], strict=True):
+        assert vb["changed_iou_views"][0] >= va["changed_iou_views"][0] - 0.05, (va, vb)
+    m_vol = read_label(outs.masks / "0000_0.png") > 0
+    m_fast = read_label(fast.masks / "0000_0.png") > 0
+    assert (m_vol & m_fast).sum() > 0.85 * (m_vol | m_fast).sum()

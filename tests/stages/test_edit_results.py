@@ -100,7 +100,7 @@ def test_mesh_edits():
 
 
 def test_edited_plan_relabels_removed_cells():
-    from stages.edit.nerf import _edited_plan
+    from stages.edit.select import edited_plan
 
     bp = _plan()
     a = _select("click", (0.6, 0.6))
@@ -110,11 +110,9 @@ def test_edited_plan_relabels_removed_cells():
         Edit(1, "recolor", Selector("pixel", (0, 0))),
     ]
     # removing A makes its 16 cells floor; a recolour changes no label
-    new, n = _edited_plan(
-        EditConfig(), bp, EditSpec(Path("e.yaml"), tuple(edits), (0,)), [a, floor]
-    )
+    new, n = edited_plan(EditConfig(), bp, EditSpec(Path("e.yaml"), tuple(edits), (0,)), [a, floor])
     assert n == 16 and np.all(new.labels[a] == 0) and np.all(new.labels[~a] == bp.labels[~a])
-    new, n = _edited_plan(
+    new, n = edited_plan(
         EditConfig(removed_label="unknown"),
         bp,
         EditSpec(Path("e.yaml"), tuple(edits), (0,)),
@@ -123,14 +121,12 @@ def test_edited_plan_relabels_removed_cells():
     assert n == 16 and np.all(new.labels[a] == 255)
     # removing the floor itself leaves unknown cells, whatever removed_label says
     rm_floor = [Edit(0, "remove", Selector("pixel", (0, 0)))]
-    new, n = _edited_plan(
-        EditConfig(), bp, EditSpec(Path("e.yaml"), tuple(rm_floor), (0,)), [floor]
-    )
+    new, n = edited_plan(EditConfig(), bp, EditSpec(Path("e.yaml"), tuple(rm_floor), (0,)), [floor])
     assert n == 400 - 32 and np.all(new.labels[floor] == 255)
 
 
 def test_edited_plan_keeps_instances_but_the_removed_ones():
-    from stages.edit.nerf import _edited_plan
+    from stages.edit.select import edited_plan
 
     bp = _plan()
     inst = np.zeros(bp.labels.shape, np.int32)
@@ -138,7 +134,7 @@ def test_edited_plan_keeps_instances_but_the_removed_ones():
     bp = replace(bp, instances=inst)
     a = _select("click", (0.6, 0.6))
     edits = (Edit(0, "remove", Selector("click", (0.6, 0.6))),)
-    new, _ = _edited_plan(EditConfig(), bp, EditSpec(Path("e.yaml"), edits, (0,)), [a])
+    new, _ = edited_plan(EditConfig(), bp, EditSpec(Path("e.yaml"), edits, (0,)), [a])
     assert new.instances is not None
     assert np.all(new.instances[a] == 0) and np.all(new.instances[~a] == inst[~a])
     assert (inst[~a] == 7).any()
