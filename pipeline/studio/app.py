@@ -54,8 +54,13 @@ class Studio(Panel):
 
     # ---- scene -----------------------------------------------------------------------------
     def _floor_image(self, name: str, rgba: np.ndarray, z: float):
+        """A picture of the plan's cells (row 0 north) lying on the floor at height z."""
         cx, cy, w, h = plan_extent(self.session.scene.bp.grid)
-        return self.server.scene.add_image(name, rgba, w, h, format="png", position=(cx, cy, z))
+        # viser lays an image's row 0 towards the node's -y (its image axes are a camera's:
+        # y down), so the rows go in south first to put the plan's north at +y
+        return self.server.scene.add_image(
+            name, np.ascontiguousarray(rgba[::-1]), w, h, format="png", position=(cx, cy, z)
+        )
 
     def _build_scene(self) -> None:
         sc, sess = self.server.scene, self.session

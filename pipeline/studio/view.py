@@ -35,6 +35,7 @@ REST = 0.3  # seconds without camera motion before the full view is rendered
 # the objects standing on it
 DEPTH_MARGIN = 0.05
 FAR = 1000.0  # the depth sent where the render has no surface
+LOOKS_DOWN = np.cos(np.deg2rad(0.5))  # a camera this close to straight down shows the plan
 
 
 def background_depth(depth: np.ndarray | None) -> np.ndarray | None:
@@ -53,7 +54,6 @@ class ClientView:
         self.moved = time.perf_counter()
         self.drawn: tuple | None = None  # (camera state, edits version, before, full) drawn
         self.at_view: int | None = None
-        self.at_plan: np.ndarray | None = None  # the plan view's camera position, when there
         self.alive = True
         self.thread = threading.Thread(target=self._loop, daemon=True)
         client.camera.on_update(lambda _cam: self._on_move())
@@ -69,7 +69,7 @@ class ClientView:
             cam.fov = float(2 * np.arctan(0.5 * intr.height / intr.fy))
             cam.position = pose[:3, 3]
             cam.wxyz = pose_wxyz(pose)
-        self.at_view, self.at_plan = n, None
+        self.at_view = n
         self.moved = time.perf_counter()  # a preview first, then the full view
         self.studio.views_seen.add(n)
 
@@ -81,17 +81,16 @@ class ClientView:
             cam.fov = float(PLAN_FOV)
             cam.position = position
             cam.wxyz = wxyz
-        self.at_view, self.at_plan = None, position
+        self.at_view = None
         self.moved = time.perf_counter()
 
     def in_plan_view(self) -> bool:
-        """Whether the camera stands where `plan_view` put it (left when the user moves)."""
-        if self.at_plan is None:
-            return False
+        """Whether the camera looks straight down on the plan (as `plan_view` puts it; a pan
+        or a zoom keeps it there, an orbit leaves). Read from the camera alone: the page
+        may report its previous camera once more after `plan_view` moved it."""
         cam = self.client.camera
-        if np.abs(np.asarray(cam.position) - self.at_plan).max() > 1e-2:
-            self.at_plan = None
-        return self.at_plan is not None
+        pose, _ = viewer_camera(cam.position, cam.wxyz, cam.fov, 1.0, 8)
+        return bool(pose[2, 2] < -LOOKS_DOWN)
 
     def camera(self, full: bool):
         """The pose and intrinsics to render: the input view's own pose when the camera
