@@ -15,7 +15,7 @@ import pytest
 import viser
 
 from pipeline.studio.app import Studio
-from pipeline.studio.plan_view import plan_picture, screen_ray, top_view
+from pipeline.studio.plan_view import plan_picture, plan_rgba, screen_ray, top_view
 from pipeline.studio.state import Session
 from tests.runs import VOXEL, run_ok, small_room
 
@@ -39,6 +39,14 @@ def _centre(cap: Path, name: str) -> tuple[float, float]:
     inst = json.loads((cap / "gt" / "instances.json").read_text())
     b = next(v["bbox"] for v in inst.values() if v["name"] == name)
     return (b[0] + b[3]) / 2, (b[1] + b[4]) / 2
+
+
+def test_plan_on_the_floor_is_north_up(studio) -> None:
+    # viser lays an image node's row 0 towards the node's -y (image axes as a camera's, y
+    # down; its client turns the textured plane by pi about x): the node's picture must then
+    # run south to north, the plan's own rows reversed (row 0 of the plan is its north)
+    _, st = studio
+    assert np.array_equal(st.plan.image, plan_rgba(st.session.scene.bp)[::-1])
 
 
 def test_page_without_a_nerf_offers_training(studio) -> None:
