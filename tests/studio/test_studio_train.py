@@ -2,19 +2,22 @@
 cache: only the NeRF and what follows it run), the page's progress names the stage, and the
 session renders afterwards; then retexture on that field: the render changes inside the
 object, and a second upload under the same name is the texture rendered (slow: a NeRF of 60
-steps, ~40 s of one core)."""
+steps: ~45 CPU-s, 2-3 min wall on a loaded machine)."""
 
 from __future__ import annotations
 
 import io
 import json
+import socket
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+import viser
 from PIL import Image
 
+from pipeline.studio.app import Studio
 from pipeline.studio.state import SPEC_NAME, Session
 from pipeline.studio.train import Trainer
 from pipeline.studio.view import FAR, background_depth
@@ -27,22 +30,39 @@ SETS = ["nerf.train.max_steps=60", "edit.gif_frames=2"]  # a small NeRF, a short
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory) -> tuple[Path, Path, Session, list[str]]:
+    """A run without a NeRF opened in the studio (a real viser server, no browser), an edit
+    applied, then the page's "Train the NeRF"; returns the lines the page showed."""
     base = tmp_path_factory.mktemp("studio-train")
     cap = small_room(base / "room")
     run_ok(cap, base / "run", "--set", f"fusion.voxel={VOXEL}")
     s = Session(base / "run")
     assert not s.scene.has_field
-    s.select_class("sofa")
-    s.apply("recolor", color=(40, 90, 200), strength=0.8)
-    t = Trainer(s, SETS)
-    spec = t.start([0])
-    assert spec == base / "run" / "edits" / SPEC_NAME
-    lines = []
-    while t.running:
-        lines.append(t.progress()[0])
-        time.sleep(0.5)
-    assert t.wait(600) == "done", t.error
-    lines.append(t.progress()[0])
+    with socket.socket() as sk:
+        sk.bind(("127.0.0.1", 0))
+        port = sk.getsockname()[1]
+    server = viser.ViserServer(host="127.0.0.1", port=port, verbose=False)
+    st = Studio(s, server, train_sets=SETS)
+    try:
+        s.select_class("sofa")
+        s.apply("recolor", color=(40, 90, 200), strength=0.8)
+        st._do(st._train)  # the button
+        assert st.trainer.running, st.message.content
+        assert (base / "run" / "edits" / SPEC_NAME).is_file()
+        lines = []
+        while st.trainer.running:
+            lines.append(st.train_info.content)
+            time.sleep(0.5)
+        assert st.trainer.wait(600) == "done", st.trainer.error
+        t0 = time.time()
+        while st.train_button.visible and time.time() - t0 < 10:  # the page's last update
+            time.sleep(0.2)
+        lines.append(st.train_info.content)
+        # the page: the button and the note gone, the renders take over from the points
+        assert not st.train_button.visible and not st.no_field.visible
+        assert not st.points.visible and "trained" in st.message.content
+    finally:
+        st.running = False
+        server.stop()
     return cap, base / "run", s, lines
 
 
