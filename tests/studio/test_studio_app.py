@@ -17,19 +17,16 @@ import viser
 from pipeline.studio.app import Studio
 from pipeline.studio.plan_view import plan_picture, plan_rgba, screen_ray, top_view
 from pipeline.studio.state import Session
-from tests.runs import VOXEL, run_ok, small_room
 
 
 @pytest.fixture(scope="module")
-def studio(tmp_path_factory):
-    base = tmp_path_factory.mktemp("studio-app")
-    cap = small_room(base / "room")
-    run_ok(cap, base / "run", "--set", f"fusion.voxel={VOXEL}")
+def studio(studio_run):
+    cap, run = studio_run  # tests/studio/conftest.py
     with socket.socket() as sk:
         sk.bind(("127.0.0.1", 0))
         port = sk.getsockname()[1]
     server = viser.ViserServer(host="127.0.0.1", port=port, verbose=False)
-    st = Studio(Session(base / "run"), server)
+    st = Studio(Session(run), server)
     yield cap, st
     st.running = False
     server.stop()

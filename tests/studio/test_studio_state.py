@@ -18,15 +18,12 @@ from stages.common.errors import BlunfError
 from stages.common.plan_picture import class_color
 from stages.edit.render import look_at
 from stages.edit.spec import load_spec
-from tests.runs import VOXEL, run_ok, small_room
+from tests.runs import VOXEL
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory) -> tuple[Path, Path]:
-    base = tmp_path_factory.mktemp("studio")
-    cap = small_room(base / "room")
-    run_ok(cap, base / "run", "--set", f"fusion.voxel={VOXEL}")
-    return cap, base / "run"
+def run(studio_run) -> tuple[Path, Path]:
+    return studio_run  # tests/studio/conftest.py
 
 
 def _centre(cap: Path, name: str) -> tuple[float, float]:
