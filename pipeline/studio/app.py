@@ -94,8 +94,10 @@ class Studio(Panel):
         )  # fmt: skip
 
     def _field_ready(self) -> None:
-        """The run has a NeRF now (trained from the page): the renders take over."""
+        """The run has a NeRF now (trained from the page): the renders take over (the session
+        read the run again: nothing is selected)."""
         self.points.visible = False
+        self._show_selection()
         for cv in list(self.clients.values()):
             cv.moved = time.perf_counter()
 

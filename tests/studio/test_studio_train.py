@@ -43,7 +43,9 @@ def trained(tmp_path_factory) -> tuple[Path, Path, Session, list[str]]:
     server = viser.ViserServer(host="127.0.0.1", port=port, verbose=False)
     st = Studio(s, server, train_sets=SETS)
     try:
-        s.select_class("sofa")
+        st.cls.value = "sofa"
+        st._do(st._select_class)
+        assert st.highlight is not None
         s.apply("recolor", color=(40, 90, 200), strength=0.8)
         st._do(st._train)  # the button
         assert st.trainer.running, st.message.content
@@ -60,6 +62,8 @@ def trained(tmp_path_factory) -> tuple[Path, Path, Session, list[str]]:
         # the page: the button and the note gone, the renders take over from the points
         assert not st.train_button.visible and not st.no_field.visible
         assert not st.points.visible and "trained" in st.message.content
+        # the run read again: the selection cleared in the session and on the page
+        assert s.selection is None and st.highlight is None
     finally:
         st.running = False
         server.stop()
