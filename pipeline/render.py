@@ -155,6 +155,7 @@ class Rendered:
     rgb: np.ndarray  # [H, W, 3] uint8
     seconds: float
     volume_rendered: float | None = None  # fast path: the fraction of rays volume rendered
+    depth: np.ndarray | None = None  # [H, W] metres along the optical axis; inf: no surface
 
 
 class Scene:
@@ -203,8 +204,12 @@ class Scene:
     def _field_edit(self, e: Edit):
         from stages.edit.nerf import resolve_edit
 
+        # the texture file's time and size too: an upload under a name used before replaces
+        # the file, and the edit must see the new picture
+        tex = None if e.texture is None else Path(e.texture)
+        stamp = (tex.stat().st_mtime_ns, tex.stat().st_size) if tex and tex.is_file() else None
         key = (e.op, e.select.kind, repr(e.select.value), e.select.width, e.color, e.strength,
-               str(e.texture))  # fmt: skip
+               str(e.texture), stamp)  # fmt: skip
         if key not in self._resolved:
             sel = self.selection(e)
             self._resolved[key] = resolve_edit(
@@ -265,7 +270,8 @@ class Scene:
                 rgb = _overlay(rgb, res["masks"][k] >= self.cfg.mask_threshold)
         # per render, not the renderer's: each studio tab renders on its own thread
         share = float(res["fallback"].mean()) if sr is not None else None
-        return Rendered(_u8(rgb), time.perf_counter() - t0, share)
+        depth = np.where(res["acc"] >= 0.5, res["depth"], np.inf)
+        return Rendered(_u8(rgb), time.perf_counter() - t0, share, depth.astype(np.float32))
 
 
 def render_command(run: Path, view: int | None, camera: Path | None, spec: Path | None,

@@ -63,6 +63,14 @@ class Session:
         self.lock = threading.RLock()
         self.version = 0  # bumped on every change of the edits (renders compare it)
 
+    def reload(self) -> None:
+        """Read the run folder again (after a run trained its NeRF); the edits stay."""
+        with self.lock:
+            self.files = run_files(self.files.run)
+            self.scene = Scene(self.files)
+            self.selection = None
+            self.version += 1
+
     # ---- selection -----------------------------------------------------------------------
     def _select(self, select: dict) -> Selection:
         kind, value = next(iter(select.items()))
@@ -113,9 +121,14 @@ class Session:
         return sorted({n for k, n in self.scene.bp.classes.items() if k in present})
 
     # ---- sketch strokes ------------------------------------------------------------------
-    def add_stroke_point(self, x: float, y: float) -> int:
+    def add_stroke_point(self, x: float, y: float, min_step: float = 0.0) -> int:
+        """Add a point to the stroke (none closer than `min_step` metres to the last one);
+        returns the stroke's length."""
         with self.lock:
-            self.stroke.append((round(float(x), 4), round(float(y), 4)))
+            p = (round(float(x), 4), round(float(y), 4))
+            last = self.stroke[-1] if self.stroke else None
+            if last is None or np.hypot(p[0] - last[0], p[1] - last[1]) >= max(min_step, 1e-9):
+                self.stroke.append(p)
             return len(self.stroke)
 
     def clear_stroke(self) -> None:

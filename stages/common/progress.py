@@ -197,6 +197,13 @@ def track(items: Iterable[T], name: str, total: int | None = None, unit: str = "
             bar.update(1)
 
 
+def open_steps() -> list[tuple[str, float, float | None, str]]:
+    """The steps under way now, oldest first: (name, count, total or None, unit) (for a page
+    that shows a run's progress)."""
+    with _lock:
+        return [(p.name, p.n, p.total, p.unit) for p in _open]
+
+
 def close_all() -> None:
     """Close every bar still open (a stage that raised in the middle of a step)."""
     with _lock:

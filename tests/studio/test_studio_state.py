@@ -11,19 +11,19 @@ import pytest
 
 from pipeline.cli import main
 from pipeline.render import camera_json, pose_wxyz, viewer_camera
+from pipeline.studio.plan_view import StrokeDrag, cell_centre, plan_picture, screen_ray, top_view
 from pipeline.studio.state import SPEC_NAME, Session, floor_point
+from pipeline.studio.train import Trainer, training_config
 from stages.common.errors import BlunfError
+from stages.common.plan_picture import class_color
 from stages.edit.render import look_at
 from stages.edit.spec import load_spec
-from tests.runs import VOXEL, run_ok, small_room
+from tests.runs import VOXEL
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory) -> tuple[Path, Path]:
-    base = tmp_path_factory.mktemp("studio")
-    cap = small_room(base / "room")
-    run_ok(cap, base / "run", "--set", f"fusion.voxel={VOXEL}")
-    return cap, base / "run"
+def run(studio_run) -> tuple[Path, Path]:
+    return studio_run  # tests/studio/conftest.py
 
 
 def _centre(cap: Path, name: str) -> tuple[float, float]:
@@ -123,3 +123,84 @@ def test_bad_input_changes_nothing(run, tmp_path) -> None:
     # no NeRF in this run: rendering names the command that trains one
     assert main(["render", str(out), "--view", "0", "--out", str(tmp_path / "v.png")]) == 2
     assert not (tmp_path / "v.png").exists()
+
+
+def test_plan_view_click_selects_the_component_under_the_picture(run) -> None:
+    # the plan's picture (panel) and the plan view (canvas, camera straight above the plan):
+    # a pixel of the picture -> its plan cell -> the world point -> the canvas point where
+    # the plan view shows it -> the pointer's ray -> the floor -> the same component
+    cap, out = run
+    s = Session(out)
+    g = s.scene.bp.grid
+    r, c, _ = g.cell_of(np.array([_centre(cap, "chair_2")]))
+    pic = plan_picture(s.scene.bp, scale=2)
+    assert pic.shape[:2] == (2 * g.shape[0], 2 * g.shape[1])
+    chair = s.scene.bp.labels[r[0], c[0]]
+    assert tuple(pic[2 * r[0] + 1, 2 * c[0] + 1]) == class_color(int(chair))
+    xy = cell_centre(g, 2 * r[0] // 2, (2 * c[0] + 1) // 2)  # picture pixel -> cell -> world
+    aspect, fov = 16 / 9, np.deg2rad(40.0)
+    position, wxyz = top_view(g, aspect, fov)
+    pose, intr = viewer_camera(position, wxyz, fov, aspect, 720)
+    assert pose[2, 2] < -0.999  # looking down
+    corners = [(g.origin[0], g.origin[1]), (g.origin[0] + g.shape[1] * g.cell, g.origin[1])]
+    corners += [(g.origin[0], g.origin[1] + g.shape[0] * g.cell)]
+    screen = []
+    for x, y in [xy, *corners]:
+        xc = np.linalg.inv(pose) @ np.array([x, y, 0.0, 1.0])
+        u, v = intr.fx * xc[0] / xc[2] + intr.cx, intr.fy * xc[1] / xc[2] + intr.cy
+        screen.append(((u + 0.5) / intr.width, (v + 0.5) / intr.height))
+    # the whole plan in view, north up, east right
+    assert all(0 <= a <= 1 and 0 <= b <= 1 for a, b in screen)
+    assert screen[2][0] > screen[1][0] and screen[3][1] < screen[1][1]
+    o, d = screen_ray(position, wxyz, fov, aspect, screen[0])
+    sel = s.click_ray(o, d)
+    assert sel.info["class"] == "chair"
+    assert np.array_equal(sel.cells, s.scene.cmap == s.scene.cmap[r[0], c[0]])
+    # the picture shows the selection
+    pic = plan_picture(s.scene.bp, sel.cells, scale=2)
+    assert tuple(pic[2 * r[0], 2 * c[0]]) != class_color(int(chair))
+
+
+def test_drag_draws_the_sketch_stroke(run) -> None:
+    # a drag on the plan: the grab point, then pointer points on the pointer's rays (as the
+    # viewer gives them: on a plane facing the camera, here halfway to the floor)
+    cap, out = run
+    s = Session(out)
+    g = s.scene.bp.grid
+    cam, _ = top_view(g, 4 / 3)
+    a = np.array(_centre(cap, "table_1"))
+    b = a + np.array([0.6, 0.3])
+    drag = StrokeDrag(s, min_step=g.cell / 2)
+    s.add_stroke_point(*(a - 1.0))  # an older stroke: a new drag replaces it
+    assert drag.start((a[0], a[1], 0.002)) == 1
+    for t in np.linspace(0.0, 1.0, 40):
+        p = a + t * (b - a)
+        drag.move(cam, cam + 0.5 * (np.array([p[0], p[1], 0.0]) - cam))
+    n = drag.end(cam, cam + 0.3 * (np.array([b[0], b[1], 0.0]) - cam))
+    st = np.array(s.stroke)
+    assert n == len(st) and len(st) > 5
+    assert np.allclose(st[0], a, atol=1e-3) and np.allclose(st[-1], b, atol=1e-3)
+    gaps = np.linalg.norm(np.diff(st, axis=0), axis=1)
+    assert gaps.min() >= g.cell / 2 - 1e-3  # no crowd of points where the pointer lingers
+    # every point on the segment a-b (on the floor under the pointer)
+    ab = (b - a) / np.linalg.norm(b - a)
+    off = (st - a) - np.outer((st - a) @ ab, ab)
+    assert np.abs(off).max() < 1e-3
+    e = s.apply("sketch", color=(255, 0, 0), width=0.1)
+    assert e.op == "sketch" and s.edits[-1]["select"]["stroke"] == [list(p) for p in st]
+    assert s.stroke == []
+    # moves after the drag's end draw nothing
+    assert drag.move(cam, (a[0], a[1], 0.0)) == 0
+
+
+def test_training_needs_an_edit_and_takes_the_runs_config(run) -> None:
+    cap, out = run
+    s = Session(out)
+    t = Trainer(s)
+    with pytest.raises(BlunfError, match="apply an edit first"):
+        t.start()
+    assert t.state == "idle" and t.thread is None  # nothing started
+    cfg = training_config(out, ["nerf.train.max_steps=7"])
+    assert cfg["fusion"].voxel == VOXEL  # the run's own settings
+    assert cfg["nerf"].train.edge_batch == 0.5  # configs/edit.yaml's
+    assert cfg["nerf"].train.max_steps == 7  # and the sets given

@@ -1,0 +1,225 @@
+"""The studio's panel: selection, edits, view, file, and training the NeRF of a run without one.
+
+A mixin of `pipeline.studio.app.Studio` (which holds the session, the server and the scene);
+every action runs through `_do`, so that a user error becomes the page's message and
+changes nothing.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import TYPE_CHECKING, Any
+
+from pipeline.render import TRAIN_HINT
+from pipeline.studio.plan_view import plan_picture
+from pipeline.studio.train import Trainer
+from stages.common.errors import BlunfError
+
+if TYPE_CHECKING:
+    import viser
+
+    from pipeline.studio.state import Session
+    from pipeline.studio.view import ClientView
+
+OPS = ("remove", "recolor", "retexture", "sketch", "mask")
+FULL_PATHS = ("fast", "volume")  # how the full view is rendered (the first: the default)
+PLAN_SCALE = 2  # pixels of the panel's plan picture per plan cell
+
+
+class Panel:
+    session: Session
+    server: viser.ViserServer
+    clients: dict[int, ClientView]
+    views_seen: set[int]
+    running: bool
+    trainer: Trainer
+
+    def _layers(self) -> None: ...
+    def _sketch_mode(self) -> None: ...
+    def _show_selection(self) -> None: ...
+    def _to_plan_view(self, ev: Any) -> None: ...
+    def _field_ready(self) -> None: ...
+    def _draw_stroke(self) -> None: ...
+
+    def say(self, text: str) -> None:
+        self.message.content = text
+
+    def _build_gui(self) -> None:
+        gui, sess = self.server.gui, self.session
+        gui.add_markdown(f"**blunf studio**: `{sess.files.run}`")
+        self.message = gui.add_markdown("Click on the plan (the floor) to select an object.")
+        self.no_field = gui.add_markdown(
+            "This run has no trained NeRF: plan, surface and edits only. Apply edits, then "
+            "train it here (minutes: the NeRF for editing, as `blunf run` trains it) or with  \n`"
+            + TRAIN_HINT.format(run=sess.files.run)
+            + "`",
+            visible=not sess.scene.has_field,
+        )
+        self.train_button = gui.add_button("Train the NeRF", visible=not sess.scene.has_field)
+        self.train_button.on_click(lambda _: self._do(self._train))
+        self.train_bar = gui.add_progress_bar(0.0, visible=False)
+        self.train_info = gui.add_markdown("", visible=False)
+        self.sel_info = gui.add_markdown("Nothing selected: click on the plan.")
+        with gui.add_folder("Plan"):
+            self.picture = gui.add_image(
+                plan_picture(sess.scene.bp, scale=PLAN_SCALE), format="png"
+            )
+            gui.add_button("Plan view (2D)").on_click(
+                lambda ev: self._do(lambda: self._to_plan_view(ev))
+            )
+            self.cls = gui.add_dropdown("Class", tuple(sess.classes()) or ("(none)",))
+            gui.add_button("Select class").on_click(lambda _: self._do(self._select_class))
+            self.sketching = gui.add_checkbox("Sketch: draw on the plan", False)
+            self.sketching.on_update(lambda _: self._sketch_mode())
+            self.stroke_info = gui.add_markdown("Stroke: no points")
+            gui.add_button("Clear stroke").on_click(lambda _: self._do(self._clear_stroke))
+        with gui.add_folder("Edit"):
+            self.op = gui.add_dropdown("Operation", OPS)
+            self.color = gui.add_rgb("Colour", (40, 90, 200))
+            self.strength = gui.add_slider("Strength", 0.0, 1.0, 0.05, 0.8)
+            tex = tuple(sess.shipped_textures()) or ("(none)",)
+            self.texture = gui.add_dropdown("Texture", tex)
+            self.upload = gui.add_upload_button("Upload texture", mime_type="image/*")
+            self.upload.on_upload(lambda _: self._do(self._uploaded))
+            self.width = gui.add_slider("Stroke width (m)", 0.02, 0.5, 0.01, 0.1)
+            gui.add_button("Apply").on_click(lambda _: self._do(self._apply))
+            gui.add_button("Undo").on_click(lambda _: self._do(self._undo))
+            gui.add_button("Redo").on_click(lambda _: self._do(self._redo))
+            self.edit_list = gui.add_markdown("No edits.")
+        with gui.add_folder("View"):
+            self.before = gui.add_checkbox("Before (no edits)", False)
+            self.render_only = gui.add_checkbox("Render only", False)
+            self.render_only.on_update(lambda _: self._layers())
+            names = [f"{i}: {f.stem}" for i, f in enumerate(sess.scene.cap.frames)]
+            self.view_pick = gui.add_dropdown("Input view", tuple(names))
+            gui.add_button("Go to view").on_click(lambda ev: self._do(lambda: self._go(ev)))
+            # the preview always takes the fast path (stages/edit/surface.py); the full
+            # view too by default (measured in the README: "The fast render path")
+            self.full_path = gui.add_dropdown("Full view", FULL_PATHS)
+            self.timing = gui.add_markdown("render: -")
+        with gui.add_folder("File"):
+            gui.add_button("Save").on_click(lambda _: self._do(self._save))
+            gui.add_button("Load saved").on_click(lambda _: self._do(self._load))
+
+    def _do(self, fn) -> None:
+        """Run a panel action: a user error becomes the page's message, nothing applied."""
+        try:
+            fn()
+        except BlunfError as e:
+            self.say(f"**Not applied:** {e}")
+
+    def _draw_picture(self) -> None:
+        """The panel's plan picture: the selection and the stroke on the plan."""
+        s = self.session.selection
+        self.picture.image = plan_picture(
+            self.session.scene.bp,
+            None if s is None else s.cells,
+            list(self.session.stroke),
+            scale=PLAN_SCALE,
+        )
+
+    def _select_class(self) -> None:
+        self.session.select_class(self.cls.value)
+        self._show_selection()
+        self.say(f"Selected every {self.cls.value}.")
+
+    def _clear_stroke(self) -> None:
+        self.session.clear_stroke()
+        self._stroke_changed()
+
+    def _stroke_changed(self, picture: bool = True) -> None:
+        st = self.session.stroke
+        self.stroke_info.content = (
+            f"Stroke: {len(st)} points (last {st[-1][0]:.2f}, {st[-1][1]:.2f} m)"
+            if st
+            else "Stroke: no points"
+        )
+        self._draw_stroke()
+        if picture:
+            self._draw_picture()
+
+    def _uploaded(self) -> None:
+        f = self.upload.value
+        name = self.session.add_texture(f.name, f.content)
+        opts = tuple(dict.fromkeys([*self.texture.options, name]))
+        self.texture.options = tuple(o for o in opts if o != "(none)")
+        self.texture.value = name  # type: ignore[misc]
+        self.say(f"Texture {name} added.")
+
+    def _apply(self) -> None:
+        op = self.op.value
+        kw: dict = {"color": self.color.value, "strength": self.strength.value}
+        if op == "retexture":
+            kw["texture"] = self.texture.value
+        if op == "sketch":
+            kw["width"] = self.width.value
+        self.session.apply(op, **kw)
+        if op == "sketch":
+            self._stroke_changed()
+        self._edits_changed(f"Applied {op}.")
+
+    def _undo(self) -> None:
+        self._edits_changed("Undone." if self.session.undo() else "Nothing to undo.")
+
+    def _redo(self) -> None:
+        self._edits_changed("Redone." if self.session.redo() else "Nothing to redo.")
+
+    def _edits_changed(self, msg: str) -> None:
+        for cv in list(self.clients.values()):
+            cv.moved = time.perf_counter()  # a preview first, then the full view
+        lines = self.session.describe()
+        self.edit_list.content = "  \n".join(lines) if lines else "No edits."
+        self.say(msg)
+
+    def _go(self, ev) -> None:
+        n = int(str(self.view_pick.value).split(":")[0])
+        targets = [self.clients[ev.client.client_id]] if ev.client else self.clients.values()
+        for cv in targets:
+            cv.jump(n)
+        self.say(f"At input view {n}.")
+
+    def _save(self) -> None:
+        views = sorted(self.views_seen) or [0]
+        path = self.session.save(views)
+        if self.session.scene.has_field:  # the renders the spec reproduces, beside it
+            out = path.parent / "studio_views"
+            out.mkdir(exist_ok=True)
+            from stages.common.io import write_image
+
+            edits = self.session.parsed()
+            for n in views:
+                pose, intr = self.session.scene.view(n)
+                stem = self.session.scene.cap.frames[n].stem
+                write_image(out / f"{stem}.png", self.session.scene.render(pose, intr, edits).rgb)
+        self.say(f"Saved {path} (views {views}).")
+
+    def _load(self) -> None:
+        n = self.session.load()
+        self._edits_changed(f"Loaded {n} edits from {self.session.folder}.")
+
+    # ---- training --------------------------------------------------------------------------
+    def _train(self) -> None:
+        spec = self.trainer.start(sorted(self.views_seen) or [0])
+        self.train_button.disabled = True
+        self.train_bar.visible = self.train_info.visible = True
+        self.say(f"Training the NeRF for {spec} (the page follows it).")
+        threading.Thread(target=self._watch_training, daemon=True).start()
+
+    def _watch_training(self) -> None:
+        """Show the training's progress once a second; when done, the renders start."""
+        while self.running:
+            line, frac = self.trainer.progress()
+            self.train_info.content = line
+            self.train_bar.animated = frac is None
+            self.train_bar.value = 100.0 * (frac or 0.0)  # type: ignore[misc]
+            if not self.trainer.running:
+                break
+            time.sleep(1.0)
+        if self.trainer.state == "done":
+            self._field_ready()
+            self.train_bar.visible = self.train_button.visible = self.no_field.visible = False
+            self.say("The NeRF is trained: the view shows the edits.")
+        else:
+            self.train_button.disabled = False
+            self.say(f"**Not trained:** {self.trainer.error}")

@@ -1,0 +1,156 @@
+"""Training a run's NeRF from the studio: the run `blunf run` would make, in the background.
+
+A run made without edits has no NeRF (the planner trains one only for an edit spec or the
+NeRF top-view baseline). The studio trains it the way the command it names would
+(`pipeline.render.TRAIN_HINT`): the session's edits saved as RUN/edits/studio.yaml, then
+`pipeline.run.run` on the run's capture into the same run folder, with the run's own
+config (report.json) and configs/edit.yaml on top. Every stage but the NeRF, the edit and
+what follows is found in the run's cache, and the same command typed later finds the NeRF
+there too. The run's stage lines (logger `pipeline.runner`) and its progress bars
+(`stages.common.progress.open_steps`) are what the page shows while it works.
+"""
+
+from __future__ import annotations
+
+import logging
+import tempfile
+import threading
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import yaml
+
+from pipeline.config import Config, load_config
+from pipeline.studio.state import Session
+from stages.common.errors import BlunfError
+from stages.common.io import read_json
+
+log = logging.getLogger(__name__)
+
+EDIT_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "edit.yaml"
+
+
+def _merge(base: dict, top: dict) -> dict:
+    out = dict(base)
+    for k, v in top.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def training_config(run: Path, sets: Sequence[str] = ()) -> Config:
+    """The run's own config (report.json), configs/edit.yaml on top, then `sets`."""
+    rep = Path(run) / "report.json"
+    d = read_json(rep).get("config")
+    if not isinstance(d, dict):
+        raise BlunfError(f"{rep}: no config recorded (made by an older blunf? run it again)")
+    edit = yaml.safe_load(EDIT_CONFIG.read_text()) or {}
+    with tempfile.TemporaryDirectory(prefix="blunf-studio-") as tmp:
+        path = Path(tmp) / "config.yaml"
+        path.write_text(yaml.safe_dump(_merge(d, edit)))
+        try:
+            return load_config(path, list(sets))
+        except BlunfError as e:
+            raise BlunfError(f"{rep}: its config does not load ({e})") from None
+
+
+class _StageLines(logging.Handler):
+    """Keeps the last stage line the runner logs from the training thread."""
+
+    def __init__(self, thread: int):
+        super().__init__(logging.INFO)
+        self.thread, self.last = thread, ""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if record.thread == self.thread:
+            self.last = " ".join(record.getMessage().split())
+
+
+class Trainer:
+    """One background training of the session's run; `status()` says how far it is."""
+
+    def __init__(self, session: Session, sets: Sequence[str] = ()):
+        self.session, self.sets = session, tuple(sets)
+        self.state = "idle"  # idle | running | done | failed
+        self.error = ""
+        self.stages: list[str] = []  # the stage lines seen, in order
+        self.t0 = 0.0
+        self.thread: threading.Thread | None = None
+        self._lines: _StageLines | None = None
+
+    @property
+    def running(self) -> bool:
+        return self.state == "running"
+
+    def start(self, views: Sequence[int] = (0,)) -> Path:
+        """Save the edits and start training; returns the spec the run is given. Raises (and
+        starts nothing) when the run has a NeRF, a training is under way or there is no edit."""
+        sess = self.session
+        if self.running:
+            raise BlunfError("train: a training is under way already")
+        if sess.scene.has_field:
+            raise BlunfError(f"{sess.files.run}: the run has a NeRF already")
+        if not sess.edits:
+            raise BlunfError(
+                "train: apply an edit first (the run trains its NeRF for an edit spec)"
+            )
+        cfg = training_config(sess.files.run, self.sets)  # a config that fails: here, at once
+        spec = sess.save(list(views))
+        self.state, self.error, self.stages, self.t0 = "running", "", [], time.perf_counter()
+        self.thread = threading.Thread(target=self._work, args=(cfg, spec), daemon=True)
+        self.thread.start()
+        return spec
+
+    def _work(self, cfg: Config, spec: Path) -> None:
+        from pipeline.run import run
+
+        lines = _StageLines(threading.get_ident())
+        self._lines = lines
+        runner_log = logging.getLogger("pipeline.runner")
+        runner_log.addHandler(lines)
+        level = runner_log.level
+        if not runner_log.isEnabledFor(logging.INFO):
+            runner_log.setLevel(logging.INFO)
+        try:
+            run(self.session.files.capture, self.session.files.run, cfg, spec)
+            self.session.reload()
+            if not self.session.scene.has_field:
+                raise BlunfError(f"{self.session.files.run}: the run trained no NeRF")
+            self.state = "done"
+        except BlunfError as e:
+            self.error, self.state = str(e), "failed"
+        except Exception as e:  # the server goes on; the page says what failed
+            log.exception("studio: training failed")
+            self.error, self.state = f"{e.__class__.__name__}: {e}", "failed"
+        finally:
+            runner_log.removeHandler(lines)
+            runner_log.setLevel(level)
+
+    def wait(self, timeout: float | None = None) -> str:
+        if self.thread is not None:
+            self.thread.join(timeout)
+        return self.state
+
+    def progress(self) -> tuple[str, float | None]:
+        """What the page shows: a line (the stage at work, its step) and the fraction of
+        the step done (None when unknown)."""
+        from stages.common.progress import open_steps
+
+        secs = time.perf_counter() - self.t0
+        if self.state == "done":
+            return f"NeRF trained in {secs:.0f} s.", 1.0
+        if self.state == "failed":
+            return f"Training failed: {self.error}", None
+        if self.state == "idle":
+            return "", None
+        stage = self._lines.last if self._lines is not None else ""
+        if stage and (not self.stages or self.stages[-1] != stage):
+            self.stages.append(stage)
+        steps = open_steps()
+        frac = None
+        line = f"Training ({secs:.0f} s): {stage or 'starting'}"
+        if steps:
+            name, n, total, unit = steps[-1]
+            line += f"  \n{name}: {n:.0f}" + (f"/{total:.0f}" if total else "") + f" {unit}"
+            frac = min(1.0, n / total) if total else None
+        return line, frac
