@@ -44,13 +44,14 @@ $(BIN)/.installed: pyproject.toml | sysdeps
 
 setup: sysdeps $(BIN)/.installed  ## idempotent: system libraries, .venv and the project
 
-demo: setup  ## the default room from photos alone, then edited through its NeRF (~20 min)
+demo: setup  ## the default room from photos alone, then edited through its NeRF (~8 min)
 	# 1. photos and intrinsics only, as a phone gives: SfM poses, stereo depth (no NeRF trained), geometric classes
 	test -d $(DEMO)/phone || $(BIN)/blunf synth $(DEMO)/phone --views 60 --seed 0 --photos-only
 	$(BIN)/blunf run $(DEMO)/phone --out $(DEMO)/phone-run --config configs/phone.yaml
-	# 2. the full capture (poses, depth, labels): plan, then the example edits rendered
+	# 2. the full capture (poses, depth, labels): plan, then the example edits rendered (a NeRF
+	#    of 200 steps, the edits drawn through the fused mesh: configs/edit-fast.yaml)
 	test -d $(DEMO)/capture || $(BIN)/blunf synth $(DEMO)/capture --views 60 --seed 0
-	$(BIN)/blunf run $(DEMO)/capture --out $(DEMO)/run --config configs/edit.yaml --edits configs/edits/demo.yaml
+	$(BIN)/blunf run $(DEMO)/capture --out $(DEMO)/run --config configs/edit-fast.yaml --edits configs/edits/demo.yaml
 	@echo "from photos alone: $(DEMO)/phone-run/blueprint.png  report: $(DEMO)/phone-run/report.json"
 	@echo "edited: $(DEMO)/run/edits/  blueprint: $(DEMO)/run/blueprint.png  report: $(DEMO)/run/report.json"
 
