@@ -112,10 +112,11 @@ def close_passages(
 ) -> np.ndarray:
     """The gaps of up to n cells in a wall line that the floor runs through (a passage wider
     than close_lines' doorways): filled between wall runs of at least `run` cells as there,
-    and kept where at least PASSAGE_FLOOR of the piece is floor and the cells beside it across
-    are no wall (at most PASSAGE_BESIDE of them on either side). A strip along a ragged wall
-    face, which the wider closing also fills, has the wall's band beside it; a passage has
-    the room on one side and what lies beyond on the other."""
+    and kept where it is at least 4 cells across, at least PASSAGE_FLOOR of it is floor and
+    the cells beside it across are no wall (at most PASSAGE_BESIDE of them on either side).
+    A strip along a ragged wall face, which the wider closing also fills, is thinner or has
+    the wall's band beside it; a passage has the room on one side and what lies beyond on
+    the other."""
     p = n + 1
     padded, fl = np.pad(wall, p), np.pad(floor, p)
     out = np.zeros_like(padded)
@@ -131,8 +132,8 @@ def close_passages(
             if not 3 + 8 <= sl[axis].stop - sl[axis].start <= across + 8:
                 continue
             piece = (lab[sl] == i) & fill[sl]
-            if not piece.any() or fl[sl][piece].mean() < PASSAGE_FLOOR:
-                continue
+            if piece.any(1 - axis).sum() < 4 or fl[sl][piece].mean() < PASSAGE_FLOOR:
+                continue  # a strip under 4 cells across is a ragged face's, not a wall's gap
             lines = np.nonzero(piece.any(axis))[0]  # positions along the wall line
             off = sl[1 - axis].start
             lo, hi = sl[axis].start - 1, sl[axis].stop
