@@ -70,6 +70,9 @@ def parser() -> argparse.ArgumentParser:
         help="keep only images and intrinsics, as a phone gives (ground truth still in gt/)",
     )
     s.add_argument("--doors", type=int, default=0, help="door gaps in distinct walls (0..4)")
+    s.add_argument(
+        "--passages", type=int, default=0, help="passages (wider gaps) in other walls (0..4)"
+    )
     s.add_argument("--shape", choices=("rect", "L"), default="rect", help="room outline")
     s.add_argument(
         "--realism",
@@ -202,6 +205,7 @@ def _dispatch(args: argparse.Namespace) -> int:
             size=args.size,
             photos_only=args.photos_only,
             doors=args.doors,
+            passages=args.passages,
             shape=args.shape,
             realism=Realism.parse(args.realism),
         )

@@ -6,8 +6,9 @@ matches (one to one, Hungarian on distance) within `corner_tol` metres, and its 
 when, in addition, the interior angles at the two corners differ by at most `angle_tol`
 degrees. Precision divides by all predicted rooms / corners, recall by all ground-truth ones.
 A wall's length error compares each ground-truth wall of a matched room with the predicted
-wall of that room whose ends lie nearest its ends; a door is found when a predicted opening's
-centre lies within `door_tol` metres of its centre.
+wall of that room whose ends lie nearest its ends; a door (a passage) is found when a
+predicted opening of its kind has its centre within `door_tol` metres of its centre (an
+opening without a kind is a door).
 """
 
 from __future__ import annotations
@@ -63,7 +64,8 @@ def score_layout(
     door_tol: float = 0.3,
 ) -> dict:
     """metrics.layout: room / corner / angle precision, recall, F1; median wall-length error
-    (metres); doors found of the total and the largest width error of those found."""
+    (metres); doors and passages found of their totals and the largest width error of those
+    found."""
     pr = [_ccw(np.asarray(r["polygon"], np.float64)) for r in pred.get("rooms", [])]
     gr = [_ccw(np.asarray(r["polygon"], np.float64)) for r in gt.get("rooms", [])]
     pairs = match_rooms(pr, gr)
@@ -102,12 +104,18 @@ def score_layout(
             round(f_, 4),
         )
     out["wall_length_err_m"] = round(float(np.median(len_err)), 4) if len_err else None
-    out.update(_doors(pred.get("openings", []), gt.get("openings", []), door_tol))
+    for kind, name in (("door", "doors"), ("passage", "passages")):
+        pk = [o for o in pred.get("openings", []) if o.get("kind", "door") == kind]
+        gk = [o for o in gt.get("openings", []) if o.get("kind", "door") == kind]
+        found, werr = _found(pk, gk, door_tol)
+        out[f"{name}_found"], out[f"{name}_total"] = found, len(gk)
+        out[f"{kind}_width_err_m"] = round(max(werr), 4) if werr else None
     return out
 
 
-def _doors(pred: list[dict], gt: list[dict], tol: float) -> dict:
-    """Ground-truth openings matched one to one to predicted ones by centre distance."""
+def _found(pred: list[dict], gt: list[dict], tol: float) -> tuple[int, list[float]]:
+    """Ground-truth openings matched one to one to predicted ones by centre distance: how
+    many within `tol`, and their width errors."""
     found, werr = 0, []
     if pred and gt:
         pc = np.array([(np.add(o["start"], o["end"]) / 2) for o in pred])
@@ -118,11 +126,7 @@ def _doors(pred: list[dict], gt: list[dict], tol: float) -> dict:
             if dist[i, j] <= tol:
                 found += 1
                 werr.append(abs(float(pred[i]["width"]) - float(gt[j]["width"])))
-    return {
-        "doors_found": found,
-        "doors_total": len(gt),
-        "door_width_err_m": round(max(werr), 4) if werr else None,
-    }
+    return found, werr
 
 
 def layout_to_frame(plan: dict, pred_to_gt: np.ndarray | None) -> dict:

@@ -16,6 +16,9 @@ class LayoutConfig:
     impl: str = "walls"  # registry key in stages.layout.IMPLS
     max_opening: float = 1.3  # metres: a gap in a wall line up to this wide is an opening
     #                           (the wall line runs through it); wider gaps split the walls
+    max_passage: float = 2.1  # metres: wider gaps up to this wide close the wall line too
+    #                           where the floor runs through them and no wall lies beside
+    #                           them across (a passage, not a ragged face); 0 = off
     min_run: float = 0.3  # metres: only stretches of wall at least this long close a gap
     max_thickness: float = 0.5  # metres: a wall band deeper than this (the plan calls all
     #                             the space outside the room wall) gets default_thickness
@@ -59,7 +62,7 @@ class LayoutConfig:
             raise BlunfError(f"layout.snap_deg: must be in [0, 45), got {self.snap_deg}")
         if not 0 <= self.box_slack < 1:
             raise BlunfError(f"layout.box_slack: must be in [0, 1), got {self.box_slack}")
-        for name in ("min_room_area", "min_object_area", "face_offset"):
+        for name in ("min_room_area", "min_object_area", "face_offset", "max_passage"):
             if not getattr(self, name) >= 0:
                 raise BlunfError(f"layout.{name}: must be >= 0, got {getattr(self, name)}")
 

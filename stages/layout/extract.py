@@ -20,6 +20,9 @@ from skimage.measure import approximate_polygon, find_contours
 from stages.common.blueprint import Blueprint, Grid
 from stages.layout.config import LayoutConfig
 
+PASSAGE_FLOOR = 0.4  # share of a passage's gap that is floor (the rest: unseen beyond)
+PASSAGE_BESIDE = 0.3  # share of wall cells beside a passage's gap, across, on either side
+
 
 @dataclass(frozen=True)
 class Frame:
@@ -101,6 +104,46 @@ def close_lines(wall: np.ndarray, n: int, run: int, across: int) -> np.ndarray:
         for i, sl in enumerate(ndi.find_objects(lab), start=1):
             if 3 + 8 <= sl[axis].stop - sl[axis].start <= across + 8:  # a wall is > 2 cells
                 out[sl] |= (lab[sl] == i) & fill[sl]
+    return out[p:-p, p:-p]
+
+
+def close_passages(
+    wall: np.ndarray, floor: np.ndarray, n: int, run: int, across: int
+) -> np.ndarray:
+    """The gaps of up to n cells in a wall line that the floor runs through (a passage wider
+    than close_lines' doorways): filled between wall runs of at least `run` cells as there,
+    and kept where it is at least 4 cells across, at least PASSAGE_FLOOR of it is floor and
+    the cells beside it across are no wall (at most PASSAGE_BESIDE of them on either side).
+    A strip along a ragged wall face, which the wider closing also fills, is thinner or has
+    the wall's band beside it; a passage has the room on one side and what lies beyond on
+    the other."""
+    p = n + 1
+    padded, fl = np.pad(wall, p), np.pad(floor, p)
+    out = np.zeros_like(padded)
+    for axis, gap, keep, join in (
+        (0, np.ones((1, n + 1), bool), np.ones((1, run), bool), np.ones((9, 1), bool)),
+        (1, np.ones((n + 1, 1), bool), np.ones((run, 1), bool), np.ones((1, 9), bool)),
+    ):
+        thick = np.ones((3, 1) if axis == 0 else (1, 3), bool)
+        runs = ndi.binary_dilation(ndi.binary_opening(padded, keep), thick)
+        fill = ndi.binary_closing(runs, gap) & ~runs
+        lab, _ = ndi.label(ndi.binary_dilation(fill, join))
+        for i, sl in enumerate(ndi.find_objects(lab), start=1):
+            if not 3 + 8 <= sl[axis].stop - sl[axis].start <= across + 8:
+                continue
+            piece = (lab[sl] == i) & fill[sl]
+            if piece.any(1 - axis).sum() < 4 or fl[sl][piece].mean() < PASSAGE_FLOOR:
+                continue  # a strip under 4 cells across is a ragged face's, not a wall's gap
+            lines = np.nonzero(piece.any(axis))[0]  # positions along the wall line
+            off = sl[1 - axis].start
+            lo, hi = sl[axis].start - 1, sl[axis].stop
+            idx = lines + off
+            beside = [
+                padded[lo, idx] if axis == 0 else padded[idx, lo],
+                padded[hi, idx] if axis == 0 else padded[idx, hi],
+            ]
+            if max(b.mean() for b in beside) <= PASSAGE_BESIDE:
+                out[sl] |= piece
     return out[p:-p, p:-p]
 
 

@@ -22,7 +22,15 @@ from skimage.measure import find_contours
 from stages.common.blueprint import Blueprint
 from stages.common.capture import UNKNOWN
 from stages.layout.config import LayoutConfig
-from stages.layout.extract import Frame, class_id, close_lines, dominant_angle, frame_of, outline
+from stages.layout.extract import (
+    Frame,
+    class_id,
+    close_lines,
+    close_passages,
+    dominant_angle,
+    frame_of,
+    outline,
+)
 
 STRUCTURE = ("floor", "wall", "ceiling")
 
@@ -64,6 +72,9 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
     run = max(1, int(round(cfg.min_run / cell)))
     across = int(round(cfg.max_thickness / cell))
     closed = close_lines(wall, int(round(cfg.max_opening / cell)), run, across)
+    if fid is not None and cfg.max_passage > cfg.max_opening:
+        floor_ = fr.labels == fid
+        closed |= close_passages(wall, floor_, int(round(cfg.max_passage / cell)), run, across)
     region, n = ndi.label((fr.labels != UNKNOWN) & ~closed)
     area = ndi.sum_labels(np.ones_like(region), region, np.arange(1, n + 1)) * cell**2
     # a room has floor: a closed space of objects (stereo's noise behind a photos-only plan's

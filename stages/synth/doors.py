@@ -1,8 +1,11 @@
-"""Doors of the procedural room: full-height gaps in the walls with the floor running through.
+"""Doors and passages of the procedural room: gaps in the walls with the floor running through.
 
-A door is drawn from its own random stream (seed, 2), so adding doors leaves the rest of a
-seed's room (size, furniture, colours) as it was. The floor in front of a door (a door-wide
-square) is kept free of furniture.
+A door is a full-height gap (no leaf) WIDTH wide; a passage is wider (PASSAGE), full height or
+up to a lintel (the wall above it from LINTEL high). Doors are drawn from their own random
+stream (seed, 2), passages from (seed, 4) in the walls left without a door, so adding either
+leaves the rest of a seed's room (size, colours, the other kind's gaps) as it was; the
+furniture is placed round them. The floor in front of a gap (a door-wide square, a passage
+wide and up to CLEAR deep) is kept free of furniture.
 """
 
 from __future__ import annotations
@@ -17,6 +20,9 @@ from shapely.geometry import Polygon, box
 WALLS = ("wall_north", "wall_south", "wall_east", "wall_west")
 WIDTH = (0.8, 1.0)  # door width range (metres)
 CORNER = 0.3  # a door keeps this far from the room's corners (metres)
+PASSAGE = (1.5, 2.0)  # passage width range (metres): wider than the layout's door_max, 1.2
+LINTEL = (2.0, 2.3)  # a passage's lintel height range (metres), when it has one
+CLEAR = 1.0  # metres: the furniture-free floor in front of a passage reaches this far in
 
 P = TypeVar("P")  # a room part: a dataclass with `mesh` and `name`
 Bounds = tuple[float, float, float, float, float, float]  # x0, x1, y0, y1, z0, z1
@@ -24,11 +30,13 @@ Bounds = tuple[float, float, float, float, float, float]  # x0, x1, y0, y1, z0, 
 
 @dataclass(frozen=True)
 class Door:
-    """A full-height gap in one wall, the floor continuing through it (a door or passage)."""
+    """A gap in one wall, the floor continuing through it (a door or a passage)."""
 
     wall: str  # one of WALLS
     start: float  # along the wall's interior face: x for north/south, y for east/west (m)
     end: float  # start < end (metres)
+    kind: str = "door"  # "door" or "passage"
+    top: float | None = None  # metres: the lintel's underside (None: full height)
 
     @property
     def width(self) -> float:
@@ -50,9 +58,31 @@ def draw_doors(seed: int, n: int, lx: float, ly: float) -> list[Door]:
     return out
 
 
+def draw_passages(seed: int, n: int, spans: list[tuple[str, float, float]]) -> list[Door]:
+    """`n` passages in distinct walls of `spans` (name, start, length along the face: the
+    walls without a door) long enough for one."""
+    rng = np.random.default_rng([seed, 4])
+    room_for = [sp for sp in spans if sp[2] >= 2 * CORNER + PASSAGE[1] + 0.2]
+    if not 0 <= n <= len(room_for):
+        raise ValueError(f"passages must be in 0..{len(room_for)} for this room, got {n}")
+    out = []
+    for k in rng.permutation(len(room_for))[:n]:
+        name, lo, length = room_for[int(k)]
+        w = round(float(rng.uniform(*PASSAGE)), 3)
+        a = round(float(lo + rng.uniform(CORNER, length - CORNER - w)), 3)
+        top = round(float(rng.uniform(*LINTEL)), 3) if rng.random() < 0.5 else None
+        out.append(Door(name, a, round(a + w, 3), "passage", top))
+    return out
+
+
+def depth_clear(d: Door) -> float:
+    """How far into the room the floor in front of a gap is kept free (metres)."""
+    return d.width if d.kind == "door" else min(d.width, CLEAR)
+
+
 def clearance(d: Door, lx: float, ly: float) -> Polygon:
-    """The floor in front of the door, a door-wide square inside the room."""
-    w = d.width
+    """The floor in front of the gap inside the room: a door-wide square, a passage's strip."""
+    w = depth_clear(d)
     if d.wall == "wall_north":
         return box(d.start, ly - w, d.end, ly)
     if d.wall == "wall_south":
@@ -75,16 +105,22 @@ def wall_bounds(name: str, lx: float, ly: float, t: float, h: float) -> Bounds:
 def wall_pieces(
     name: str, doors: list[Door], bounds: Bounds, along_x: bool | None = None
 ) -> list[Bounds]:
-    """The wall's box cut by its doors into the pieces between them (along x or y; by default
-    from the name of a rectangular room's wall)."""
+    """The wall's box cut by its gaps into the pieces between them, and the lintels over
+    those that have one (along x or y; by default from the name of a rectangular room's
+    wall)."""
     x0, x1, y0, y1, z0, z1 = bounds
     along_x = name in ("wall_north", "wall_south") if along_x is None else along_x
     lo, hi = (x0, x1) if along_x else (y0, y1)
     cuts = sorted((d.start, d.end) for d in doors if d.wall == name)
+    spans = [
+        (a, b, z0, z1)
+        for a, b in zip([lo] + [c[1] for c in cuts], [c[0] for c in cuts] + [hi], strict=True)
+    ]
+    spans += [(d.start, d.end, d.top, z1) for d in doors if d.wall == name and d.top is not None]
     out = []
-    for a, b in zip([lo] + [c[1] for c in cuts], [c[0] for c in cuts] + [hi], strict=True):
-        if b - a > 1e-9:
-            out.append((a, b, y0, y1, z0, z1) if along_x else (x0, x1, a, b, z0, z1))
+    for a, b, za, zb in spans:
+        if b - a > 1e-9 and zb - za > 1e-9:
+            out.append((a, b, y0, y1, za, zb) if along_x else (x0, x1, a, b, za, zb))
     return out
 
 

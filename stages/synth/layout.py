@@ -1,6 +1,7 @@
 """The procedural room's exact architectural layout (gt/layout.json), in the layout stage's
 plan.json form: rooms as counter-clockwise interior outlines, walls along them (interior face,
-room on the left) with their thickness, openings with their end points on the wall's face."""
+room on the left) with their thickness, openings (kind door or passage; a passage with `top`,
+its lintel's underside or the wall's height) with their end points on the wall's face."""
 
 from __future__ import annotations
 
@@ -35,7 +36,10 @@ def room_layout(room: Room) -> dict:
         else:
             p, q = [f.a[0], d.start], [f.a[0], d.end]
         width = round(d.width, 6)
-        openings.append({"kind": "door", "wall": i, "start": p, "end": q, "width": width})
+        o = {"kind": d.kind, "wall": i, "start": p, "end": q, "width": width}
+        if d.kind == "passage":  # the lintel's underside (the wall's height: none)
+            o["top"] = room.height if d.top is None else d.top
+        openings.append(o)
     x, y = [p[0] for p in poly], [p[1] for p in poly]
     area = 0.5 * sum(x[i - 1] * y[i] - x[i] * y[i - 1] for i in range(len(poly)))
     return {

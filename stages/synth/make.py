@@ -33,12 +33,14 @@ def make_room(
     doors: int = 0,
     shape: str = "rect",
     realism: Realism | None = None,
+    passages: int = 0,
 ) -> Path:
     """Render a procedural room to a capture at `out`. Returns `out`.
 
     photos_only: the capture holds what a phone gives (images and intrinsics): no depth,
     labels, poses or gravity; the ground truth in gt/ is written all the same.
     doors: that many door gaps in distinct walls (0..4); gt/layout.json holds them.
+    passages: that many passages (wider gaps, some under a lintel) in other walls (0..4).
     shape: "rect", or "L" for an L-shaped room (stages/synth/shape.py).
     realism: plain surfaces, exposure changes, blur and noise (stages/synth/realism.py);
     None = the textured room and a perfect camera (gt/realism.json holds what each view drew).
@@ -57,6 +59,8 @@ def make_room(
         raise BlunfError(f"--seed must be a non-negative integer, got {seed!r}")
     if not _is_int(doors) or not 0 <= doors <= 4:
         raise BlunfError(f"doors must be a whole number in 0..4, got {doors!r}")
+    if not _is_int(passages) or not 0 <= passages <= 4:
+        raise BlunfError(f"passages must be a whole number in 0..4, got {passages!r}")
     if shape not in ("rect", "L"):
         raise BlunfError(f"--shape must be rect or L, got {shape!r}")
     w, h = size
@@ -66,7 +70,8 @@ def make_room(
     tmp = out.parent / f".{out.name}.synth-tmp"
     shutil.rmtree(tmp, ignore_errors=True)
     try:
-        _write(tmp, views, seed, (w, h), ceiling, photos_only, doors, shape, realism or Realism())
+        gaps = (doors, passages)
+        _write(tmp, views, seed, (w, h), ceiling, photos_only, gaps, shape, realism or Realism())
         if out.exists():
             out.rmdir()
         tmp.rename(out)
@@ -86,19 +91,22 @@ def _write(
     size: tuple[int, int],
     ceiling: bool,
     photos_only: bool,
-    doors: int = 0,
+    gaps: tuple[int, int] = (0, 0),
     shape: str = "rect",
     realism: Realism | None = None,
 ) -> None:
     """The capture's files; photos_only: without what a phone capture lacks (depth, labels,
-    poses and gravity), the ground truth in gt/ all the same."""
+    poses and gravity), the ground truth in gt/ all the same. gaps: (doors, passages)."""
     t0 = time.perf_counter()
     subs = (
         ("images", "gt/instances") if photos_only else ("images", "depth", "labels", "gt/instances")
     )
     for sub in subs:
         (root / sub).mkdir(parents=True)
-    room = build_shaped_room(seed, ceiling, doors, shape)
+    try:
+        room = build_shaped_room(seed, ceiling, gaps[0], shape, gaps[1])
+    except ValueError as e:  # more gaps than the room has walls for
+        raise BlunfError(f"--doors {gaps[0]} --passages {gaps[1]}: {e}") from None
     tracer = Tracer(room.parts)
     intr = intrinsics_for(*size)
     poses = camera_paths(room, views, seed)

@@ -33,7 +33,7 @@ from stages.synth.classes import (  # noqa: F401  (re-exported: room.FLOOR etc.)
     TABLE,
     WALL,
 )
-from stages.synth.doors import Door, clearance, cut_doors, draw_doors
+from stages.synth.doors import WALLS, Door, clearance, cut_doors, draw_doors, draw_passages
 from stages.synth.furniture import BUILDERS, Built, box_mesh, build_chair, build_table, join_meshes
 
 log = logging.getLogger(__name__)
@@ -65,7 +65,7 @@ class Room:
     wall: float  # wall thickness (metres)
     parts: tuple[Part, ...]
     loop: tuple[float, float, float, float]  # camera ellipse (cx, cy, semi-axis x, semi-axis y)
-    doors: tuple[Door, ...] = ()  # openings in the walls (floor through them, no lintel)
+    doors: tuple[Door, ...] = ()  # gaps in the walls, the floor through them: doors, passages
     outline: tuple[tuple[float, float], ...] = ()  # interior corners, counter-clockwise, when
     #                                              not the rectangle [0, Lx] x [0, Ly]
     loops: tuple[tuple[float, float, float, float], ...] = ()  # camera ellipses when several
@@ -211,9 +211,9 @@ def _ellipse(cx: float, cy: float, a: float, b: float, n: int = 128) -> Polygon:
     return Polygon(np.stack([cx + a * np.cos(t), cy + b * np.sin(t)], axis=1))
 
 
-def build_room(seed: int, ceiling: bool = True, doors: int = 0) -> Room:
-    """The rectangular room of a seed: size, walls, furniture, `doors` doors
-    (stages/synth/doors.py); stages/synth/shape.py builds the L-shaped rooms on it."""
+def build_room(seed: int, ceiling: bool = True, doors: int = 0, passages: int = 0) -> Room:
+    """The rectangular room of a seed: size, walls, furniture, `doors` doors and `passages`
+    passages (stages/synth/doors.py); stages/synth/shape.py builds the L-shaped rooms on it."""
     rng = np.random.default_rng([seed, 1])
     lx, ly = round(float(rng.uniform(4.0, 7.0)), 3), round(float(rng.uniform(3.5, 6.0)), 3)
     height, wall = round(float(rng.uniform(2.5, 2.8)), 3), round(float(rng.uniform(0.1, 0.15)), 3)
@@ -221,6 +221,10 @@ def build_room(seed: int, ceiling: bool = True, doors: int = 0) -> Room:
     loop = (lx / 2, ly / 2, a, b)
     ring = _ellipse(*loop).exterior.buffer(LOOP_CLEAR)
     gaps = draw_doors(seed, doors, lx, ly)
+    if passages:
+        free = [w for w in WALLS if all(d.wall != w for d in gaps)]
+        spans = [(w, 0.0, lx if w in ("wall_north", "wall_south") else ly) for w in free]
+        gaps += draw_passages(seed, passages, spans)
     lay = _Layout((lx, ly), ring, [clearance(d, lx, ly) for d in gaps])
     furnish(rng, lay, (lx, ly))
     parts = _room_parts(rng, lx, ly, height, wall, ceiling)

@@ -20,7 +20,16 @@ from shapely.geometry import Polygon, box
 from shapely.ops import unary_union
 
 from stages.synth.classes import CEILING, FLOOR, PALETTE, WALL
-from stages.synth.doors import CORNER, WIDTH, Bounds, Door, bounds_mesh, wall_pieces
+from stages.synth.doors import (
+    CORNER,
+    WIDTH,
+    Bounds,
+    Door,
+    bounds_mesh,
+    depth_clear,
+    draw_passages,
+    wall_pieces,
+)
 from stages.synth.room import (
     LOOP_CLEAR,
     Part,
@@ -151,11 +160,26 @@ def draw_gaps(seed: int, n: int, faces: list[Face]) -> list[Door]:
     out = []
     for k in rng.permutation(len(room_for))[:n]:
         f = room_for[int(k)]
-        lo = min(f.a[0], f.b[0]) if f.along_x else min(f.a[1], f.b[1])
+        lo = _lo(f)
         w = round(float(rng.uniform(*WIDTH)), 3)
         s = round(float(lo + rng.uniform(CORNER, f.length - CORNER - w)), 3)
         out.append(Door(f.name, s, round(s + w, 3)))
     return out
+
+
+def _concave_pairs(faces: list[Face]) -> list[tuple[str, str]]:
+    """The names of the two walls meeting at each concave corner (the notch's)."""
+    out = []
+    for f, g in zip(faces, faces[1:] + faces[:1], strict=True):
+        u, v = np.subtract(f.b, f.a), np.subtract(g.b, g.a)
+        if u[0] * v[1] - u[1] * v[0] < 0:  # a right turn walking counter-clockwise
+            out.append((f.name, g.name))
+    return out
+
+
+def _lo(f: Face) -> float:
+    """Where the face starts along its axis (x along x, y along y)."""
+    return min(f.a[0], f.b[0]) if f.along_x else min(f.a[1], f.b[1])
 
 
 def _span(d: Door, f: Face, depth: float) -> Polygon:
@@ -187,8 +211,9 @@ def _beyond(d: Door, f: Face, t: float, h: float) -> Bounds:
     return (min(x, x + n[0] * 0.1), max(x, x + n[0] * 0.1), s0, s1, 0.0, h)
 
 
-def build_l_room(seed: int, ceiling: bool = True, doors: int = 0) -> Room:
-    """The seed's L-shaped room (its rectangle's draws, grown, with a notch)."""
+def build_l_room(seed: int, ceiling: bool = True, doors: int = 0, passages: int = 0) -> Room:
+    """The seed's L-shaped room (its rectangle's draws, grown, with a notch), `doors` doors
+    and `passages` passages in distinct walls."""
     rng = np.random.default_rng([seed, 1])
     lx, ly = round(float(rng.uniform(4.0, 7.0)), 3), round(float(rng.uniform(3.5, 6.0)), 3)
     height, wall = round(float(rng.uniform(2.5, 2.8)), 3), round(float(rng.uniform(0.1, 0.15)), 3)
@@ -200,8 +225,14 @@ def build_l_room(seed: int, ceiling: bool = True, doors: int = 0) -> Room:
     loops = arm_loops(lx, ly, tiles)
     ring = unary_union([_ellipse(*lp).exterior.buffer(LOOP_CLEAR) for lp in loops])
     gaps = draw_gaps(seed, doors, faces)
+    if passages:
+        taken = {d.wall for d in gaps}
+        # not facing a door across the notch (their walls beyond would cross there)
+        near = {n for f, g in _concave_pairs(faces) for n, m in ((f, g), (g, f)) if m in taken}
+        spans = [(f.name, _lo(f), f.length) for f in faces if f.name not in taken | near]
+        gaps += draw_passages(seed, passages, spans)
     by_name = {f.name: f for f in faces}
-    keep_out = [_span(d, by_name[d.wall], -d.width) for d in gaps]
+    keep_out = [_span(d, by_name[d.wall], -depth_clear(d)) for d in gaps]
     lay = _Layout((lx, ly), ring, keep_out, inside=Polygon(poly))
     furnish(rng, lay, (lx, ly))
 
@@ -241,10 +272,12 @@ def build_l_room(seed: int, ceiling: bool = True, doors: int = 0) -> Room:
     return Room((lx, ly), height, wall, tuple(parts), loops[0], tuple(gaps), poly, loops)
 
 
-def build_shaped_room(seed: int, ceiling: bool = True, doors: int = 0, shape: str = "rect") -> Room:
+def build_shaped_room(
+    seed: int, ceiling: bool = True, doors: int = 0, shape: str = "rect", passages: int = 0
+) -> Room:
     """The room of a seed in the given outline: "rect" (room.build_room) or "L"."""
     if shape == "L":
-        return build_l_room(seed, ceiling, doors)
+        return build_l_room(seed, ceiling, doors, passages)
     if shape != "rect":
         raise ValueError(f"shape must be rect or L, got {shape!r}")
-    return build_room(seed, ceiling, doors)
+    return build_room(seed, ceiling, doors, passages)

@@ -34,13 +34,16 @@ GT_PLAN = LayoutConfig(face_offset=0.0)  # plans of vertical rays through the ce
 TARGET = {"room_f1": 0.95, "corner_f1": 0.9, "angle_f1": 0.9}
 
 
-def _meets_targets(s: dict, doors: int) -> None:
+def _meets_targets(s: dict, doors: int, passages: int = 0) -> None:
     for k, v in TARGET.items():
         assert s[k] >= v, (k, s)
     assert s["wall_length_err_m"] <= 0.03, s
     assert s["doors_found"] == s["doors_total"] == doors, s
     if doors:
         assert s["door_width_err_m"] <= 0.05, s
+    assert s["passages_found"] == s["passages_total"] == passages, s
+    if passages:
+        assert s["passage_width_err_m"] <= 0.05, s
 
 
 def test_scores_by_hand():
@@ -68,6 +71,30 @@ def test_scores_by_hand():
     # wall errors 0.05, 0, 0.0028, 0.1504: median (0.0028 + 0.05) / 2
     assert s["wall_length_err_m"] == pytest.approx(0.0264, abs=1e-4)
     assert (s["doors_found"], s["doors_total"], s["door_width_err_m"]) == (1, 2, 0.05)
+    assert (s["passages_found"], s["passages_total"], s["passage_width_err_m"]) == (0, 0, None)
+
+
+def test_passages_are_scored_apart_from_doors():
+    gt = {
+        "rooms": [{"polygon": [[0, 0], [4, 0], [4, 3], [0, 3]]}],
+        "openings": [
+            {"kind": "door", "start": [1, 0], "end": [1.9, 0], "width": 0.9},
+            {"kind": "passage", "start": [4, 0.5], "end": [4, 2.3], "width": 1.8},
+            {"kind": "passage", "start": [0, 0.5], "end": [0, 2.1], "width": 1.6},
+        ],
+    }
+    pred = {
+        "rooms": gt["rooms"],
+        "openings": [  # the door called a passage is no door; one passage found 4 cm wide
+            {"kind": "passage", "start": [1, 0], "end": [1.9, 0], "width": 0.9},
+            {"kind": "passage", "start": [4, 0.5], "end": [4, 2.34], "width": 1.84},
+            {"kind": "door", "start": [0, 0.9], "end": [0, 1.7], "width": 0.8},
+        ],
+    }
+    s = score_layout(pred, gt)
+    assert (s["doors_found"], s["doors_total"], s["door_width_err_m"]) == (0, 1, None)
+    assert (s["passages_found"], s["passages_total"]) == (1, 2)
+    assert s["passage_width_err_m"] == pytest.approx(0.04)
 
 
 def test_interior_angles_of_an_l():
@@ -75,9 +102,22 @@ def test_interior_angles_of_an_l():
     np.testing.assert_allclose(interior_angles(ell), [90, 90, 90, 270, 90, 90])
 
 
-@pytest.mark.parametrize(("seed", "shape"), [(3, "rect"), (5, "rect"), (0, "L"), (4, "L")])
-def test_exact_room_with_doors_meets_the_targets(tmp_path, seed, shape):
-    cap = make_room(tmp_path / "cap", views=1, seed=seed, size=(16, 12), doors=2, shape=shape)
+# rect seed 3 with a passage: 1.73 m under a lintel at 2.15 m; L seed 4 with two: 1.64 m full
+# height, 1.88 m under a lintel at 2.24 m
+@pytest.mark.parametrize(
+    ("seed", "shape", "passages"),
+    [(3, "rect", 0), (5, "rect", 0), (0, "L", 0), (4, "L", 0), (3, "rect", 1), (4, "L", 2)],
+)
+def test_exact_room_with_doors_meets_the_targets(tmp_path, seed, shape, passages):
+    cap = make_room(
+        tmp_path / "cap",
+        views=1,
+        seed=seed,
+        size=(16, 12),
+        doors=2,
+        shape=shape,
+        passages=passages,
+    )
     out = IMPLS["walls"](
         GT_PLAN,
         LayoutInputs(cap / "gt" / "blueprint.npz", cap / "gt" / "mesh.ply"),
@@ -85,7 +125,9 @@ def test_exact_room_with_doors_meets_the_targets(tmp_path, seed, shape):
     )
     plan = json.loads(out.plan_json.read_text())
     gt = json.loads((cap / "gt" / "layout.json").read_text())
-    _meets_targets(score_layout(plan, gt), doors=2)
+    _meets_targets(score_layout(plan, gt), doors=2, passages=passages)
+    kinds = sorted(o["kind"] for o in plan["openings"])
+    assert kinds == ["door"] * 2 + ["passage"] * passages
     assert all(abs(w["thickness"] - gt["walls"][0]["thickness"]) <= 0.02 for w in plan["walls"])
     inst = json.loads((cap / "gt" / "instances.json").read_text())
     assert len(plan["objects"]) == len(inst)
@@ -213,6 +255,34 @@ def test_l_shaped_room_and_two_rooms_meet_the_targets(angle):
             strict=True,
         ):
             assert r["area"] == pytest.approx(g.area, rel=0.01)
+
+
+@pytest.mark.parametrize("angle", [0.0, 23.0])
+def test_a_passage_wider_than_a_doorway_closes_the_wall_line_between_two_rooms(angle):
+    # 1.8 m through the wall between a and b: wider than max_opening (1.3 m), the floor
+    # running through it, no wall beside it across (the rooms on either side)
+    t = 0.12
+    a, b = box(0, 0, 3, 4), box(3 + t, 0, 7, 4)
+    bp = _raster([a, b], t, [box(2.9, 0.8, 3.3, 2.6)], angle)
+    plan = build_plan(bp, GT_PLAN)
+    gt = {
+        "rooms": [{"polygon": _turn(r.exterior.coords[:-1], angle)} for r in (a, b)],
+        "openings": [
+            {
+                "kind": "passage",
+                "start": _turn([(3, 0.8)], angle)[0],
+                "end": _turn([(3, 2.6)], angle)[0],
+                "width": 1.8,
+            }
+        ],
+    }
+    s = score_layout(plan, gt)
+    _meets_targets(s, doors=0, passages=1)
+    assert s["corner_f1"] == 1.0, s
+    assert [o["kind"] for o in plan["openings"]] == ["passage"]
+    # without the passage closing the two rooms are one
+    off = build_plan(bp, LayoutConfig(face_offset=0.0, max_passage=0.0))
+    assert len(off["rooms"]) == 1 and off["openings"] == []
 
 
 def test_a_removed_object_leaves_the_plan(tmp_path):

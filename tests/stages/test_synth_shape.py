@@ -1,19 +1,25 @@
 """The L-shaped procedural room (`blunf synth --shape L`): its walls tile the wall band round
 the outline, its camera loop and furniture stay inside, and its ground truth (gt/layout.json,
-gt/blueprint.npz) agrees with the outline."""
+gt/blueprint.npz) agrees with the outline. Passages (`--passages`): wider gaps than doors,
+some under a lintel, in the ground truth as they are in the mesh."""
 
 from __future__ import annotations
 
 import numpy as np
+import open3d as o3d
 import pytest
+import trimesh
 from shapely import contains_xy
 from shapely.geometry import Polygon, box
 from shapely.ops import unary_union
 
 from stages.common.blueprint import Blueprint
 from stages.common.capture import UNKNOWN
+from stages.common.errors import BlunfError
 from stages.common.io import read_json
+from stages.layout.openings import scene_of
 from stages.synth import make_room
+from stages.synth.doors import PASSAGE
 from stages.synth.render import camera_paths
 from stages.synth.room import FLOOR, WALL, _ellipse, build_room
 from stages.synth.shape import build_shaped_room, ell, faces_of
@@ -104,3 +110,55 @@ def test_l_capture_ground_truth_agrees_with_the_outline(tmp_path):
     hull = poly.envelope.difference(poly)
     c = np.asarray(hull.representative_point().coords)[0]
     assert label(c) == UNKNOWN
+
+
+@pytest.mark.parametrize(("seed", "shape"), [(3, "rect"), (4, "L")])
+def test_passages_leave_the_doors_and_cut_wider_gaps_some_under_a_lintel(tmp_path, seed, shape):
+    # rect seed 3: a passage under a lintel at 2.153 m; L seed 4: one full height, one under
+    # a lintel at 2.241 m (the first passage is the same either way: its own random stream)
+    n = 1 if shape == "rect" else 2
+    plain = build_shaped_room(seed, doors=2, shape=shape)
+    room = build_shaped_room(seed, doors=2, shape=shape, passages=n)
+    doors = [d for d in room.doors if d.kind == "door"]
+    passages = [d for d in room.doors if d.kind == "passage"]
+    assert doors == list(plain.doors) and len(passages) == n
+    walls = [d.wall for d in room.doors]
+    assert len(set(walls)) == len(walls)  # distinct walls
+    assert all(PASSAGE[0] <= p.width <= PASSAGE[1] for p in passages)
+    assert any(p.top is not None for p in passages)
+
+    cap = make_room(
+        tmp_path / "cap", views=1, seed=seed, size=(16, 12), doors=2, shape=shape, passages=n
+    )
+    lay = read_json(cap / "gt" / "layout.json")
+    got = [o for o in lay["openings"] if o["kind"] == "passage"]
+    assert [o["width"] for o in got] == pytest.approx([p.width for p in passages])
+    assert [o["top"] for o in got] == [room.height if p.top is None else p.top for p in passages]
+    bp = Blueprint.load(cap / "gt" / "blueprint.npz")
+    mesh = trimesh.load(cap / "gt" / "mesh.ply", force="mesh")
+    scene = scene_of(np.asarray(mesh.vertices), np.asarray(mesh.faces))
+    for o in got:
+        w = lay["walls"][o["wall"]]
+        a, b = np.asarray(w["start"]), np.asarray(w["end"])
+        d = (b - a) / np.linalg.norm(b - a)
+        nrm = np.array([d[1], -d[0]])
+        mid = (np.asarray(o["start"]) + o["end"]) / 2 + nrm * w["thickness"] / 2
+        row, col, _ = bp.grid.cell_of(mid[None])
+        # seen from above: the lintel (wall) over one, the floor through the other
+        want = FLOOR if o["top"] == room.height else WALL
+        assert bp.labels[row[0], col[0]] == want
+        # the mesh: along the wall's middle at 1 m high nothing across the gap; cast up from
+        # the threshold, the lintel's underside (nothing without one)
+        e = np.subtract(o["end"], o["start"]) / o["width"]  # across the gap
+        start = np.asarray(o["start"]) + e * 0.05 + nrm * w["thickness"] / 2
+        rays = np.array([[*start, 1.0, *e, 0.0], [*mid, 0.05, 0.0, 0.0, 1.0]], np.float32)
+        t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+        assert t[0] == pytest.approx(o["width"] - 0.05, abs=1e-3)
+        assert t[1] == pytest.approx(o["top"] - 0.05, abs=1e-3) if want == WALL else np.isinf(t[1])
+
+
+def test_more_gaps_than_walls_is_a_user_error(tmp_path):
+    with pytest.raises(BlunfError, match="passages"):
+        make_room(tmp_path / "cap", views=1, seed=3, size=(16, 12), doors=2, passages=3)
+    with pytest.raises(BlunfError, match="passages"):
+        make_room(tmp_path / "cap2", views=1, seed=3, size=(16, 12), passages=5)
