@@ -84,6 +84,17 @@ class SemanticsConfig:
     # puts behind the walls (stereo noise, the far side of a window) is not in the room.
     # Replica office0 from its photos, with the lower wall bounds: fwIoU 44.9 -> 45.1
     outside_unknown: bool = False
+    # walls from the points the views saw (pointwalls.py), beside the mesh's: the SfM tracks
+    # and the depth readings fusion read (photos only), the room's outermost plane along each
+    # of its four directions that holds readings over point_wall_min_height x
+    # wall_min_length and wall_min_area with at most point_wall_max_beyond of them beyond it,
+    # extended along itself over the free space that did not see through it, up to at
+    # least ceiling_min_z; mesh triangles within point_wall_dist join it, rays that hit
+    # nothing and cross it are wall there (as wall_fill) and no floor is filled beyond it
+    point_walls: bool = False
+    point_wall_dist: float = 0.05  # metres: a reading this close to the plane lies on it
+    point_wall_min_height: float = 0.5  # metres in z (5-95 %) the readings span at least
+    point_wall_max_beyond: float = 0.2  # readings beyond the plane per reading on it
 
     def __post_init__(self) -> None:
         if self.impl not in ("geometry", "height"):
@@ -97,6 +108,8 @@ class SemanticsConfig:
             "wall_min_length",
             "floor_fill_cell",
             "floor_fill_reach",
+            "point_wall_dist",
+            "point_wall_min_height",
         ):
             if not getattr(self, name) > 0:
                 raise BlunfError(f"semantics.{name}: must be > 0, got {getattr(self, name)}")
@@ -110,7 +123,13 @@ class SemanticsConfig:
             )
         if self.ransac_points < 3:
             raise BlunfError(f"semantics.ransac_points: must be >= 3, got {self.ransac_points}")
-        for name in ("plane_min_area", "wall_min_area", "object_min_area", "object_max_gap"):
+        for name in (
+            "plane_min_area",
+            "wall_min_area",
+            "object_min_area",
+            "object_max_gap",
+            "point_wall_max_beyond",
+        ):
             if not getattr(self, name) >= 0:
                 raise BlunfError(f"semantics.{name}: must be >= 0, got {getattr(self, name)}")
         if not 0 <= self.floor_max_z < self.ceiling_min_z:
@@ -124,6 +143,8 @@ class SemanticsConfig:
 class SemanticsInputs:
     frames: Path  # frames.json of the fused capture (poses, intrinsics, ray-cast depth)
     mesh: Path  # mesh.ply: the fused surface, world frame (z up, floor at z = 0)
+    evidence: tuple[Path, ...] = ()  # frames.json files (same world) whose depth readings
+    #                                  the point walls are found in (point_walls)
 
 
 @dataclass(frozen=True)

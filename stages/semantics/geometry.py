@@ -31,7 +31,13 @@ from stages.semantics.config import (
     SemanticsOutputs,
 )
 from stages.semantics.floorfill import Footprint, Reach, floor_through
-from stages.semantics.segment import Segmentation, segment, triangles
+from stages.semantics.pointwalls import (
+    PointWallOptions,
+    evidence_points,
+    point_walls,
+    room_directions,
+)
+from stages.semantics.segment import MoreWalls, Segmentation, segment, triangles
 from stages.semantics.wallfill import wall_through
 
 log = logging.getLogger(__name__)
@@ -55,7 +61,7 @@ def run(cfg: SemanticsConfig, inputs: SemanticsInputs, out: Path) -> SemanticsOu
     t_read = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    seg = segment(verts, tris, cfg)
+    seg = segment(verts, tris, cfg, _point_walls(cfg, inputs, cap))
     t_segment = time.perf_counter() - t0
 
     outs = SemanticsOutputs.at(out)
@@ -78,6 +84,7 @@ def run(cfg: SemanticsConfig, inputs: SemanticsInputs, out: Path) -> SemanticsOu
     stats = {
         "triangles": len(tris),
         "planes": planes,
+        "point_walls": sum(p.get("source") == "points" for p in seg.planes),
         "plane_list": seg.planes,
         # vertical planes that were not walls: [length, height (5-95 %, m), area (m²)]
         "vertical_rejected": [[*p["span"], p["area_m2"]] for p in seg.rejected],
@@ -153,6 +160,8 @@ def _render(
     inst = np.append(seg.instance, 0)  # [T + 1]
     wide = inst.max(initial=0) > 255
     walls = tuple(p for p in seg.planes if p["kind"] == "wall")
+    # the point walls are plain walls seen through by construction: always filled
+    fill_walls = tuple(w for w in walls if cfg.wall_fill or w.get("source") == "points")
     counts = np.zeros(256, np.int64)
     frames, filled, walled = [], 0, 0
     if room is not None:
@@ -169,8 +178,8 @@ def _render(
             r = rays.numpy()
             floor = floor_through(r, t, seg.floor_z, room, margin, walls, reach)  # [H, W]
             wall = (
-                wall_through(r, t, walls, seg.floor_z, room, margin)[0]
-                if cfg.wall_fill
+                wall_through(r, t, fill_walls, seg.floor_z, room, margin)[0]
+                if fill_walls
                 else np.zeros_like(t)
             )
             wall = np.where((wall > 0) & ((floor == 0) | (wall < floor)), wall, 0.0)
@@ -199,6 +208,32 @@ def _render(
         "floor_seen_through": round(filled / total, 4),
         "wall_seen_through": round(walled / total, 4),
     }
+
+
+def _point_walls(cfg: SemanticsConfig, inputs: SemanticsInputs, cap: Capture
+                 ) -> MoreWalls | None:  # fmt: skip
+    """The segmentation's walls from the views' readings (pointwalls.py), or None when
+    point_walls is off or no readings are given."""
+    if not (cfg.point_walls and inputs.evidence):
+        return None
+    pts = evidence_points([Capture.load(p) for p in inputs.evidence])
+    cams = np.array([f.pose[:3, 3] for f in cap.frames if f.pose is not None])  # [N, 3]
+    opt = PointWallOptions(
+        dist=cfg.point_wall_dist,
+        min_length=cfg.wall_min_length,
+        min_height=cfg.point_wall_min_height,
+        min_area=cfg.wall_min_area,
+        max_beyond=cfg.point_wall_max_beyond,
+        top=cfg.ceiling_min_z,
+    )
+    log.info("semantics: %d readings for the point walls", len(pts))
+
+    def more(c: np.ndarray, n: np.ndarray, area: np.ndarray, floor_z: float) -> list[dict]:
+        if len(pts) == 0:
+            return []
+        return point_walls(pts, cams, room_directions(n, area, cfg.max_tilt_deg), floor_z, opt)
+
+    return more
 
 
 def _room(
