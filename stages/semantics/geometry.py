@@ -68,6 +68,7 @@ def run(cfg: SemanticsConfig, inputs: SemanticsInputs, out: Path) -> SemanticsOu
     outs.labels.mkdir(parents=True, exist_ok=True)
     outs.instances.mkdir(parents=True, exist_ok=True)
     room, reach = _room(verts, tris, seg, cap, cfg) if cfg.floor_fill else (None, None)
+    hull = cfg.floor_fill_hull or not (seg.cls == FLOOR).any()
     if room is not None and cfg.outside_unknown:
         out_obj = (seg.cls == OBJECT) & ~room.contains(triangles(verts, tris)[0][:, :2])
         seg.cls[out_obj] = UNKNOWN
@@ -100,7 +101,8 @@ def run(cfg: SemanticsConfig, inputs: SemanticsInputs, out: Path) -> SemanticsOu
         "floor_fill": None
         if room is None
         else {
-            "room": "floor and walls" if reach is None else "hull of surface and cameras",
+            "room": "hull of surface and cameras" if hull else "floor and walls",
+            "reach": reach is not None,  # rays bounded by floor_fill_min_drop_deg and _reach
             "room_m2": round(float(room.mask.sum()) * room.cell**2, 2),
         },
         "area_m2": {
@@ -243,14 +245,17 @@ def _room(
     footprint of the floor and wall triangles, any reach. Without a floor plane (z = 0, the
     align stage's floor, stands in for it) the convex hull of the surface and the cameras,
     within the config's reach (floorfill.py), or nothing when floor_fill_no_plane is off; with
-    floor_fill_hull, that hull and reach at the found floor's height too."""
-    if cfg.floor_fill_hull or not (seg.cls == FLOOR).any():
-        if not (cfg.floor_fill_no_plane or (seg.cls == FLOOR).any()):
+    floor_fill_hull, that hull at the found floor's height too, within that reach unless
+    floor_fill_hull_reach is off."""
+    found = bool((seg.cls == FLOOR).any())
+    if cfg.floor_fill_hull or not found:
+        if not (cfg.floor_fill_no_plane or found):
             return None, None
         c = triangles(verts, tris)[0]  # [T, 3] centres
         cams = np.array([f.pose[:3, 3] for f in cap.frames if f.pose is not None])  # [N, 3]
         xy = np.concatenate([c[:, :2], cams[:, :2]])
-        reach = Reach(cfg.floor_fill_min_drop_deg, cfg.floor_fill_reach)
+        bound = not found or cfg.floor_fill_hull_reach
+        reach = Reach(cfg.floor_fill_min_drop_deg, cfg.floor_fill_reach) if bound else None
         return Footprint.of(xy, cfg.floor_fill_cell, hull=True), reach
     keep = (seg.cls == FLOOR) | (seg.cls == WALL)
     c = triangles(verts, tris[keep])[0]  # [K, 3] centres
