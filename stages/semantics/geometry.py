@@ -233,7 +233,7 @@ def _point_walls(cfg: SemanticsConfig, inputs: SemanticsInputs, cap: Capture
     def more(c: np.ndarray, n: np.ndarray, area: np.ndarray, floor_z: float) -> list[dict]:
         if len(pts) == 0:
             return []
-        return point_walls(pts, cams, room_directions(n, area, cfg.max_tilt_deg), floor_z, opt)
+        return point_walls(pts, cams, room_directions(pts, opt.dist), floor_z, opt)
 
     return more
 

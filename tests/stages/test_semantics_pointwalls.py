@@ -81,7 +81,7 @@ def test_a_plain_wall_is_found_in_the_readings_and_filled_over_its_holes(tmp_pat
     assert before["planes"]["wall"] == 0  # the strip is 0.6 m tall: no wall of the mesh
     assert stats["point_walls"] == 1 and stats["planes"]["wall"] == 1
     (wall,) = [p for p in stats["plane_list"] if p["kind"] == "wall"]
-    assert wall["normal"] == pytest.approx([0.0, -1.0, 0.0], abs=1e-3)  # facing the room
+    assert wall["normal"] == pytest.approx([0.0, -1.0, 0.0], abs=0.02)  # facing the room
     assert wall["d"] == pytest.approx(NORTH - 0.02, abs=0.02)  # -y + d = 0 on the plane
     assert stats["objects"] == before["objects"] == 2  # the counters
     over = 0
@@ -119,12 +119,32 @@ def test_the_outermost_plane_with_nothing_beyond_it_is_the_wall():
     noise = np.stack([u[:200], rng.uniform(3.05, 3.5, 200), z[:200]], 1)  # seen past it
     pts = np.concatenate([wall, front, top, noise])
     cams = np.array([[2.0, 1.0, 1.4], [1.0, 1.5, 1.4]])
-    dirs = room_directions(np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0]]), np.ones(2), 15.0)
+    dirs = room_directions(pts, 0.05)
+    np.testing.assert_allclose(dirs[:2, :2], np.eye(2), atol=0.005)  # on x and y (0.3 deg)
     opt = PointWallOptions(0.05, 1.0, 0.5, 0.5, 0.2, 1.9)
     (w,) = point_walls(pts, cams, dirs, 0.0, opt)  # the fronts are too low, the ends bare
-    assert w["normal"] == pytest.approx([0.0, -1.0, 0.0], abs=1e-6)
-    assert w["d"] == pytest.approx(3.0, abs=0.01)
+    assert w["normal"] == pytest.approx([0.0, -1.0, 0.0], abs=0.02)  # turned 1 deg at most
+    y_mid = -(w["d"] + 2.0 * w["normal"][0]) / w["normal"][1]  # the plane at x = 2
+    assert y_mid == pytest.approx(3.0, abs=0.02)
     assert w["box"][1] == 0.0 and w["box"][3] == pytest.approx(1.9)  # from the floor up
     # without the wall, the cabinet front (0.72 m of readings) is no wall: its top lies beyond
     bare = point_walls(np.concatenate([front, top]), cams, dirs, 0.0, opt)
     assert not [w for w in bare if w["normal"][1] < -0.9]
+
+
+def test_the_room_directions_are_found_in_the_readings_of_a_turned_room():
+    """The turn at which the readings' offsets pile up: a room turned by 12 degrees about z
+    (walls and a cabinet front, with clutter at other angles) gives its walls' directions."""
+    rng = np.random.default_rng(1)
+    u, z = rng.uniform(0.0, 4.0, 3000), rng.uniform(0.0, 2.0, 3000)
+    parts = [
+        np.stack([u, np.full_like(u, 3.0), z], 1),  # north wall
+        np.stack([np.full_like(u, 4.0), u * 0.75, z], 1),  # east wall
+        np.stack([u[:1000], np.full(1000, 2.4), z[:1000] * 0.4], 1),  # a front
+        rng.uniform([0, 0, 0], [4, 3, 1], (1500, 3)),  # clutter
+    ]
+    a = np.radians(12.0)
+    turn = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    dirs = room_directions(np.concatenate(parts) @ turn.T, 0.05)
+    got = np.degrees(np.arctan2(dirs[:, 1], dirs[:, 0])) % 90.0  # [4] the same turn, mod 90
+    np.testing.assert_allclose(got, 12.0, atol=0.2)
