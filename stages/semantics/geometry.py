@@ -224,7 +224,7 @@ def _point_walls(cfg: SemanticsConfig, inputs: SemanticsInputs, cap: Capture
         dist=cfg.point_wall_dist,
         min_length=cfg.wall_min_length,
         min_height=cfg.point_wall_min_height,
-        min_area=cfg.wall_min_area,
+        min_area=cfg.point_wall_min_area,
         max_beyond=cfg.point_wall_max_beyond,
         top=cfg.ceiling_min_z,
     )
