@@ -76,7 +76,9 @@ def _recipe(r: Runner, pub: Publication, capture: Path, cfg: Config, spec: EditS
     frames = r.step(plan.get("align"), AlignInputs(frames, free_yaw=posed is not None)).frames
     depth = r.step(plan.get("depth"), NerfInputs(frames=frames))  # photos only: stereo (+ NeRF)
     fused = r.step(plan.get("fusion"), FusionInputs(frames=depth.frames if depth else frames))
-    sem = r.step(plan.get("semantics"), SemanticsInputs(frames=fused.frames, mesh=fused.mesh))
+    # the point walls' readings: the SfM tracks (the aligned frames) and what fusion read
+    seen = (frames, depth.frames) if depth and cfg["semantics"].point_walls else ()
+    sem = r.step(plan.get("semantics"), SemanticsInputs(fused.frames, fused.mesh, seen))
     labelled = sem.frames if sem else fused.frames  # the frames the plan is projected from
     # on the fused (dense, clean) depth and the labels: for the NeRF baseline and edits
     nerf = r.step(plan.get("nerf"), NerfInputs(frames=labelled))

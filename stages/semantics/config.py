@@ -72,6 +72,15 @@ class SemanticsConfig:
     # 27 % of the reference's object cells floor (2 % before); the procedural rooms are not
     # measured with it: off
     floor_fill_hull: bool = False
+    # with floor_fill_hull and a floor plane found, rays are bounded by that reach as without
+    # one; off, they are not (the floor's height is measured there, not the align stage's
+    # guess, and the found walls stop rays). Photos alone, 20 frames at 240 px
+    # (configs/phone.yaml): Replica office0 fwIoU 29.0 -> 36.6 with the hull unbounded (floor
+    # 28.7 -> 45.7, wall 45.4 -> 45.4, object 26.3 -> 26.1; 36.3, floor 45.0, with the reach);
+    # the procedural demo room (60 views, a floor plane) 84.3 -> 84.2 unbounded (floor 88.0
+    # -> 88.1, wall 79.0 -> 78.0), 83.5 with the reach (floor 87.1); the 7-Scenes kitchen
+    # has no floor plane (unchanged). On in phone.yaml
+    floor_fill_hull_reach: bool = True
     # rays that hit no surface and cross a wall plane inside the wall's extent (its inliers'
     # box along the wall, down to the floor) and inside the room are labelled wall at that
     # crossing (wallfill.py): plain walls that stereo left as holes. Needs floor_fill (the
@@ -84,6 +93,30 @@ class SemanticsConfig:
     # puts behind the walls (stereo noise, the far side of a window) is not in the room.
     # Replica office0 from its photos, with the lower wall bounds: fwIoU 44.9 -> 45.1
     outside_unknown: bool = False
+    # walls from the points the views saw (pointwalls.py), beside the mesh's: the SfM tracks
+    # and the depth readings fusion read (photos only). Along each of the room's four
+    # directions, the plane holding the most readings (over point_wall_min_height x
+    # wall_min_length and point_wall_min_area) with at most point_wall_max_beyond of them
+    # beyond it and the cameras inside, extended along itself over the free space that did
+    # not see through it, up to at least ceiling_min_z; mesh triangles within point_wall_dist
+    # join it, rays that hit nothing and cross it are wall there (as wall_fill) and no floor
+    # is filled beyond it.
+    # Measured from photos alone (20 frames at 240 px, configs/phone.yaml, the slow real-photo
+    # test's settings; same SfM, stereo and fusion, semantics only changed), 7-Scenes kitchen,
+    # two SfM runs: fwIoU 37.6 -> 38.4 and 38.2 -> 39.8, wall IoU 0 -> 26.2 and 0 -> 39.2 (its
+    # wall behind the counters: readings 0.9 m tall over 2.2 m² of cells, where the mesh kept
+    # 0.24 m² of triangles), floor 32.8 -> 32.9 and 33.9 -> 34.1, object 41.4 -> 41.0 and
+    # 41.9 -> 41.8; Replica office0 29.0 -> 28.9 (floor 28.7, wall 45.4, object 26.3: its
+    # walls are the mesh's already); the procedural demo room (60 views) unchanged (the same).
+    # On in configs/phone.yaml; off here (sensor depth has its walls)
+    point_walls: bool = False
+    point_wall_dist: float = 0.05  # metres: a reading this close to the plane lies on it
+    point_wall_min_height: float = 0.5  # metres in z (5-95 %) the readings span at least
+    point_wall_max_beyond: float = 0.2  # readings beyond the plane per reading on it
+    point_wall_min_area: float = 1.0  # m²: the 10 cm cells (along it x height) its readings
+    #                                   cover at least (a cell a few readings touch counts
+    #                                   whole: more than the mesh's wall_min_area; the kitchen's
+    #                                   wall covers 2.2, a cabinet side 0.5, the office's 1.6-4)
 
     def __post_init__(self) -> None:
         if self.impl not in ("geometry", "height"):
@@ -97,6 +130,8 @@ class SemanticsConfig:
             "wall_min_length",
             "floor_fill_cell",
             "floor_fill_reach",
+            "point_wall_dist",
+            "point_wall_min_height",
         ):
             if not getattr(self, name) > 0:
                 raise BlunfError(f"semantics.{name}: must be > 0, got {getattr(self, name)}")
@@ -110,7 +145,14 @@ class SemanticsConfig:
             )
         if self.ransac_points < 3:
             raise BlunfError(f"semantics.ransac_points: must be >= 3, got {self.ransac_points}")
-        for name in ("plane_min_area", "wall_min_area", "object_min_area", "object_max_gap"):
+        for name in (
+            "plane_min_area",
+            "wall_min_area",
+            "object_min_area",
+            "object_max_gap",
+            "point_wall_max_beyond",
+            "point_wall_min_area",
+        ):
             if not getattr(self, name) >= 0:
                 raise BlunfError(f"semantics.{name}: must be >= 0, got {getattr(self, name)}")
         if not 0 <= self.floor_max_z < self.ceiling_min_z:
@@ -124,6 +166,8 @@ class SemanticsConfig:
 class SemanticsInputs:
     frames: Path  # frames.json of the fused capture (poses, intrinsics, ray-cast depth)
     mesh: Path  # mesh.ply: the fused surface, world frame (z up, floor at z = 0)
+    evidence: tuple[Path, ...] = ()  # frames.json files (same world) whose depth readings
+    #                                  the point walls are found in (point_walls)
 
 
 @dataclass(frozen=True)

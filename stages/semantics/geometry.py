@@ -31,7 +31,13 @@ from stages.semantics.config import (
     SemanticsOutputs,
 )
 from stages.semantics.floorfill import Footprint, Reach, floor_through
-from stages.semantics.segment import Segmentation, segment, triangles
+from stages.semantics.pointwalls import (
+    PointWallOptions,
+    evidence_points,
+    point_walls,
+    room_directions,
+)
+from stages.semantics.segment import MoreWalls, Segmentation, segment, triangles
 from stages.semantics.wallfill import wall_through
 
 log = logging.getLogger(__name__)
@@ -55,13 +61,14 @@ def run(cfg: SemanticsConfig, inputs: SemanticsInputs, out: Path) -> SemanticsOu
     t_read = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    seg = segment(verts, tris, cfg)
+    seg = segment(verts, tris, cfg, _point_walls(cfg, inputs, cap))
     t_segment = time.perf_counter() - t0
 
     outs = SemanticsOutputs.at(out)
     outs.labels.mkdir(parents=True, exist_ok=True)
     outs.instances.mkdir(parents=True, exist_ok=True)
     room, reach = _room(verts, tris, seg, cap, cfg) if cfg.floor_fill else (None, None)
+    hull = cfg.floor_fill_hull or not (seg.cls == FLOOR).any()
     if room is not None and cfg.outside_unknown:
         out_obj = (seg.cls == OBJECT) & ~room.contains(triangles(verts, tris)[0][:, :2])
         seg.cls[out_obj] = UNKNOWN
@@ -78,6 +85,7 @@ def run(cfg: SemanticsConfig, inputs: SemanticsInputs, out: Path) -> SemanticsOu
     stats = {
         "triangles": len(tris),
         "planes": planes,
+        "point_walls": sum(p.get("source") == "points" for p in seg.planes),
         "plane_list": seg.planes,
         # vertical planes that were not walls: [length, height (5-95 %, m), area (m²)]
         "vertical_rejected": [[*p["span"], p["area_m2"]] for p in seg.rejected],
@@ -93,7 +101,8 @@ def run(cfg: SemanticsConfig, inputs: SemanticsInputs, out: Path) -> SemanticsOu
         "floor_fill": None
         if room is None
         else {
-            "room": "floor and walls" if reach is None else "hull of surface and cameras",
+            "room": "hull of surface and cameras" if hull else "floor and walls",
+            "reach": reach is not None,  # rays bounded by floor_fill_min_drop_deg and _reach
             "room_m2": round(float(room.mask.sum()) * room.cell**2, 2),
         },
         "area_m2": {
@@ -153,6 +162,8 @@ def _render(
     inst = np.append(seg.instance, 0)  # [T + 1]
     wide = inst.max(initial=0) > 255
     walls = tuple(p for p in seg.planes if p["kind"] == "wall")
+    # the point walls are plain walls seen through by construction: always filled
+    fill_walls = tuple(w for w in walls if cfg.wall_fill or w.get("source") == "points")
     counts = np.zeros(256, np.int64)
     frames, filled, walled = [], 0, 0
     if room is not None:
@@ -169,8 +180,8 @@ def _render(
             r = rays.numpy()
             floor = floor_through(r, t, seg.floor_z, room, margin, walls, reach)  # [H, W]
             wall = (
-                wall_through(r, t, walls, seg.floor_z, room, margin)[0]
-                if cfg.wall_fill
+                wall_through(r, t, fill_walls, seg.floor_z, room, margin)[0]
+                if fill_walls
                 else np.zeros_like(t)
             )
             wall = np.where((wall > 0) & ((floor == 0) | (wall < floor)), wall, 0.0)
@@ -201,6 +212,32 @@ def _render(
     }
 
 
+def _point_walls(cfg: SemanticsConfig, inputs: SemanticsInputs, cap: Capture
+                 ) -> MoreWalls | None:  # fmt: skip
+    """The segmentation's walls from the views' readings (pointwalls.py), or None when
+    point_walls is off or no readings are given."""
+    if not (cfg.point_walls and inputs.evidence):
+        return None
+    pts = evidence_points([Capture.load(p) for p in inputs.evidence])
+    cams = np.array([f.pose[:3, 3] for f in cap.frames if f.pose is not None])  # [N, 3]
+    opt = PointWallOptions(
+        dist=cfg.point_wall_dist,
+        min_length=cfg.wall_min_length,
+        min_height=cfg.point_wall_min_height,
+        min_area=cfg.point_wall_min_area,
+        max_beyond=cfg.point_wall_max_beyond,
+        top=cfg.ceiling_min_z,
+    )
+    log.info("semantics: %d readings for the point walls", len(pts))
+
+    def more(c: np.ndarray, n: np.ndarray, area: np.ndarray, floor_z: float) -> list[dict]:
+        if len(pts) == 0:
+            return []
+        return point_walls(pts, cams, room_directions(pts, opt.dist), floor_z, opt)
+
+    return more
+
+
 def _room(
     verts: np.ndarray, tris: np.ndarray, seg: Segmentation, cap: Capture, cfg: SemanticsConfig
 ) -> tuple[Footprint | None, Reach | None]:
@@ -208,14 +245,17 @@ def _room(
     footprint of the floor and wall triangles, any reach. Without a floor plane (z = 0, the
     align stage's floor, stands in for it) the convex hull of the surface and the cameras,
     within the config's reach (floorfill.py), or nothing when floor_fill_no_plane is off; with
-    floor_fill_hull, that hull and reach at the found floor's height too."""
-    if cfg.floor_fill_hull or not (seg.cls == FLOOR).any():
-        if not (cfg.floor_fill_no_plane or (seg.cls == FLOOR).any()):
+    floor_fill_hull, that hull at the found floor's height too, within that reach unless
+    floor_fill_hull_reach is off."""
+    found = bool((seg.cls == FLOOR).any())
+    if cfg.floor_fill_hull or not found:
+        if not (cfg.floor_fill_no_plane or found):
             return None, None
         c = triangles(verts, tris)[0]  # [T, 3] centres
         cams = np.array([f.pose[:3, 3] for f in cap.frames if f.pose is not None])  # [N, 3]
         xy = np.concatenate([c[:, :2], cams[:, :2]])
-        reach = Reach(cfg.floor_fill_min_drop_deg, cfg.floor_fill_reach)
+        bound = not found or cfg.floor_fill_hull_reach
+        reach = Reach(cfg.floor_fill_min_drop_deg, cfg.floor_fill_reach) if bound else None
         return Footprint.of(xy, cfg.floor_fill_cell, hull=True), reach
     keep = (seg.cls == FLOOR) | (seg.cls == WALL)
     c = triangles(verts, tris[keep])[0]  # [K, 3] centres

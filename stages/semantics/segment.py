@@ -27,7 +27,7 @@ floor triangle faces up), which tells a floor from the underside of a table top.
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -67,11 +67,21 @@ def triangles(verts: np.ndarray, tris: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return p.mean(axis=1), normal, norm / 2.0
 
 
-def segment(verts: np.ndarray, tris: np.ndarray, cfg: SemanticsConfig) -> Segmentation:
+# more walls from elsewhere than the mesh's triangles (pointwalls.py): given the triangles'
+# centres, normals and areas and the floor's height, plane dicts as _describe's, each with
+# the "dist" within which triangles join it
+MoreWalls = Callable[[np.ndarray, np.ndarray, np.ndarray, float], list[dict]]
+
+
+def segment(
+    verts: np.ndarray, tris: np.ndarray, cfg: SemanticsConfig, more_walls: MoreWalls | None = None
+) -> Segmentation:
     """Classify every triangle of a mesh (world metres, z up, floor at z = 0).
 
     Args:
         verts: [V, 3] vertex positions. tris: [T, 3] vertex indices.
+        more_walls: walls found elsewhere (the views' points); one that lies on a wall the
+            mesh gave (facing the same way, within its dist) is dropped.
     """
     o3d.utility.random.seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
@@ -101,6 +111,11 @@ def segment(verts: np.ndarray, tris: np.ndarray, cfg: SemanticsConfig) -> Segmen
         else:
             seg.rejected.append(_describe(plane, inl, "vertical", c, area))
             log.debug("semantics: not a wall %s", seg.rejected[-1])
+    if more_walls is not None:
+        for w in more_walls(c, n, area, seg.floor_z):
+            if not any(_same_wall(w, p) for p in seg.planes if p["kind"] == "wall"):
+                seg.planes.append(w)
+                log.debug("semantics: wall from points %s", w)
     _absorb(seg, c, cfg)
     _objects(seg, c, area, ok, cfg)
     return seg
@@ -213,13 +228,25 @@ def _describe(plane: np.ndarray, inl: np.ndarray, kind: str, c: np.ndarray, area
     }
 
 
+def _same_wall(a: dict, b: dict) -> bool:
+    """Whether two wall planes are parallel (within 15 degrees) and lie within the first's
+    dist of each other (a fitted plane's normal may face either way)."""
+    na, nb = np.asarray(a["normal"]), np.asarray(b["normal"])
+    sign = 1.0 if na @ nb >= 0 else -1.0
+    if sign * (na @ nb) < np.cos(np.radians(15.0)):
+        return False
+    return abs(a["d"] - sign * b["d"]) < a.get("dist", 0.0)
+
+
 def _absorb(seg: Segmentation, c: np.ndarray, cfg: SemanticsConfig) -> None:
-    """Unlabelled triangles near an accepted plane, inside its box, join it (any normal)."""
+    """Unlabelled triangles near an accepted plane (its "dist", else plane_dist), inside its
+    box, join it (any normal)."""
     ids = {"floor": FLOOR, "wall": WALL, "ceiling": CEILING}
     for pl in seg.planes:
         free = np.flatnonzero(seg.cls == UNKNOWN)
         p = c[free]
-        near = np.abs(p @ np.asarray(pl["normal"]) + pl["d"]) < cfg.plane_dist
+        dist = pl.get("dist", cfg.plane_dist)
+        near = np.abs(p @ np.asarray(pl["normal"]) + pl["d"]) < dist
         seg.cls[free[near & in_extent(pl, p, cfg.plane_dist)]] = ids[pl["kind"]]
 
 

@@ -147,3 +147,20 @@ def test_floor_fill_hull_bounds_a_found_floor_by_the_hull_and_the_walls(tmp_path
     assert (down[10:14, 14:18] == FLOOR).all()  # straight down into the hole
     np.testing.assert_array_equal(door, read_label(base.frames[1].label))  # the doorway
     assert (door[11:13, 15:17] == UNKNOWN).all()
+
+
+def test_floor_fill_hull_reach_off_leaves_a_found_floor_unbounded(tmp_path):
+    """semantics.floor_fill_hull_reach=false: with a floor plane found, the hull's fill is not
+    bounded by floor_fill_min_drop_deg and floor_fill_reach (as it is without one)."""
+    inputs = _holed_room(tmp_path)
+    tight = {"floor_fill_hull": True, "floor_fill_reach": 0.05, "floor_fill_min_drop_deg": 85.0}
+    bounded, s_bounded = _run(inputs, tmp_path / "bounded", SemanticsConfig(**tight))
+    cfg = SemanticsConfig(**tight, floor_fill_hull_reach=False)
+    free, s_free = _run(inputs, tmp_path / "free", cfg)
+    wide = SemanticsConfig(floor_fill_hull=True, floor_fill_reach=1e3, floor_fill_min_drop_deg=0.0)
+    loose, _ = _run(inputs, tmp_path / "loose", wide)
+    assert s_bounded["floor_fill"]["reach"] and not s_free["floor_fill"]["reach"]
+    assert s_bounded["planes"]["floor"] == 1
+    assert s_bounded["pixels"]["floor_seen_through"] < s_free["pixels"]["floor_seen_through"]
+    for f, g in zip(free.frames, loose.frames, strict=True):  # as if any ray reached
+        np.testing.assert_array_equal(read_label(f.label), read_label(g.label))

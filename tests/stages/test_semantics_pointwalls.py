@@ -1,0 +1,150 @@
+"""Walls from the views' readings (semantics.point_walls): a plain wall that photos alone leave
+in patches. The mesh holds two counters and, above the north one, only a 0.6 m strip of the
+wall behind it (a backsplash: too low for a wall plane of the mesh), as stereo gives of the
+7-Scenes kitchen; the readings the views took of it are the evidence. The strip's plane,
+the outermost along north with nothing seen beyond it, is a wall: its triangles are wall and
+the rays over it that hit nothing are wall at its plane; the counter fronts (the counter
+tops and the strip lie beyond them) are not walls."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import open3d as o3d
+import pytest
+import trimesh
+
+from stages.common.camera import Intrinsics
+from stages.common.capture import Capture, Frame
+from stages.common.io import read_label, write_depth_npy
+from stages.semantics import IMPLS, SemanticsConfig, SemanticsInputs
+from stages.semantics.config import OBJECT, WALL
+from stages.semantics.pointwalls import PointWallOptions, point_walls, room_directions
+from tests.stages.test_semantics import _look, _views_capture
+from tests.stages.test_semantics_floorfree import _rays
+
+LX, NORTH = 6.0, 3.0  # the counters run along x in [0, LX]; the wall stands at y = NORTH
+STRIP = (0.9, 1.5)  # the wall's readings: z from the north counter's top up to 1.5 m
+BOXES = [
+    ((0.0, 2.5, 0.45), (LX, NORTH, 0.9)),  # the north counter
+    ((0.0, -0.5, 0.45), (LX, 0.0, 0.9)),  # the south counter
+    ((0.0, NORTH - 0.02, STRIP[0]), (LX, NORTH, STRIP[1])),  # the strip of wall (2 cm thick)
+]
+INTR = Intrinsics(24.0, 24.0, 23.5, 17.5, 48, 36)
+VIEWS = [
+    _look((2.0, 1.2, 1.4), (2.0, 2.2, 0.0)),  # down onto the floor and the north counter
+    _look((3.0, 0.8, 1.4), (3.0, NORTH, 0.9)),  # at the wall: the strip and above it
+    _look((4.5, 1.0, 1.45), (5.0, NORTH, 1.2)),  # the same, from the east
+    _look((0.5, 1.25, 1.5), (4.0, 1.25, 0.0)),  # along the room
+]
+
+
+def _scene(tmp_path) -> SemanticsInputs:
+    """The mesh, VIEWS, and their depth ray-cast from it as the evidence (its frames.json)."""
+    verts, faces = [], []
+    for lo, hi in BOXES:
+        box = trimesh.creation.box(bounds=[lo, hi])
+        v, f = trimesh.remesh.subdivide_to_size(box.vertices, box.faces, max_edge=0.05)
+        faces.append(f + sum(len(x) for x in verts))
+        verts.append(v)
+    mesh = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(np.concatenate(verts)),
+        o3d.utility.Vector3iVector(np.concatenate(faces).astype(np.int32)),
+    )
+    o3d.io.write_triangle_mesh(str(tmp_path / "mesh.ply"), mesh)
+    _views_capture(tmp_path, VIEWS, INTR)
+    cap = Capture.load(tmp_path / "frames.json")
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    seen = tmp_path / "seen"
+    seen.mkdir()
+    frames = []
+    for f in cap.frames:
+        t = scene.cast_rays(o3d.core.Tensor(_rays(f).astype(np.float32)))["t_hit"].numpy()
+        write_depth_npy(seen / f"{f.stem}.npy", np.where(np.isfinite(t), t, 0.0))
+        frames.append(Frame(f.stem, f.image, f.intrinsics, seen / f"{f.stem}.npy", None, f.pose))
+    Capture(tmp_path, tuple(frames)).save(seen / "frames.json")
+    return SemanticsInputs(tmp_path / "frames.json", tmp_path / "mesh.ply", (seen / "frames.json",))
+
+
+def _run(inputs: SemanticsInputs, out, cfg: SemanticsConfig) -> tuple[Capture, dict]:
+    out.mkdir()
+    outs = IMPLS["geometry"](cfg, inputs, out)
+    return Capture.load(outs.frames), json.loads(outs.stats.read_text())
+
+
+def test_a_plain_wall_is_found_in_the_readings_and_filled_over_its_holes(tmp_path):
+    inputs = _scene(tmp_path)
+    plain, before = _run(inputs, tmp_path / "plain", SemanticsConfig())
+    cap, stats = _run(inputs, tmp_path / "walls", SemanticsConfig(point_walls=True))
+    assert before["planes"]["wall"] == 0  # the strip is 0.6 m tall: no wall of the mesh
+    assert stats["point_walls"] == 1 and stats["planes"]["wall"] == 1
+    (wall,) = [p for p in stats["plane_list"] if p["kind"] == "wall"]
+    assert wall["normal"] == pytest.approx([0.0, -1.0, 0.0], abs=0.02)  # facing the room
+    assert wall["d"] == pytest.approx(NORTH - 0.02, abs=0.02)  # -y + d = 0 on the plane
+    assert stats["objects"] == before["objects"] == 2  # the counters
+    over = 0
+    for f, f0 in zip(cap.frames, plain.frames, strict=True):
+        got, was = read_label(f.label), read_label(f0.label)
+        assert not (read_label(f0.label) == WALL).any()
+        r = _rays(f)
+        at = r[..., :3] + np.load(f.depth)[..., None] * r[..., 3:]  # [H, W, 3]
+        wall_px = got == WALL
+        # every wall pixel lies on the wall's plane (mesh triangles within point_wall_dist
+        # joined it: the counter top's back edge), from the floor up to its top
+        np.testing.assert_allclose(at[wall_px][:, 1], NORTH - 0.02, atol=0.06)
+        assert (at[wall_px][:, 2] <= max(STRIP[1], SemanticsConfig().ceiling_min_z) + 0.05).all()
+        # the strip's pixels (within the readings' span along it: these small views read
+        # every other pixel, and its ends only at grazing angles) become wall
+        strip = np.abs(at[..., 1] - (NORTH - 0.02)) < 0.01
+        strip &= (at[..., 2] > STRIP[0] + 0.03) & (at[..., 2] < STRIP[1] - 0.03)
+        strip &= (at[..., 0] > 1.0) & (at[..., 0] < LX - 1.0)
+        assert wall_px[strip].all() and not (was[strip] == WALL).any()
+        over += int((wall_px & (at[..., 2] > STRIP[1] + 0.03)).sum())
+        # the counters' fronts and tops keep their class: they are no wall
+        counter = (at[..., 2] < STRIP[0] - 0.01) & (got != WALL)
+        assert ((got == OBJECT) == (was == OBJECT))[counter].all()
+        assert ((was == OBJECT) & (at[..., 2] < STRIP[0] - 0.01) & ~counter).sum() == 0
+    assert over > 100  # the plain wall above the strip, which no surface holds
+
+
+def test_the_outermost_plane_with_nothing_beyond_it_is_the_wall():
+    rng = np.random.default_rng(0)
+    u = rng.uniform(0.0, 4.0, 4000)
+    z = rng.uniform(0.2, 1.2, 4000)
+    wall = np.stack([u, np.full_like(u, 3.0), z], 1)  # y = 3: the wall
+    front = np.stack([u, np.full_like(u, 2.4), z * 0.6], 1)  # y = 2.4: a cabinet front
+    top = np.stack([u, rng.uniform(2.4, 3.0, 4000), np.full_like(u, 0.75)], 1)  # its top
+    noise = np.stack([u[:200], rng.uniform(3.05, 3.5, 200), z[:200]], 1)  # seen past it
+    pts = np.concatenate([wall, front, top, noise])
+    cams = np.array([[2.0, 1.0, 1.4], [1.0, 1.5, 1.4]])
+    dirs = room_directions(pts, 0.05)
+    np.testing.assert_allclose(dirs[:2, :2], np.eye(2), atol=0.005)  # on x and y (0.3 deg)
+    opt = PointWallOptions(0.05, 1.0, 0.5, 0.5, 0.2, 1.9)
+    (w,) = point_walls(pts, cams, dirs, 0.0, opt)  # the fronts are too low, the ends bare
+    assert w["normal"] == pytest.approx([0.0, -1.0, 0.0], abs=0.02)  # turned 1 deg at most
+    y_mid = -(w["d"] + 2.0 * w["normal"][0]) / w["normal"][1]  # the plane at x = 2
+    assert y_mid == pytest.approx(3.0, abs=0.02)
+    assert w["box"][1] == 0.0 and w["box"][3] == pytest.approx(1.9)  # from the floor up
+    # without the wall, the cabinet front (0.72 m of readings) is no wall: its top lies beyond
+    bare = point_walls(np.concatenate([front, top]), cams, dirs, 0.0, opt)
+    assert not [w for w in bare if w["normal"][1] < -0.9]
+
+
+def test_the_room_directions_are_found_in_the_readings_of_a_turned_room():
+    """The turn at which the readings' offsets pile up: a room turned by 12 degrees about z
+    (walls and a cabinet front, with clutter at other angles) gives its walls' directions."""
+    rng = np.random.default_rng(1)
+    u, z = rng.uniform(0.0, 4.0, 3000), rng.uniform(0.0, 2.0, 3000)
+    parts = [
+        np.stack([u, np.full_like(u, 3.0), z], 1),  # north wall
+        np.stack([np.full_like(u, 4.0), u * 0.75, z], 1),  # east wall
+        np.stack([u[:1000], np.full(1000, 2.4), z[:1000] * 0.4], 1),  # a front
+        rng.uniform([0, 0, 0], [4, 3, 1], (1500, 3)),  # clutter
+    ]
+    a = np.radians(12.0)
+    turn = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    dirs = room_directions(np.concatenate(parts) @ turn.T, 0.05)
+    got = np.degrees(np.arctan2(dirs[:, 1], dirs[:, 0])) % 90.0  # [4] the same turn, mod 90
+    np.testing.assert_allclose(got, 12.0, atol=0.2)
