@@ -4,7 +4,7 @@ A run made without edits has no NeRF (the planner trains one only for an edit sp
 NeRF top-view baseline). The studio trains it the way the command it names would
 (`pipeline.render.TRAIN_HINT`): the session's edits saved as RUN/edits/studio.yaml, then
 `pipeline.run.run` on the run's capture into the same run folder, with the run's own
-config (report.json) and configs/edit.yaml on top. Every stage but the NeRF, the edit and
+config (report.json) and configs/edit-fast.yaml on top. Every stage but the NeRF, the edit and
 what follows is found in the run's cache, and the same command typed later finds the NeRF
 there too. The run's stage lines (logger `pipeline.runner`) and its progress bars
 (`stages.common.progress.open_steps`) are what the page shows while it works.
@@ -28,7 +28,7 @@ from stages.common.io import read_json
 
 log = logging.getLogger(__name__)
 
-EDIT_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "edit.yaml"
+EDIT_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "edit-fast.yaml"
 
 
 def _merge(base: dict, top: dict) -> dict:
@@ -39,7 +39,7 @@ def _merge(base: dict, top: dict) -> dict:
 
 
 def training_config(run: Path, sets: Sequence[str] = ()) -> Config:
-    """The run's own config (report.json), configs/edit.yaml on top, then `sets`."""
+    """The run's own config (report.json), configs/edit-fast.yaml on top, then `sets`."""
     rep = Path(run) / "report.json"
     d = read_json(rep).get("config")
     if not isinstance(d, dict):

@@ -49,9 +49,8 @@ def test_plan_on_the_floor_is_north_up(studio) -> None:
 def test_page_without_a_nerf_offers_training(studio) -> None:
     _, st = studio
     assert st.train_button.visible and st.no_field.visible
-    assert (
-        "blunf run" in st.no_field.content and "--config configs/edit.yaml" in st.no_field.content
-    )
+    hint = st.no_field.content
+    assert "blunf run" in hint and "--config configs/edit-fast.yaml" in hint
     st._do(st._train)  # no edit yet: a message, nothing started
     assert "apply an edit first" in st.message.content and st.trainer.state == "idle"
 

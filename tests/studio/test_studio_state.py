@@ -202,5 +202,6 @@ def test_training_needs_an_edit_and_takes_the_runs_config(run) -> None:
     assert t.state == "idle" and t.thread is None  # nothing started
     cfg = training_config(out, ["nerf.train.max_steps=7"])
     assert cfg["fusion"].voxel == VOXEL  # the run's own settings
-    assert cfg["nerf"].train.edge_batch == 0.5  # configs/edit.yaml's
+    assert cfg["nerf"].train.edge_batch == 0.5  # configs/edit-fast.yaml's
+    assert cfg["edit"].render == "surface" and training_config(out)["nerf"].train.max_steps == 200
     assert cfg["nerf"].train.max_steps == 7  # and the sets given

@@ -78,7 +78,7 @@ def test_train_from_the_studio(trained) -> None:
     # through the run's cache: the stages before the NeRF found there, the NeRF trained
     assert status["nerf"] == "ran" and status["edit"] == "ran"
     assert status["fusion"] == "cached" and status["ingest"] == "cached"
-    assert report["config"]["nerf"]["train"]["edge_batch"] == 0.5  # configs/edit.yaml's
+    assert report["config"]["nerf"]["train"]["edge_batch"] == 0.5  # configs/edit-fast.yaml's
     assert any("nerf" in ln and "running" in ln for ln in lines), lines  # the page's line
     assert lines[-1].startswith("NeRF trained")
     assert (run / "edits" / SPEC_NAME).is_file()  # kept by the run, as blunf run keeps it
