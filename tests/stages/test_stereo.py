@@ -221,22 +221,25 @@ def test_window_inside_matches_the_windowed_sum():
 
 
 def test_plane_count_follows_the_widest_neighbours_disparity():
+    from dataclasses import replace
+
     # focal 200 px, neighbours 0.1 m and 0.2 m away, depths 1 .. 4 m: the far neighbour sees
     # a point move 200 x 0.2 x (1 - 1/4) = 30 px over the range
     K = np.array([[200.0, 0, 100], [0, 200.0, 80], [0, 0, 1]])
     poses = [np.eye(4) for _ in range(3)]
     poses[1][0, 3], poses[2][0, 3] = 0.1, 0.2
-    assert plane_count(StereoConfig(), K, poses, 0, [1, 2], 1.0, 4.0) == 64  # off: `planes`
-    assert plane_count(StereoConfig(plane_px=2.0), K, poses, 0, [1, 2], 1.0, 4.0) == 16
-    assert plane_count(StereoConfig(plane_px=2.0), K, poses, 0, [1], 1.0, 4.0) == 9
-    assert plane_count(StereoConfig(plane_px=0.1), K, poses, 0, [1, 2], 1.0, 4.0) == 64
-    assert plane_count(StereoConfig(plane_px=20.0), K, poses, 0, [1, 2], 1.0, 4.0) == 8
+    cfg = StereoConfig(planes=64)
+    assert plane_count(cfg, K, poses, 0, [1, 2], 1.0, 4.0) == 64  # off: `planes`
+    assert plane_count(replace(cfg, plane_px=2.0), K, poses, 0, [1, 2], 1.0, 4.0) == 16
+    assert plane_count(replace(cfg, plane_px=2.0), K, poses, 0, [1], 1.0, 4.0) == 9
+    assert plane_count(replace(cfg, plane_px=0.1), K, poses, 0, [1, 2], 1.0, 4.0) == 64
+    assert plane_count(replace(cfg, plane_px=20.0), K, poses, 0, [1, 2], 1.0, 4.0) == 8
 
 
 def test_fewer_planes_from_the_disparity_still_match_the_exact_depth(room, swept):
     images, ks, poses, tracks, gt = room
-    depths, facts = sweep_depths(images, ks, poses, tracks, StereoConfig(plane_px=3.0))
-    assert 8 <= facts["planes_mean"] < 64, facts
-    assert swept[1]["planes_mean"] == 64
+    depths, facts = sweep_depths(images, ks, poses, tracks, StereoConfig(plane_px=6.0))
+    assert 8 <= facts["planes_mean"] < StereoConfig().planes, facts
+    assert swept[1]["planes_mean"] == StereoConfig().planes
     e = _errors(depths, gt)
     assert np.median(e) < 0.015 and facts["kept"] > 0.8 * swept[1]["kept"], (facts, swept[1])
