@@ -20,6 +20,9 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Iterable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 
 import numpy as np
 import torch
@@ -29,6 +32,7 @@ from torch import Tensor
 from stages.common.camera import pixel_grid, unproject
 from stages.common.errors import BlunfError
 from stages.common.progress import track
+from stages.common.threads import torch_threads
 from stages.nerf.config import StereoConfig
 from stages.nerf.consistency import consistent_depth, overlap_order
 
@@ -67,18 +71,29 @@ def sweep_depths(
     fine = [_level(g, K, k) for g, K in zip(grays, Ks, strict=True)]
     coarse = [_level(g, K, k * cfg.coarse) for g, K in zip(grays, Ks, strict=True)]
     del grays
-    raw: list[np.ndarray] = []
-    matched = 0
-    for i in track(range(n), "stereo", unit="view"):
+
+    # One view per torch thread, each view's ops on one thread: the sweep's ops are many
+    # and memory-bound, so views side by side keep the cores busier than threads splitting
+    # every op. Same readings, in view order.
+    workers = max(1, min(torch.get_num_threads(), n))
+
+    def view(i: int) -> tuple[np.ndarray, int]:
+        """View i's depth (0 = none) and the planes it swept (0: not swept)."""
+        if workers > 1:  # OpenMP's thread count is per calling thread: this one's too
+            torch.set_num_threads(1)
         nbrs = order[i][: cfg.views]
         own = sparse[i][sparse[i] > 0]
         lo, hi = _bounds(own if len(own) >= 20 else everything)
         if not nbrs or not hi > lo > 0:
-            raw.append(np.zeros(fine[i][0].shape, np.float32))
-            continue
-        d = _sweep(coarse, fine, poses, i, nbrs, lo, hi, cfg)
-        matched += int((d > 0).sum())
-        raw.append(d)
+            return np.zeros(fine[i][0].shape, np.float32), 0
+        planes = plane_count(cfg, coarse[i][1], poses, i, nbrs, lo, hi)
+        return _sweep(coarse, fine, poses, i, nbrs, lo, hi, replace(cfg, planes=planes)), planes
+
+    with torch_threads(1 if workers > 1 else 0), ThreadPoolExecutor(workers) as pool:
+        done = list(track(pool.map(view, range(n)), "stereo", total=n, unit="view"))
+    raw = [d for d, _ in done]
+    swept = [p for _, p in done if p > 0]  # planes of each view's sweep
+    matched = sum(int((d > 0).sum()) for d in raw)
     total = sum(d.size for d in raw)
     # agreement only: a stereo reading seen through by a neighbour is that neighbour's
     # occlusion as often as a floater, so the see-through count is not limited
@@ -91,6 +106,7 @@ def sweep_depths(
         "scale": k,
         "coarse": cfg.coarse,
         "planes": cfg.planes,
+        "planes_mean": round(float(np.mean(swept)), 2) if swept else 0.0,
         "views": cfg.views,
     }
     return checked, facts
@@ -106,6 +122,27 @@ def stereo_scale(cfg: StereoConfig, Ks: list[np.ndarray], z: np.ndarray) -> int:
         return 1
     f = float(np.median([min(K[0, 0], K[1, 1]) for K in Ks]))
     return max(1, int(cfg.cell * f / float(np.median(z))))
+
+
+def plane_count(
+    cfg: StereoConfig,
+    K: np.ndarray,
+    poses: list[np.ndarray],
+    i: int,
+    nbrs: list[int],
+    lo: float,
+    hi: float,
+) -> int:
+    """Planes of view i's sweep over depths [lo, hi]: `cfg.planes`, or (plane_px > 0) enough
+    that one plane step moves a point by at most plane_px pixels (K: the swept level's
+    intrinsics) in the neighbour farthest away: its disparity over the range is at most
+    focal x baseline x (1/lo - 1/hi). At least 8, at most `cfg.planes`."""
+    if cfg.plane_px <= 0 or not nbrs:
+        return cfg.planes
+    c = np.asarray(poses[i], np.float64)[:3, 3]
+    base = max(float(np.linalg.norm(np.asarray(poses[j], np.float64)[:3, 3] - c)) for j in nbrs)
+    span = max(float(K[0, 0]), float(K[1, 1])) * base * (1.0 / lo - 1.0 / hi)  # pixels
+    return int(min(cfg.planes, max(8, math.ceil(span / cfg.plane_px) + 1)))
 
 
 def scaled_K(K: np.ndarray, k: int) -> np.ndarray:
@@ -169,11 +206,29 @@ class _Level:
     def cost(self, depth: Tensor) -> Tensor:
         """Matching cost [D, H, W] of depth hypotheses [D] (every pixel) or [D, HW]: the
         mean of the best k neighbours' costs (a surface one neighbour cannot see)."""
-        c = [
+        c = (
             costs_for(g, ka, kb, depth, self.ref, self.r_mean, self.r_std, self.window)
             for g, ka, kb in self.warps
-        ]
-        return torch.topk(torch.stack(c), self.k, dim=0, largest=False).values.mean(0)
+        )
+        return smallest_mean(c, self.k)
+
+
+def smallest_mean(costs: Iterable[Tensor], k: int) -> Tensor:
+    """Elementwise mean of the k smallest of `costs` (tensors of one shape), kept sorted by
+    insertion (min / max per element) as they come: a fifth of torch.topk's time over a
+    stacked [N, D, H, W] on these few neighbours, and no stack in memory."""
+    best: list[Tensor] = []  # ascending, at most k
+    for c in costs:
+        for j, b in enumerate(best):
+            best[j], c = torch.minimum(b, c), torch.maximum(b, c)
+        if len(best) < k:
+            best.append(c)
+    if not best:
+        raise BlunfError("stereo: no neighbour cost to average")
+    total = best[0]
+    for b in best[1:]:
+        total = total + b
+    return total / len(best)
 
 
 def _sweep(
@@ -278,22 +333,45 @@ def costs_for(
     Returns [D, H, W]."""
     h, w = ref.shape
     hn, wn = gray.shape
-    d = depth if depth.dim() == 2 else depth[:, None]  # [D, HW] or [D, 1]
-    zc = d * ka[None, :, 2] + kb[2]  # [D, HW]
+    d = depth[:, :, None] if depth.dim() == 2 else depth[:, None, None]  # [D, HW | 1, 1]
+    num = d * ka[None] + kb  # [D, HW, 3]
+    zc = num[..., 2:]  # [D, HW, 1]
     front = zc > 1e-6
-    zs = torch.where(front, zc, torch.ones_like(zc))
-    un = (d * ka[None, :, 0] + kb[0]) / zs
-    vn = (d * ka[None, :, 1] + kb[1]) / zs
     # grid_sample's normalised coordinates (align_corners=True: -1 and 1 are pixel centres)
-    gx = un * (2.0 / max(1, wn - 1)) - 1.0
-    gy = vn * (2.0 / max(1, hn - 1)) - 1.0
-    inside = front & (gx.abs() <= 1.0) & (gy.abs() <= 1.0)
-    grid = torch.stack([gx, gy], -1).view(len(depth), h, w, 2)
+    to_grid = torch.tensor([2.0 / max(1, wn - 1), 2.0 / max(1, hn - 1)], dtype=num.dtype)
+    grid = num[..., :2] / torch.where(front, zc, torch.ones_like(zc)) * to_grid - 1.0
+    inside = front[..., 0] & (grid.abs().amax(-1) <= 1.0)  # [D, HW]
+    grid = grid.view(len(depth), h, w, 2)
     src = gray[None, None].expand(len(depth), 1, hn, wn)
     warped = F.grid_sample(src, grid, mode="bilinear", padding_mode="border", align_corners=True)
     s_mean, s_std = _window_stats(warped, window)  # [D, 1, H, W]
     cross = _box(warped * ref[None, None], window) - s_mean * r_mean
     ncc = cross / (s_std * r_std).clamp(min=1e-4)
     cost = (1.0 - ncc).clamp(0.0, 2.0)[:, 0]  # [D, H, W]
-    seen = _box(inside.view(len(depth), 1, h, w).float(), window)[:, 0] > 0.999
+    seen = _window_inside(inside.view(len(depth), h, w), window)
     return torch.where(seen, cost, torch.full_like(cost, 2.0))
+
+
+def _window_inside(inside: Tensor, window: int) -> Tensor:
+    """Per pixel of inside [D, H, W] (bool): whether its whole window (clipped to the image)
+    is inside. The pixels a plane warps into the neighbour, and in front of it, form a convex
+    set (a homography's preimage of the image rectangle, cut by a half-plane), so the window
+    is inside when its four corners are: four shifted copies instead of a windowed sum."""
+    p = window // 2
+    rows = _shifted(inside, 1, -p) & _shifted(inside, 1, p)
+    return _shifted(rows, 2, -p) & _shifted(rows, 2, p)
+
+
+def _shifted(x: Tensor, dim: int, s: int) -> Tensor:
+    """x with index i along `dim` reading index i + s, clamped to the ends."""
+    n = x.shape[dim]
+    if s == 0:
+        return x
+    if s > 0:
+        body = x.narrow(dim, min(s, n - 1), n - min(s, n - 1))
+        edge = x.narrow(dim, n - 1, 1)
+        return torch.cat([body, edge.expand_as(x.narrow(dim, 0, min(s, n - 1)))], dim)
+    s = min(-s, n - 1)
+    body = x.narrow(dim, 0, n - s)
+    edge = x.narrow(dim, 0, 1)
+    return torch.cat([edge.expand_as(x.narrow(dim, 0, s)), body], dim)

@@ -17,13 +17,15 @@ cell, so they move and scale with the world; the plan grid keeps world multiples
 from __future__ import annotations
 
 import logging
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
 from stages.common.blueprint import Grid
-from stages.common.camera import Intrinsics, pixel_grid, unproject
+from stages.common.camera import Intrinsics, pixel_grid
 from stages.common.capture import UNKNOWN, Capture, Frame, heldout_views
 from stages.common.errors import BlunfError
 from stages.common.io import image_size, read_depth, read_label, write_json
@@ -53,13 +55,20 @@ def run(cfg: ProjectConfig, inputs: ProjectInputs, out: Path) -> ProjectOutputs:
     counts = {"sampled": 0, "no_depth": 0, "dropped_label": 0, "dropped_height": 0}
     held_out = labelling == "labels" and inputs.holdout
     held = heldout_views(len(cap.frames), cfg.holdout_every) if held_out else []
-    for i, f in enumerate(cap.frames):
-        if i in held:
-            continue
-        xyz, lab, inst = _frame_points(cap, f, cfg, labelling == "labels", ignore, counts)
-        if labelling == "height":
-            xyz, lab, inst = _height_labels(xyz, inst, cfg, counts)
-        xyz_l.append((xyz - origin).astype(np.float32))
+    todo = [i for i in range(len(cap.frames)) if i not in held]
+
+    def one(i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+        c = dict.fromkeys(counts, 0)
+        xyz, lab, inst = _frame_points(cap, cap.frames[i], cfg, labelling, ignore, origin, c)
+        return xyz, lab, inst, c
+
+    # frames in parallel (image decoding and numpy release the GIL), results in frame order
+    with ThreadPoolExecutor(_workers(len(todo))) as pool:
+        done = list(pool.map(one, todo))
+    for i, (xyz, lab, inst, c) in zip(todo, done, strict=True):
+        for k, v in c.items():
+            counts[k] += v
+        xyz_l.append(xyz)
         lab_l.append(lab)
         view_l.append(np.full(len(lab), i, np.int32))
         inst_l.append(inst)
@@ -125,11 +134,26 @@ def plan_bounds(xy: np.ndarray, cfg: ProjectConfig) -> tuple[np.ndarray, np.ndar
     return lo, hi
 
 
+def _workers(n: int) -> int:
+    """Threads for n frames: the process's thread budget (OMP_NUM_THREADS, which the runtime
+    sizes to the free cores), else the cores, at most 4."""
+    env = os.environ.get("OMP_NUM_THREADS", "")
+    cores = int(env) if env.isdigit() and int(env) > 0 else len(os.sched_getaffinity(0))
+    return max(1, min(4, cores, n))
+
+
 def _frame_points(
-    cap: Capture, f: Frame, cfg: ProjectConfig, use_labels: bool, ignore: np.ndarray, counts: dict
+    cap: Capture,
+    f: Frame,
+    cfg: ProjectConfig,
+    labelling: str,
+    ignore: np.ndarray,
+    origin: np.ndarray,
+    counts: dict,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """World points [N, 3], labels [N] (int64; zeros without labels) and instances [N] (int64;
-    zeros without an instance map) of one frame."""
+    """Points [N, 3] (float32 offsets from `origin`), labels [N] (int64; by height without
+    labels) and instances [N] (int64; zeros without an instance map) of one frame."""
+    use_labels = labelling == "labels"
     if f.pose is None:
         raise BlunfError(f"{f.image}: frame {f.stem!r} has no pose")
     if f.depth is None:
@@ -183,7 +207,25 @@ def _frame_points(
     if (intr.width, intr.height) != (w, h):
         intr = intr.scaled(w, h)
     uvk = _undistort(uv[keep], intr) if any(intr.dist) else uv[keep]
-    return unproject(uvk, d[keep], intr.K, np.asarray(f.pose, np.float64)), lab, inst
+    xyz = _unproject_local(uvk, d[keep], intr.K, np.asarray(f.pose, np.float64), origin)
+    if labelling == "height":
+        return _height_labels(xyz, inst, cfg, counts, float(origin[2]))
+    return xyz, lab, inst
+
+
+def _unproject_local(
+    uv: np.ndarray, depth: np.ndarray, K: np.ndarray, c2w: np.ndarray, origin: np.ndarray
+) -> np.ndarray:
+    """camera.unproject, in float32 about `origin` [3]: the points are kept as float32
+    offsets from it, and float64 world points first took twice the time. Returns [N, 3]."""
+    d = np.asarray(depth, np.float32)
+    pc = np.empty((len(d), 3), np.float32)  # camera frame
+    pc[:, 0] = (uv[:, 0] - K[0, 2]) / K[0, 0]
+    pc[:, 1] = (uv[:, 1] - K[1, 2]) / K[1, 1]
+    pc[:, :2] *= d[:, None]
+    pc[:, 2] = d
+    rot = np.asarray(c2w[:3, :3], np.float32)
+    return pc @ rot.T + np.asarray(c2w[:3, 3] - origin, np.float32)
 
 
 def _local_origin(cap: Capture) -> np.ndarray:
@@ -194,11 +236,12 @@ def _local_origin(cap: Capture) -> np.ndarray:
 
 
 def _height_labels(
-    xyz: np.ndarray, inst: np.ndarray, cfg: ProjectConfig, counts: dict
+    xyz: np.ndarray, inst: np.ndarray, cfg: ProjectConfig, counts: dict, z0: float = 0.0
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Floor (0) below floor_band, occupied (1) up to ceiling_cut, higher points dropped.
+    """Floor (0) below floor_band, occupied (1) up to ceiling_cut, higher points dropped
+    (heights z + z0: xyz may be offsets from a point at height z0).
     Returns the points kept [N, 3], their labels [N] and their instances inst [N]."""
-    z = xyz[:, 2]
+    z = xyz[:, 2].astype(np.float64) + z0
     keep = z < cfg.ceiling_cut
     counts["dropped_height"] += int((~keep).sum())
     lab = np.where(z[keep] < cfg.floor_band, 0, 1).astype(np.int64)

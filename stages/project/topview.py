@@ -35,12 +35,61 @@ def top_view_keep(
     it rather than up to a whole cell. Arguments as in cell_keep. Returns bool [N].
     """
     xyz = np.asarray(xyz, np.float64)
-    keep = np.zeros(len(xyz), bool)
-    for i in range(shifts):
-        for j in range(shifts):
-            off = np.array([i * cell / shifts, j * cell / shifts, 0.0])
-            keep |= cell_keep(xyz + off, label, cell, band, min_points)
-    return keep
+    if shifts <= 1 or len(xyz) == 0:
+        return cell_keep(xyz, label, cell, band, min_points)
+    # Every offset grid's cells are unions of shifts x shifts cells of cell / shifts: the
+    # points are grouped once into those fine cells (per fine cell its min_points highest z
+    # and each class's highest z), and each offset grid merges the fine cells' summaries
+    # (arrays the size of the plan, not of the points). A point at the fine cell (fi, fj)
+    # lies in the offset grid (a, b)'s cell ((fi + a) // shifts, (fj + b) // shifts), as
+    # floor((x + a cell / shifts) / cell) puts it. 7.7 M points: 4x fewer passes over them.
+    fi = np.floor(xyz[:, 0] * (shifts / cell)).astype(np.int64)  # [N]
+    fj = np.floor(xyz[:, 1] * (shifts / cell)).astype(np.int64)
+    fi -= shifts * (int(fi.min()) // shifts)  # >= 0, the offset a multiple of shifts
+    fj -= shifts * (int(fj.min()) // shifts)
+    ni, nj = int(fi.max()) + 1, int(fj.max()) + 1
+    f = fi * nj + fj  # [N] fine cell
+    m = ni * nj
+    z = xyz[:, 2]
+    label = np.asarray(label, np.int64)
+    seen = np.bincount(label, minlength=256) > 0
+    n_lab = int(seen.sum())
+    lab = (np.cumsum(seen) - 1)[label]  # [N] classes renumbered 0..L-1
+    flat = np.full(m * n_lab, -np.inf)  # highest z per (fine cell, class)
+    np.maximum.at(flat, f * n_lab + lab, z)
+    reach = flat.reshape(m, n_lab)
+    tops = _k_highest(z, f, m, min_points)  # [k, M] per fine cell, -inf where fewer
+    keep_pair = np.zeros((m, n_lab), bool)
+    ci0, cj0 = np.divmod(np.arange(m), nj)  # [M] fine cell coordinates
+    for a in range(shifts):
+        for b in range(shifts):
+            ci, cj = (ci0 + a) // shifts, (cj0 + b) // shifts
+            c = ci * (int(cj.max()) + 1) + cj  # [M] this grid's cell of each fine cell
+            mc = int(c.max()) + 1
+            cell_reach = np.full((mc, n_lab), -np.inf)
+            np.maximum.at(cell_reach, c, reach)
+            top = _kth_highest(tops.reshape(-1), np.tile(c, min_points), mc, min_points)
+            keep_pair |= cell_reach[c] >= (top[c] - band)[:, None]
+    return keep_pair[f, lab]
+
+
+def _k_highest(z: np.ndarray, c: np.ndarray, m: int, k: int) -> np.ndarray:
+    """Per cell 0..m-1 of the points (z [N], cell c [N]): its k highest z, ties counted
+    (two points at the highest z fill two rows). Returns [k, m], -inf where fewer points."""
+    out = np.full((k, m), -np.inf)
+    found = np.zeros(m, np.int64)  # rows filled per cell
+    below = np.full(m, np.inf)  # the level of the previous round
+    for _ in range(k):
+        left = z < below[c]
+        level = np.full(m, -np.inf)
+        np.maximum.at(level, c[left], z[left])
+        count = np.bincount(c[left & (z == level[c])], minlength=m)
+        for r in range(k):  # rows found .. found + count - 1 take this level
+            put = (found <= r) & (r < found + count)
+            out[r, put] = level[put]
+        found += count
+        below = level
+    return out
 
 
 def cell_keep(

@@ -150,3 +150,23 @@ def _reference_keep(xyz: np.ndarray, lab: np.ndarray, cell: float, band: float, 
             of_c = idx[lab[idx] == c]
             want[of_c] = xyz[of_c, 2].max() >= top - band
     return want
+
+
+def test_offset_grids_match_cell_keep_on_each_shifted_grid():
+    # top_view_keep groups the points once into cells of cell / shifts and merges them per
+    # offset grid; it must keep exactly the union of cell_keep over the shifted grids
+    # (ties on a 5 cm lattice, a few points per cell, several classes)
+    rng = np.random.default_rng(3)
+    n = 3000
+    xyz = np.c_[rng.uniform(-0.7, 0.9, (n, 2)), np.round(rng.uniform(0, 2, n) / 0.05) * 0.05]
+    lab = rng.choice(np.array([0, 1, 7, 255], np.uint8), n)
+    cell, band = 0.12, 0.1
+    for shifts in (2, 3):
+        for m in (1, 2, 3):
+            want = np.zeros(n, bool)
+            for i in range(shifts):
+                for j in range(shifts):
+                    off = np.array([i * cell / shifts, j * cell / shifts, 0.0])
+                    want |= cell_keep(xyz + off, lab, cell, band, m)
+            assert 0 < (~want).sum() < n
+            np.testing.assert_array_equal(top_view_keep(xyz, lab, cell, band, m, shifts), want)
