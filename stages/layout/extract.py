@@ -82,15 +82,11 @@ def frame_of(bp: Blueprint, angle: float) -> Frame:
     return Frame(bp.sample(world).reshape(grid.shape), grid, angle)
 
 
-def close_lines(wall: np.ndarray, n: int, run: int, across: int) -> np.ndarray:
-    """Wall cells with gaps up to n cells filled between wall runs of at least `run` cells
-    along rows and along columns (a doorway between two stretches of wall). Stray wall cells
-    inside a room make no run; a filled piece wider than `across` cells across its direction
-    is no doorway (wall-labelled clutter facing a wall), nor one under 3 cells (the ragged
-    edge of such clutter), and stays open."""
-    p = n + 1
-    padded = np.pad(wall, p)
-    out = padded.copy()
+def _gap_pieces(padded: np.ndarray, n: int, run: int, across: int):
+    """The gaps of up to n cells between wall runs of at least `run` cells in `padded` (the
+    wall, padded by n + 1), along rows (axis 0) and along columns (axis 1): yields (axis,
+    slice, piece [bool within the slice]) for each piece between 3 and `across` cells across
+    its direction."""
     for axis, gap, keep, join in (
         (0, np.ones((1, n + 1), bool), np.ones((1, run), bool), np.ones((9, 1), bool)),
         (1, np.ones((n + 1, 1), bool), np.ones((run, 1), bool), np.ones((1, 9), bool)),
@@ -100,10 +96,23 @@ def close_lines(wall: np.ndarray, n: int, run: int, across: int) -> np.ndarray:
         runs = ndi.binary_dilation(ndi.binary_opening(padded, keep), thick)
         fill = ndi.binary_closing(runs, gap) & ~runs
         # pieces a few cells apart across are one (a ragged edge fills in strips)
-        lab, k = ndi.label(ndi.binary_dilation(fill, join))
+        lab, _ = ndi.label(ndi.binary_dilation(fill, join))
         for i, sl in enumerate(ndi.find_objects(lab), start=1):
             if 3 + 8 <= sl[axis].stop - sl[axis].start <= across + 8:  # a wall is > 2 cells
-                out[sl] |= (lab[sl] == i) & fill[sl]
+                yield axis, sl, (lab[sl] == i) & fill[sl]
+
+
+def close_lines(wall: np.ndarray, n: int, run: int, across: int) -> np.ndarray:
+    """Wall cells with gaps up to n cells filled between wall runs of at least `run` cells
+    along rows and along columns (a doorway between two stretches of wall). Stray wall cells
+    inside a room make no run; a filled piece wider than `across` cells across its direction
+    is no doorway (wall-labelled clutter facing a wall), nor one under 3 cells (the ragged
+    edge of such clutter), and stays open."""
+    p = n + 1
+    padded = np.pad(wall, p)
+    out = padded.copy()
+    for _, sl, piece in _gap_pieces(padded, n, run, across):
+        out[sl] |= piece
     return out[p:-p, p:-p]
 
 
@@ -120,30 +129,19 @@ def close_passages(
     p = n + 1
     padded, fl = np.pad(wall, p), np.pad(floor, p)
     out = np.zeros_like(padded)
-    for axis, gap, keep, join in (
-        (0, np.ones((1, n + 1), bool), np.ones((1, run), bool), np.ones((9, 1), bool)),
-        (1, np.ones((n + 1, 1), bool), np.ones((run, 1), bool), np.ones((1, 9), bool)),
-    ):
-        thick = np.ones((3, 1) if axis == 0 else (1, 3), bool)
-        runs = ndi.binary_dilation(ndi.binary_opening(padded, keep), thick)
-        fill = ndi.binary_closing(runs, gap) & ~runs
-        lab, _ = ndi.label(ndi.binary_dilation(fill, join))
-        for i, sl in enumerate(ndi.find_objects(lab), start=1):
-            if not 3 + 8 <= sl[axis].stop - sl[axis].start <= across + 8:
-                continue
-            piece = (lab[sl] == i) & fill[sl]
-            if piece.any(1 - axis).sum() < 4 or fl[sl][piece].mean() < PASSAGE_FLOOR:
-                continue  # a strip under 4 cells across is a ragged face's, not a wall's gap
-            lines = np.nonzero(piece.any(axis))[0]  # positions along the wall line
-            off = sl[1 - axis].start
-            lo, hi = sl[axis].start - 1, sl[axis].stop
-            idx = lines + off
-            beside = [
-                padded[lo, idx] if axis == 0 else padded[idx, lo],
-                padded[hi, idx] if axis == 0 else padded[idx, hi],
-            ]
-            if max(b.mean() for b in beside) <= PASSAGE_BESIDE:
-                out[sl] |= piece
+    for axis, sl, piece in _gap_pieces(padded, n, run, across):
+        if piece.any(1 - axis).sum() < 4 or fl[sl][piece].mean() < PASSAGE_FLOOR:
+            continue  # a strip under 4 cells across is a ragged face's, not a wall's gap
+        lines = np.nonzero(piece.any(axis))[0]  # positions along the wall line
+        off = sl[1 - axis].start
+        lo, hi = sl[axis].start - 1, sl[axis].stop
+        idx = lines + off
+        beside = [
+            padded[lo, idx] if axis == 0 else padded[idx, lo],
+            padded[hi, idx] if axis == 0 else padded[idx, hi],
+        ]
+        if max(b.mean() for b in beside) <= PASSAGE_BESIDE:
+            out[sl] |= piece
     return out[p:-p, p:-p]
 
 

@@ -32,10 +32,10 @@ VIEWS = [
 BAND = (0.1, 1.5, 0.05)  # pixels this near a bound (metres, degrees, metres) are not checked
 
 
-def _counters_only(tmp_path) -> SemanticsInputs:
-    """Two counters whose fronts stop 0.45 m up (no floor, no walls), and VIEWS."""
+def box_mesh(boxes, path) -> o3d.geometry.TriangleMesh:
+    """Boxes [(lo, hi)] as one mesh of faces at most 5 cm across, written to path."""
     verts, faces = [], []
-    for lo, hi in COUNTERS:
+    for lo, hi in boxes:
         box = trimesh.creation.box(bounds=[lo, hi])
         v, f = trimesh.remesh.subdivide_to_size(box.vertices, box.faces, max_edge=0.05)
         faces.append(f + sum(len(x) for x in verts))
@@ -44,7 +44,13 @@ def _counters_only(tmp_path) -> SemanticsInputs:
         o3d.utility.Vector3dVector(np.concatenate(verts)),
         o3d.utility.Vector3iVector(np.concatenate(faces).astype(np.int32)),
     )
-    o3d.io.write_triangle_mesh(str(tmp_path / "mesh.ply"), mesh)
+    o3d.io.write_triangle_mesh(str(path), mesh)
+    return mesh
+
+
+def _counters_only(tmp_path) -> SemanticsInputs:
+    """Two counters whose fronts stop 0.45 m up (no floor, no walls), and VIEWS."""
+    box_mesh(COUNTERS, tmp_path / "mesh.ply")
     _views_capture(tmp_path, VIEWS, INTR)
     return SemanticsInputs(tmp_path / "frames.json", tmp_path / "mesh.ply")
 

@@ -13,7 +13,6 @@ import json
 import numpy as np
 import open3d as o3d
 import pytest
-import trimesh
 
 from stages.common.camera import Intrinsics
 from stages.common.capture import Capture, Frame
@@ -22,7 +21,7 @@ from stages.semantics import IMPLS, SemanticsConfig, SemanticsInputs
 from stages.semantics.config import OBJECT, WALL
 from stages.semantics.pointwalls import PointWallOptions, point_walls, room_directions
 from tests.stages.test_semantics import _look, _views_capture
-from tests.stages.test_semantics_floorfree import _rays
+from tests.stages.test_semantics_floorfree import _rays, box_mesh
 
 LX, NORTH = 6.0, 3.0  # the counters run along x in [0, LX]; the wall stands at y = NORTH
 STRIP = (0.9, 1.5)  # the wall's readings: z from the north counter's top up to 1.5 m
@@ -42,17 +41,7 @@ VIEWS = [
 
 def _scene(tmp_path) -> SemanticsInputs:
     """The mesh, VIEWS, and their depth ray-cast from it as the evidence (its frames.json)."""
-    verts, faces = [], []
-    for lo, hi in BOXES:
-        box = trimesh.creation.box(bounds=[lo, hi])
-        v, f = trimesh.remesh.subdivide_to_size(box.vertices, box.faces, max_edge=0.05)
-        faces.append(f + sum(len(x) for x in verts))
-        verts.append(v)
-    mesh = o3d.geometry.TriangleMesh(
-        o3d.utility.Vector3dVector(np.concatenate(verts)),
-        o3d.utility.Vector3iVector(np.concatenate(faces).astype(np.int32)),
-    )
-    o3d.io.write_triangle_mesh(str(tmp_path / "mesh.ply"), mesh)
+    mesh = box_mesh(BOXES, tmp_path / "mesh.ply")
     _views_capture(tmp_path, VIEWS, INTR)
     cap = Capture.load(tmp_path / "frames.json")
     scene = o3d.t.geometry.RaycastingScene()
