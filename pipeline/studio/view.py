@@ -14,7 +14,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 import viser
@@ -24,7 +24,7 @@ from pipeline.studio.plan_view import PLAN_FOV, top_view
 from stages.common.errors import BlunfError
 
 if TYPE_CHECKING:
-    from pipeline.studio.app import Studio
+    from pipeline.studio.state import Session
 
 log = logging.getLogger(__name__)
 
@@ -46,10 +46,24 @@ def background_depth(depth: np.ndarray | None) -> np.ndarray | None:
     return np.where(np.isfinite(d), d + DEPTH_MARGIN, FAR).astype(np.float32)
 
 
+class Host(Protocol):
+    """What a tab needs of the studio that serves it (`pipeline.studio.app.Studio`)."""
+
+    session: Session
+    views_seen: set[int]
+    running: bool
+    renders: int  # renders shown so far
+    before: viser.GuiCheckboxHandle  # "Before (no edits)"
+    full_path: viser.GuiDropdownHandle  # the full view's path: fast or volume
+    timing: viser.GuiMarkdownHandle  # where the render's time is shown
+
+    def say(self, text: str) -> None: ...
+
+
 class ClientView:
     """One tab: its camera, its render thread, the input view it stands at (if any)."""
 
-    def __init__(self, studio: Studio, client: viser.ClientHandle):
+    def __init__(self, studio: Host, client: viser.ClientHandle):
         self.studio, self.client = studio, client
         self.moved = time.perf_counter()
         self.drawn: tuple | None = None  # (camera state, edits version, before, full) drawn
