@@ -25,7 +25,7 @@ from stages.common.io import write_depth_npy, write_image, write_json
 from stages.common.progress import track
 from stages.common.radiance.field import save_field
 from stages.common.radiance.render import render_view
-from stages.common.threads import torch_threads
+from stages.common.threads import side_by_side, torch_threads
 from stages.nerf.config import NerfConfig, NerfInputs, NerfOutputs
 from stages.nerf.depths import upsample_depth, write_depths
 from stages.nerf.evaluate import depth_absrel, psnr
@@ -104,9 +104,13 @@ def fit(
             check = cfg.stereo.check if dense else 0
             frames, checks = write_depths(model, frames, cfg, outs.depth, prior, check)
             stats.update(checks)
-        for i in track(held, "nerf held-out", unit="view"):
+
+        def held_view(i: int):
+            return render_view(model, np.asarray(frames[i].pose), frames[i].intrinsics, cfg.chunk)
+
+        rendered = side_by_side(held_view, held)
+        for i, v in zip(held, track(rendered, "nerf held-out", len(held), "view"), strict=True):
             f = frames[i]
-            v = render_view(model, np.asarray(f.pose), f.intrinsics, cfg.chunk)
             depth = np.where(v["acc"] >= cfg.sampling.acc_threshold, v["depth"], 0.0)
             gt = views.rgb[i].view(v["rgb"].shape).numpy()
             psnrs.append(psnr(float(np.mean((v["rgb"] - gt) ** 2))))

@@ -86,3 +86,35 @@ def test_orbit_cameras_look_at_the_centre():
         assert abs(p[2, 0]) < 1e-12 and p[2, 1] < 0
         np.testing.assert_allclose(p[:3, :3].T @ p[:3, :3], np.eye(3), atol=1e-12)
         assert np.linalg.det(p[:3, :3]) == pytest.approx(1.0)
+
+
+def test_views_side_by_side_are_the_views_one_by_one():
+    # two torch threads: the views render one per thread side by side, in order, the same
+    # pixels as one by one; the caller's thread count is back afterwards
+    from stages.common.threads import side_by_side
+
+    torch.manual_seed(0)
+    cfg = tune(NerfConfig(), field__hash_log2_size=10, field__hash_levels=2, field__width=16)
+    model = build_model(cfg, torch.tensor([0.0, 0.0, 0.0]), torch.tensor([2.0, 2.0, 1.0]), [], [])
+    intr = Intrinsics(8.0, 8.0, 3.5, 2.5, 8, 6)
+    poses = [look_at(np.array([1.0, -0.5, z]), np.array([1.0, 1.0, 0.2])) for z in (0.5, 0.8, 1.1)]
+    ref = [render_view(model, p, intr, chunk=17) for p in poses]
+    threads = []
+
+    def draw(p):
+        threads.append(torch.get_num_threads())
+        return render_view(model, p, intr, chunk=17)
+
+    torch.set_num_threads(2)
+    try:
+        got = list(side_by_side(draw, poses))
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(1)
+    assert threads == [1, 1, 1]  # each view on one thread
+    for a, b in zip(ref, got, strict=True):
+        for k in ("rgb", "depth", "acc"):
+            assert np.array_equal(a[k], b[k]), k
+    # one torch thread: one by one, on the caller's thread
+    assert [v["acc"].sum() for v in side_by_side(draw, poses)] == [v["acc"].sum() for v in ref]
+    assert threads[3:] == [1, 1, 1]
