@@ -116,7 +116,7 @@ def load_config(path: Path | None = None, sets: list[str] | tuple[str, ...] = ()
         layers.append(_checked(cfg, nested, f"--set {s}"))
     merged: dict = {}
     for layer in layers:
-        _merge(merged, layer)
+        merge(merged, layer)
     return _build(cfg, merged)
 
 
@@ -156,11 +156,11 @@ def _check_section(obj: Any, value: Any, where: str, prefix: str) -> dict:
     return out
 
 
-def _merge(into: dict, layer: dict) -> None:
+def merge(into: dict, layer: dict) -> None:
     """Deep-merge checked overrides; a later layer wins (sections are dicts, values are not)."""
     for k, v in layer.items():
         if isinstance(v, dict) and isinstance(into.get(k), dict):
-            _merge(into[k], v)
+            merge(into[k], v)
         else:
             into[k] = v
 

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import yaml
 
-from pipeline.config import Config, load_config
+from pipeline.config import Config, load_config, merge
 from pipeline.studio.state import Session
 from stages.common.errors import BlunfError
 from stages.common.io import read_json
@@ -29,13 +29,6 @@ from stages.common.io import read_json
 log = logging.getLogger(__name__)
 
 EDIT_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "edit-fast.yaml"
-
-
-def _merge(base: dict, top: dict) -> dict:
-    out = dict(base)
-    for k, v in top.items():
-        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
-    return out
 
 
 def training_config(run: Path, sets: Sequence[str] = ()) -> Config:
@@ -47,7 +40,8 @@ def training_config(run: Path, sets: Sequence[str] = ()) -> Config:
     edit = yaml.safe_load(EDIT_CONFIG.read_text()) or {}
     with tempfile.TemporaryDirectory(prefix="blunf-studio-") as tmp:
         path = Path(tmp) / "config.yaml"
-        path.write_text(yaml.safe_dump(_merge(d, edit)))
+        merge(d, edit)  # the config files' own layering
+        path.write_text(yaml.safe_dump(d))
         try:
             return load_config(path, list(sets))
         except BlunfError as e:

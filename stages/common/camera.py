@@ -96,16 +96,33 @@ def pixel_grid(width: int, height: int, stride: int = 1) -> np.ndarray:
     return np.stack([uu, vv], axis=-1)
 
 
-def unproject(uv: np.ndarray, depth: np.ndarray, K: np.ndarray, c2w: np.ndarray) -> np.ndarray:
+def unproject(
+    uv: np.ndarray,
+    depth: np.ndarray,
+    K: np.ndarray,
+    c2w: np.ndarray,
+    origin: np.ndarray | None = None,
+) -> np.ndarray:
     """Π: pixels with depth (z along the optical axis, metres) to world points.
 
     Args:
         uv: [N, 2] pixel coordinates (u right, v down; integer = pixel centre).
         depth: [N] depth in metres.
         K: [3, 3] intrinsics. c2w: [4, 4] camera-to-world.
+        origin: [3] when given, the points come as float32 offsets from it (half the time of
+            float64 world points, and no precision lost far from the world's origin).
     Returns:
-        [N, 3] world points (float64).
+        [N, 3] world points (float64), or their float32 offsets from `origin`.
     """
+    if origin is not None:
+        d32 = np.asarray(depth, np.float32)
+        pl = np.empty((len(d32), 3), np.float32)  # camera frame
+        pl[:, 0] = (uv[:, 0] - K[0, 2]) / K[0, 0]
+        pl[:, 1] = (uv[:, 1] - K[1, 2]) / K[1, 1]
+        pl[:, :2] *= d32[:, None]
+        pl[:, 2] = d32
+        rot = np.asarray(c2w[:3, :3], np.float32)
+        return pl @ rot.T + np.asarray(c2w[:3, 3] - origin, np.float32)
     uv = np.asarray(uv, np.float64)
     d = np.asarray(depth, np.float64)
     x = (uv[:, 0] - K[0, 2]) / K[0, 0]

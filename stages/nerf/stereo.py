@@ -21,7 +21,6 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Iterable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 
 import numpy as np
@@ -32,7 +31,7 @@ from torch import Tensor
 from stages.common.camera import pixel_grid, unproject
 from stages.common.errors import BlunfError
 from stages.common.progress import track
-from stages.common.threads import torch_threads
+from stages.common.threads import side_by_side
 from stages.nerf.config import StereoConfig
 from stages.nerf.consistency import consistent_depth, overlap_order
 
@@ -72,15 +71,8 @@ def sweep_depths(
     coarse = [_level(g, K, k * cfg.coarse) for g, K in zip(grays, Ks, strict=True)]
     del grays
 
-    # One view per torch thread, each view's ops on one thread: the sweep's ops are many
-    # and memory-bound, so views side by side keep the cores busier than threads splitting
-    # every op. Same readings, in view order.
-    workers = max(1, min(torch.get_num_threads(), n))
-
     def view(i: int) -> tuple[np.ndarray, int]:
         """View i's depth (0 = none) and the planes it swept (0: not swept)."""
-        if workers > 1:  # OpenMP's thread count is per calling thread: this one's too
-            torch.set_num_threads(1)
         nbrs = order[i][: cfg.views]
         own = sparse[i][sparse[i] > 0]
         lo, hi = _bounds(own if len(own) >= 20 else everything)
@@ -89,8 +81,9 @@ def sweep_depths(
         planes = plane_count(cfg, coarse[i][1], poses, i, nbrs, lo, hi)
         return _sweep(coarse, fine, poses, i, nbrs, lo, hi, replace(cfg, planes=planes)), planes
 
-    with torch_threads(1 if workers > 1 else 0), ThreadPoolExecutor(workers) as pool:
-        done = list(track(pool.map(view, range(n)), "stereo", total=n, unit="view"))
+    # views side by side, one per torch thread (the sweep's ops are many and memory-bound);
+    # the same readings, in view order
+    done = list(track(side_by_side(view, range(n)), "stereo", total=n, unit="view"))
     raw = [d for d, _ in done]
     swept = [p for _, p in done if p > 0]  # planes of each view's sweep
     matched = sum(int((d > 0).sum()) for d in raw)

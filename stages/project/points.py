@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from stages.common.blueprint import Grid
-from stages.common.camera import Intrinsics, pixel_grid
+from stages.common.camera import Intrinsics, pixel_grid, unproject
 from stages.common.capture import UNKNOWN, Capture, Frame, heldout_views
 from stages.common.errors import BlunfError
 from stages.common.io import image_size, read_depth, read_label, write_json
@@ -207,25 +207,10 @@ def _frame_points(
     if (intr.width, intr.height) != (w, h):
         intr = intr.scaled(w, h)
     uvk = _undistort(uv[keep], intr) if any(intr.dist) else uv[keep]
-    xyz = _unproject_local(uvk, d[keep], intr.K, np.asarray(f.pose, np.float64), origin)
+    xyz = unproject(uvk, d[keep], intr.K, np.asarray(f.pose, np.float64), origin)
     if labelling == "height":
         return _height_labels(xyz, inst, cfg, counts, float(origin[2]))
     return xyz, lab, inst
-
-
-def _unproject_local(
-    uv: np.ndarray, depth: np.ndarray, K: np.ndarray, c2w: np.ndarray, origin: np.ndarray
-) -> np.ndarray:
-    """camera.unproject, in float32 about `origin` [3]: the points are kept as float32
-    offsets from it, and float64 world points first took twice the time. Returns [N, 3]."""
-    d = np.asarray(depth, np.float32)
-    pc = np.empty((len(d), 3), np.float32)  # camera frame
-    pc[:, 0] = (uv[:, 0] - K[0, 2]) / K[0, 0]
-    pc[:, 1] = (uv[:, 1] - K[1, 2]) / K[1, 1]
-    pc[:, :2] *= d[:, None]
-    pc[:, 2] = d
-    rot = np.asarray(c2w[:3, :3], np.float32)
-    return pc @ rot.T + np.asarray(c2w[:3, 3] - origin, np.float32)
 
 
 def _local_origin(cap: Capture) -> np.ndarray:
