@@ -68,7 +68,7 @@ def run(cfg: SemanticsConfig, inputs: SemanticsInputs, out: Path) -> SemanticsOu
     outs.labels.mkdir(parents=True, exist_ok=True)
     outs.instances.mkdir(parents=True, exist_ok=True)
     room, reach = _room(verts, tris, seg, cap, cfg) if cfg.floor_fill else (None, None)
-    hull = cfg.floor_fill_hull or not (seg.cls == FLOOR).any()
+    hull = cfg.floor_fill_hull or not seg.has_floor
     if room is not None and cfg.outside_unknown:
         out_obj = (seg.cls == OBJECT) & ~room.contains(triangles(verts, tris)[0][:, :2])
         seg.cls[out_obj] = UNKNOWN
@@ -247,7 +247,7 @@ def _room(
     within the config's reach (floorfill.py), or nothing when floor_fill_no_plane is off; with
     floor_fill_hull, that hull at the found floor's height too, within that reach unless
     floor_fill_hull_reach is off."""
-    found = bool((seg.cls == FLOOR).any())
+    found = seg.has_floor
     if cfg.floor_fill_hull or not found:
         if not (cfg.floor_fill_no_plane or found):
             return None, None

@@ -57,6 +57,11 @@ class Segmentation:
     floor_z: float = 0.0  # median height of the floor triangles (0 when no floor was found)
     object_base_z: float = 0.0  # height object clusters' lowest points are measured from
 
+    @property
+    def has_floor(self) -> bool:
+        """Whether any triangle is labelled floor (a floor plane was found)."""
+        return bool((self.cls == FLOOR).any())
+
 
 def triangles(verts: np.ndarray, tris: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Centres [T, 3], unit normals [T, 3] (zero when degenerate) and areas [T] (m²)."""
@@ -283,7 +288,7 @@ def _objects(
     # from the lowest surface the mesh holds (1st percentile), so what stands lowest still
     # counts as standing and what hangs above it (wall cabinets, lamps) still does not.
     base = seg.floor_z
-    if not (seg.cls == FLOOR).any():
+    if not seg.has_floor:
         base = max(base, float(np.percentile(c[rest, 2], 1)))
     seg.object_base_z = base
     found = []
