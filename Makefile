@@ -49,7 +49,8 @@ demo: setup  ## the default room from photos alone, then edited through its NeRF
 	test -d $(DEMO)/phone || $(BIN)/blunf synth $(DEMO)/phone --views 60 --seed 0 --photos-only
 	$(BIN)/blunf run $(DEMO)/phone --out $(DEMO)/phone-run --config configs/phone.yaml
 	# 2. the full capture (poses, depth, labels): plan, then the example edits rendered (a NeRF
-	#    of 200 steps, the edits drawn through the fused mesh: configs/edit-fast.yaml)
+	#    of 200 steps scored on held-out pixels, the edits drawn through the fused mesh refined
+	#    round the edited objects: configs/edit-fast.yaml)
 	test -d $(DEMO)/capture || $(BIN)/blunf synth $(DEMO)/capture --views 60 --seed 0
 	$(BIN)/blunf run $(DEMO)/capture --out $(DEMO)/run --config configs/edit-fast.yaml --edits configs/edits/demo.yaml
 	@echo "from photos alone: $(DEMO)/phone-run/blueprint.png  report: $(DEMO)/phone-run/report.json"

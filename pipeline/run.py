@@ -114,6 +114,7 @@ def _recipe(r: Runner, pub: Publication, capture: Path, cfg: Config, spec: EditS
             mesh=fused.mesh,
             frames=labelled,
             gt=gt_dir,
+            depth=depth.frames if depth else frames,  # the depth fusion read
             textures=spec.textures if spec else (),
         ),
     )

@@ -35,6 +35,12 @@ class EditConfig:
     # the field asked at the hit (stages/edit/surface.py: the studio's fast path), so what an
     # edit changes is outlined by the mesh, and the colours need a less trained field
     render: str = "volume"
+    # > 0: the depth round each selection (not a floor) is fused again at this voxel
+    # (metres) with a truncation of refine_trunc voxels, and that surface outlines the edit
+    # in the fast render path (stages/edit/refine.py; needs EditInputs.depth); 0 = off
+    refine_voxel: float = 0.0
+    refine_trunc: float = 2.0  # voxels: thinner than the thin parts (chair legs ~3.5 cm)
+    refine_margin: float = 0.05  # metres each box grows by round its selection's extent
     gif_frames: int = 24  # frames of the orbit GIF when the spec's views are frame indices
     gif_scale: float = 0.5  # ... rendered at this fraction of the frames' resolution (a
     #                         spec's own orbit is the views themselves, at render_scale)
@@ -47,6 +53,13 @@ class EditConfig:
             v = getattr(self, name)
             if not 0 <= v < float("inf"):
                 raise BlunfError(f"edit.{name}: must be a finite number >= 0 metres, got {v}")
+        for name in ("refine_voxel", "refine_margin"):
+            if not 0 <= getattr(self, name) < float("inf"):
+                raise BlunfError(
+                    f"edit.{name}: must be a finite number >= 0 metres, got {getattr(self, name)}"
+                )
+        if not 1 <= self.refine_trunc < float("inf"):
+            raise BlunfError(f"edit.refine_trunc: must be >= 1 voxels, got {self.refine_trunc}")
         for name in ("min_run", "mask_threshold", "change_threshold"):
             v = getattr(self, name)
             if not 0 <= v <= 1:
@@ -73,6 +86,8 @@ class EditInputs:
     mesh: Path  # mesh.ply of the fusion stage (z up, floor at z = 0)
     frames: Path  # frames.json: the posed frames `views` indexes
     gt: Path | None = None  # ground-truth folder (instances/<stem>.png, instances.json), if any
+    depth: Path | None = None  # frames.json with the depth the fusion stage read (sensor or
+    #                            stereo; for edit.refine_voxel), None: no refinement
     textures: tuple[Path, ...] = ()  # the texture files the spec names (`spec_textures(spec)`),
     #                                  listed so that a changed texture changes the cache key
 

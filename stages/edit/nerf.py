@@ -50,6 +50,7 @@ from stages.edit.ops import (
     reference_luminance,
     vertex_colors,
 )
+from stages.edit.refine import boxes_of, refine_mesh
 from stages.edit.render import orbit_poses, render_view_edited
 from stages.edit.select import Extent, edited_plan, extent_of, select_cells
 from stages.edit.spec import Edit, EditSpec, check_views, load_spec
@@ -113,7 +114,19 @@ def run(cfg: EditConfig, inputs: EditInputs, out: Path) -> EditOutputs:
                 }
             )
         views = _views(spec, cap, cfg)
-        draw = _drawer(cfg, model, mesh)
+        cast_v, cast_f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+        refined = None
+        if cfg.render == "surface" and cfg.refine_voxel > 0 and inputs.depth is not None:
+            objects = [
+                e.extent
+                for e, r in zip(edits, records, strict=True)
+                if all(c["class"] != cfg.floor_class for c in r["components"])
+            ]
+            cast_v, cast_f, refined = refine_mesh(
+                cast_v, cast_f, boxes_of(objects, verts, cfg.refine_margin), inputs.depth,
+                cfg.refine_voxel, cfg.refine_trunc,
+            )  # fmt: skip
+        draw = _drawer(cfg, model, cast_v, cast_f)
         scored = _render_views(cfg, draw, views, edits, outs, inputs.gt, records)
         t_gif = time.perf_counter()
         _gif(cfg, draw, spec, cap, edits, scored["orbit_frames"], outs.gif)
@@ -147,6 +160,7 @@ def run(cfg: EditConfig, inputs: EditInputs, out: Path) -> EditOutputs:
                 "renders": scored["renders"],
                 "seconds": round(scored["seconds"], 3),
                 "gif_seconds": round(gif_seconds, 3),
+                "refined": refined,
             },
             "seconds": round(time.perf_counter() - t_start, 3),
             "metrics": {"edit": metrics},
@@ -295,11 +309,11 @@ def _overlay(rgb: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return np.where(mask[..., None], 0.5 * rgb + 0.5 * MASK_TINT, rgb)
 
 
-def _drawer(cfg: EditConfig, model, mesh: trimesh.Trimesh) -> Draw:
-    """The view renderer `cfg.render` names, called as
-    draw(pose, intr, edits, masks) -> render_view_edited's dict."""
+def _drawer(cfg: EditConfig, model, vertices: np.ndarray, faces: np.ndarray) -> Draw:
+    """The view renderer `cfg.render` names (the surface path casts the mesh `vertices`,
+    `faces`), called as draw(pose, intr, edits, masks) -> render_view_edited's dict."""
     if cfg.render == "surface":
-        fast = SurfaceRenderer(model, np.asarray(mesh.vertices), np.asarray(mesh.faces))
+        fast = SurfaceRenderer(model, vertices, faces)
         return lambda pose, intr, ops, masks=(): fast.render_view(pose, intr, ops, masks, cfg.chunk)
     return lambda pose, intr, ops, masks=(): render_view_edited(
         model, pose, intr, ops, cfg.chunk, masks

@@ -16,6 +16,8 @@ from typing import ClassVar, Literal
 from stages.common.errors import BlunfError
 from stages.common.radiance.config import FieldConfig, SamplingConfig
 
+HELDOUT_SCORES = ("views", "rays")  # nerf.train.heldout_score
+
 
 @dataclass(frozen=True)
 class OccupancyConfig:
@@ -88,6 +90,12 @@ class TrainConfig:
     holdout_every: int = 8  # every k-th view (index % k == k // 2) is held out; 0 = none
     eval_every: int = 200  # steps between held-out evaluations
     eval_rays: int = 4096  # held-out pixels scored at each evaluation (fixed random subset)
+    heldout_score: str = "views"  # the final held-out scores (psnr_heldout, depth_absrel):
+    #   "views": every held-out view rendered in full (heldout/<stem>.png), the mean of the
+    #   views' PSNR and AbsRel; "rays": the last evaluation's eval_rays pixels, scored once at
+    #   the last step and reused, no held-out view rendered (PSNR of their pooled error,
+    #   median AbsRel). Demo room, 200 steps: 25.19 dB on 4096 rays against 25.23 over the
+    #   7 views, whose renders took 64 s of the stage's 163 (one thread)
     patience: int = 5  # stop after this many evaluations without a gain of min_delta
     min_delta: float = 0.05  # dB: a smaller held-out PSNR gain does not count as improving
     time_budget: float = 120.0  # seconds of training (evaluations excluded); 0 = no limit
@@ -101,6 +109,13 @@ class TrainConfig:
             raise BlunfError(f"nerf.train.edge_batch: must be in [0, 1], got {self.edge_batch}")
         if self.min_steps < 0:
             raise BlunfError(f"nerf.train.min_steps: must be >= 0, got {self.min_steps}")
+        if self.heldout_score not in HELDOUT_SCORES:
+            raise BlunfError(
+                f"nerf.train.heldout_score: must be one of {HELDOUT_SCORES}, "
+                f"got {self.heldout_score!r}"
+            )
+        if self.heldout_score == "rays" and self.eval_rays < 1:
+            raise BlunfError("nerf.train.heldout_score: rays needs nerf.train.eval_rays >= 1")
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,8 @@
 """NeRF stage, occupancy-grid implementation: train the field, score it, render depth.
 
 Outputs model.pt (`stages.common.radiance.field.load_field`), nerf.json (stats),
-heldout/<stem>.png renders and frames.json.
+heldout/<stem>.png renders (train.heldout_score "views"; "rays" scores a fixed subset of the
+held-out pixels instead and renders none) and frames.json.
 With sparse depth (photos only: SfM tracks) plane-sweep stereo first gives the training views
 dense depth (stereo/<stem>.npy; stereo.py), then every view's depth is rendered into
 depth/<stem>.npy (z-depth, float32 metres, 0 where the opacity is below acc_threshold:
@@ -108,8 +109,9 @@ def fit(
         def held_view(i: int):
             return render_view(model, np.asarray(frames[i].pose), frames[i].intrinsics, cfg.chunk)
 
-        rendered = side_by_side(held_view, held)
-        for i, v in zip(held, track(rendered, "nerf held-out", len(held), "view"), strict=True):
+        shown = held if cfg.train.heldout_score == "views" else []  # rays: scored in train
+        rendered = side_by_side(held_view, shown)
+        for i, v in zip(shown, track(rendered, "nerf held-out", len(shown), "view"), strict=True):
             f = frames[i]
             depth = np.where(v["acc"] >= cfg.sampling.acc_threshold, v["depth"], 0.0)
             gt = views.rgb[i].view(v["rgb"].shape).numpy()
@@ -131,6 +133,7 @@ def fit(
             "heldout_views": len(held),
             "psnr_heldout": round(float(np.mean(psnrs)), 3) if psnrs else None,
             "depth_absrel": round(float(np.mean(absrels)), 4) if absrels else None,
+            "heldout_scored_on": "views" if psnrs else None,
             "depth_supervised": rays.t_depth is not None,
             "depth_coverage": round(coverage, 4),
             "depth_dense": not photos_only,
@@ -143,6 +146,11 @@ def fit(
             "total_seconds": round(time.perf_counter() - t_start, 3),
         }
     )
+    if cfg.train.heldout_score == "rays" and stats["heldout_rays"] is not None:
+        on = stats["heldout_rays"]
+        stats["psnr_heldout"] = on["psnr"]
+        stats["depth_absrel"] = None if photos_only else on["depth_absrel"]
+        stats["heldout_scored_on"] = f"{on['rays']} rays"
     write_json(outs.stats, stats)
     log.info(
         "nerf/grid: %d steps in %.1f s (%s), held-out PSNR %s dB, depth AbsRel %s",

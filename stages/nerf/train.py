@@ -48,10 +48,12 @@ def train(
     if held is not None and tc.eval_rays > 0 and len(held.rgb) > tc.eval_rays:
         pick = torch.randperm(len(held.rgb), generator=torch.Generator().manual_seed(cfg.seed))
         pick = pick[: tc.eval_rays]
-        held = Rays(held.origins[pick], held.dirs[pick], held.rgb[pick], None, None)
+        t_held = None if held.t_depth is None else held.t_depth[pick]
+        held = Rays(held.origins[pick], held.dirs[pick], held.rgb[pick], t_held, None)
     curve: list[tuple[float, float]] = []  # (training seconds, held-out PSNR)
     curve_cpu: list[tuple[float, float]] = []  # (training CPU seconds, held-out PSNR)
     best, stale, step, stop = -math.inf, 0, 0, "steps"
+    last: tuple[int, float, float | None] | None = None  # (step, PSNR, AbsRel) of the last score
     train_s = cpu_s = 0.0
     losses: list[float] = []
     samples = 0
@@ -100,7 +102,8 @@ def train(
         bar.moveto(step if tc.max_steps > 0 else train_s, step=step)
         if held is not None and tc.eval_every > 0 and step % tc.eval_every == 0:
             model.eval()
-            p = score(model, held, cfg.chunk)
+            p, rel = score(model, held, cfg.chunk)
+            last = (step, p, rel)
             model.train()
             curve.append((round(train_s, 2), round(p, 3)))
             curve_cpu.append((round(cpu_s, 2), round(p, 3)))
@@ -129,6 +132,9 @@ def train(
         before = int(model.occupancy.binary.sum())
         after = model.occupancy.refresh(model.sigma, thr)
         log.info("nerf: occupancy refreshed: %d -> %d cells", before, after)
+    fresh = last is not None and last[0] == step and frozen  # the model scored as it is now
+    if held is not None and tc.heldout_score == "rays" and not fresh:
+        last, fresh = (step, *score(model, held, cfg.chunk)), True  # the final score, once
     tail = losses[-50:]
     return {
         "steps": step,
@@ -140,7 +146,17 @@ def train(
         "final_loss": float(np.mean(tail)) if tail else math.nan,
         "samples_per_ray": round(samples / max(1, step * tc.batch_rays), 2),
         "occupied_cells": int(model.occupancy.binary.sum()),
+        # the held-out score on the eval_rays pixels of the final model (None: not taken)
+        "heldout_rays": _scored(last, len(held.rgb)) if fresh and held is not None else None,
     }
+
+
+def _scored(last: tuple[int, float, float | None] | None, rays: int) -> dict | None:
+    """A held-out score on rays as nerf.json keeps it."""
+    if last is None:
+        return None
+    rel = None if last[2] is None else round(last[2], 4)
+    return {"rays": rays, "psnr": round(last[1], 3), "depth_absrel": rel}
 
 
 def _progress(cfg: TrainConfig, step: int, seconds: float) -> float:

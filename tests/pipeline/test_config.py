@@ -77,6 +77,7 @@ def _valid_other(cfg, name, value):
         "field",
         "surface",
         "sqrt",
+        "rays",
     ):
         if cand == value:
             continue

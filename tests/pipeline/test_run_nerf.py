@@ -70,12 +70,14 @@ def test_edits_and_nerf_top(tiny_room, tmp_path):
 @pytest.mark.slow
 def test_demo_edits_change_only_their_objects(tmp_path):
     # make demo's edit run as it is (60-view room, configs/edit-fast.yaml: 200 steps, the
-    # edits rendered through the fused mesh; configs/edits/demo.yaml), on one thread, in
-    # every rendered view that shows the object (None: the view shows neither it nor a
-    # change). Measured: remove chair_2 0.877 / 0.871 / 0.914, recolor sofa_1 - / 0.974 /
-    # 0.967, retexture table_1 0.906 / - / 0.987. configs/edit.yaml (1000 steps, volume
-    # render) gives 0.898 / 0.895 / 0.916 for the removal at about 5x the training and 10x
-    # the rendering; the target stays 0.9 in every view, which neither reaches.
+    # edits rendered through the fused mesh, refined at 1 cm round each selection;
+    # configs/edits/demo.yaml), on one thread, in every rendered view that shows the object
+    # (None: the view shows neither it nor a change). Measured: remove chair_2 0.935 / 0.926
+    # / 0.954, recolor sofa_1 - / 0.982 / 0.981, retexture table_1 0.911 / - / 0.991
+    # (without the refinement: 0.876 / 0.866 / 0.914, - / 0.974 / 0.967, 0.906 / - / 0.987).
+    # The target, 0.9 in every view, is the removal's bar (2.5 points under its lowest view);
+    # the paints keep 3 points under theirs (the retexture's view 4 moved 0.89-0.92 with the
+    # refined mesh's block size).
     from stages.synth import make_room
 
     cap = make_room(tmp_path / "capture", views=60, seed=0)
@@ -87,11 +89,15 @@ def test_demo_edits_change_only_their_objects(tmp_path):
     assert r["metrics"]["nerf"]["steps"] == 200
     ms = r["metrics"]["edit"]
     assert [m["op"] for m in ms] == ["remove", "recolor", "retexture"]
-    for m, shown in zip(ms, (3, 2, 2), strict=True):
+    for m, shown, bar in zip(ms, (3, 2, 2), (0.9, 0.95, 0.88), strict=True):
         seen = [v for v in m["changed_iou_views"] if v is not None]
         assert len(m["changed_iou_views"]) == 3 and len(seen) == shown, m
-        assert min(seen) >= 0.85 and m["psnr_outside"] >= 40, m
+        assert min(seen) >= bar and m["psnr_outside"] >= 40, m
     stats = json.loads(next((out / "edit").glob("*/edit.json")).read_text())
+    assert stats["render"]["refined"]["boxes"] == 3  # one round each (none is floor)
+    n = r["metrics"]["nerf"]  # scored on held-out pixels, no held-out view rendered
+    assert n["psnr_heldout"] > 23 and n["depth_absrel"] < 0.01, n
+    assert not list((out / "nerf").glob("*/heldout/*.png"))
     got = [[g["name"] for g in e["metrics"]["gt_instances"]] for e in stats["edits"]]
     assert got == [["chair_2"], ["sofa_1"], ["table_1"]]  # one chair, not the class
 

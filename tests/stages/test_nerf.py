@@ -123,6 +123,23 @@ def test_dense_depth_passes_the_input_depth_on(dense_run):
     assert read_image(outs.model.parent / "heldout" / "0004.png").shape == (72, 96, 3)
 
 
+def test_heldout_score_on_rays_renders_no_view(room8, dense_run, tmp_path):
+    # the same training scored on 4096 of the held-out view's 6912 pixels, once, at the last
+    # step: no held-out render, the scores near the full view's (a fixed subset of it)
+    cap, views_run = dense_run
+    (tmp_path / "out").mkdir()
+    cfg = tune(FAST, train__max_steps=DENSE_STEPS, train__heldout_score="rays")
+    outs = IMPLS["grid"](cfg, NerfInputs(_frames(cap, tmp_path)), tmp_path / "out")
+    stats, full = read_json(outs.stats), read_json(views_run.stats)
+    assert not list((outs.model.parent / "heldout").iterdir())
+    assert stats["heldout_scored_on"] == "4096 rays" and full["heldout_scored_on"] == "views"
+    assert stats["heldout_rays"]["psnr"] == stats["psnr_heldout"]
+    assert abs(stats["psnr_heldout"] - full["psnr_heldout"]) < 1.0, (stats, full)
+    assert 0 < stats["depth_absrel"] < 0.05
+    with pytest.raises(BlunfError, match="heldout_score"):
+        tune(FAST, train__heldout_score="pixels")
+
+
 def test_dense_depth_renders_the_held_out_view(dense_run):
     cap, outs = dense_run
     stats = read_json(outs.stats)
