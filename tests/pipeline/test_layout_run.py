@@ -13,9 +13,11 @@ from stages.synth import make_room
 
 # 60 views of 320x240 (half of them on each arm's loop), the default settings. Measured:
 # seed 0 (passage 1.71 m in the west arm's north wall): room / corner / angle F1 1.0, wall
-# length 2.9 cm, doors 2/2 (1.3 cm), passage 1.0 cm; seed 4 (passage 1.64 m in the east
-# wall): 1.0 / 1.0 / 1.0, 1.2 cm, doors 2/2 (2.9 cm), passage 0.9 cm. Without a passage:
-# seed 0 1.8 cm, seed 4 1.4 cm, both 1.0 / 1.0 / 1.0.
+# length 1.8 cm, doors 2/2 (2.1 cm), passage 1.0 cm; seed 4 (passage 1.64 m in the east
+# wall): 1.0 / 1.0 / 1.0, 1.3 cm, doors 2/2 (3.1 cm), passage 1.4 cm. Without a passage:
+# seed 0 1.3 cm, seed 4 1.9 cm, both 1.0 / 1.0 / 1.0. Before the outline's edges were merged
+# by their pieces' support, seed 4 drew its notch's wall 12 cm into the notch at a door
+# (corner F1 0.46) and seed 0 ran out through its passage (0.57).
 VIEWS, SIZE = 60, (320, 240)
 
 
