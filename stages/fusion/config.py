@@ -18,6 +18,13 @@ class FusionConfig:
     trunc_voxels: float = 4.0  # TSDF truncation distance, in voxels
     depth_min: float = 0.1  # readings nearer than this (metres) are not fused
     depth_max: float = 5.0  # readings farther than this (metres) are not fused
+    far_share: float = 0.05  # > 0: the far limit grows past depth_max to the farthest
+    #                          view's depth with this share of its readings beyond it (a room
+    #                          longer than depth_max, its end wall seen only from afar: a
+    #                          photos-only L room's 8.3 m arm fused to 7.1 m); 0 = fixed.
+    #                          The real captures' views stay within 5 m (kitchen, office)
+    far_max: float = 10.0  # metres: far_share grows the far limit up to this at most (a
+    #                        patch of junk readings far off never moves it further)
     block_resolution: int = 16  # voxels along each side of a hashed voxel block
     weight_threshold: float = 0.5  # a voxel is surface only when more than this many frames
     #                                saw it (0.5 = every observed voxel; 1.5 = two frames)
@@ -36,6 +43,10 @@ class FusionConfig:
             raise BlunfError(
                 f"fusion: need 0 <= depth_min < depth_max, got {self.depth_min}, {self.depth_max}"
             )
+        if not self.far_max > 0:
+            raise BlunfError(f"fusion.far_max: must be > 0 metres, got {self.far_max}")
+        if not 0 <= self.far_share < 0.5:
+            raise BlunfError(f"fusion.far_share: must be in [0, 0.5), got {self.far_share}")
         if self.block_resolution < 1:
             raise BlunfError(f"fusion.block_resolution: must be >= 1, got {self.block_resolution}")
         if self.min_support < 0:

@@ -57,6 +57,7 @@ def run(cfg: FusionConfig, inputs: FusionInputs, out: Path) -> FusionOutputs:
         log.warning("fusion: %s", notes[-1])
 
     t0 = time.perf_counter()
+    cfg = replace(cfg, depth_max=far_limit(cap, cfg))
     coords, n_blocks, valid_in = _blocks(cap, cfg)
     t_blocks = time.perf_counter() - t0
     if n_blocks == 0:
@@ -112,6 +113,7 @@ def run(cfg: FusionConfig, inputs: FusionInputs, out: Path) -> FusionOutputs:
     n = len(cap.frames) - len(empty)
     stats = {
         "voxel": cfg.voxel,
+        "depth_max_m": round(cfg.depth_max, 3),  # the far limit fused (fusion.far_share)
         "trunc_m": cfg.voxel * cfg.trunc_voxels,
         "frames": len(cap.frames),
         "frames_fused": n,
@@ -182,6 +184,23 @@ def _depth(f: Frame, cap: Capture, cfg: FusionConfig) -> tuple[np.ndarray, Intri
     d = read_depth(f.depth, cap.depth_scale, cap.depth_invalid)  # invalid codes, NaN, inf -> 0
     d[~np.isfinite(d) | (d < cfg.depth_min) | (d > cfg.depth_max)] = 0.0
     return d.astype(np.float32), _fit(f.intrinsics, d.shape[1], d.shape[0])
+
+
+def far_limit(cap: Capture, cfg: FusionConfig) -> float:
+    """The farthest depth fused (metres): depth_max, or with far_share the largest of the
+    views' (1 - far_share) quantiles of their readings when that is farther (up to far_max).
+    A view looking down a long room has its end wall beyond depth_max over a good share of
+    its pixels; a few far readings (stray matches, a window) in every view are not enough to
+    move the limit."""
+    if cfg.far_share <= 0:
+        return cfg.depth_max
+    far = cfg.depth_max
+    for f in cap.frames:
+        d, _ = _depth(f, cap, replace(cfg, depth_max=np.inf))
+        v = d[d > 0]
+        if len(v):
+            far = max(far, min(float(np.quantile(v, 1.0 - cfg.far_share)), cfg.far_max))
+    return far
 
 
 def _blocks(cap: Capture, cfg: FusionConfig) -> tuple[list[o3c.Tensor | None], int, float]:

@@ -151,6 +151,11 @@ class Line:
     d: np.ndarray  # unit direction (the outline's walking direction)
     weight: float  # support length (metres)
     snapped: bool = True  # along one of the room's two directions
+    # the traced lines merged into this one: (a point on each, its support); () = itself
+    parts: tuple[tuple[np.ndarray, float], ...] = ()
+
+    def pieces(self) -> tuple[tuple[np.ndarray, float], ...]:
+        return self.parts or ((self.p, self.weight),)
 
 
 def _intersect(a: Line, b: Line) -> np.ndarray | None:
@@ -176,30 +181,40 @@ def _parallel(a: Line, b: Line) -> bool:
 
 
 def _merge(a: Line, b: Line, step: float) -> Line:
-    """One line for two nearly parallel ones: the support-weighted offset along the normal;
-    the better supported line's own when they lie more than `step` apart (a doorway's bump or
-    a shallow alcove left when the short edges between them went: not the wall's face)."""
+    """One line for two nearly parallel ones, from all the traced lines merged into them:
+    the offset along the normal best supported within `step` (the support-weighted mean of
+    the lines within `step` of it). A doorway's bump or a shallow alcove, left when the short
+    edges round it went, is not the wall's face: the face's pieces on both sides of it
+    together outweigh it, whichever side was merged first."""
     n = np.array([-a.d[1], a.d[0]])
-    if abs(a.p @ n - b.p @ n) > step:
-        off = a.p @ n if a.weight >= b.weight else b.p @ n
-    else:
-        off = (a.weight * (a.p @ n) + b.weight * (b.p @ n)) / (a.weight + b.weight)
-    return Line(a.p + (off - a.p @ n) * n, a.d, a.weight + b.weight, a.snapped and b.snapped)
+    parts = a.pieces() + b.pieces()
+    off = np.array([p @ n for p, _ in parts])
+    w = np.array([wt for _, wt in parts])
+    near = np.abs(off[:, None] - off[None, :]) <= step  # [P, P]
+    best = near[int(np.argmax(near @ w))]
+    o = float((w[best] * off[best]).sum() / w[best].sum())
+    return Line(a.p + (o - a.p @ n) * n, a.d, a.weight + b.weight, a.snapped and b.snapped, parts)
+
+
+def _axis(d: np.ndarray, snap_deg: float) -> np.ndarray | None:
+    """The frame's axis direction nearest d when within snap_deg of it, else None."""
+    ang = math.degrees(math.atan2(d[1], d[0]))
+    if min(ang % 90, 90 - ang % 90) > snap_deg:
+        return None
+    return np.array([[1, 0], [0, 1], [-1, 0], [0, -1]][round(ang / 90) % 4], np.float64)
 
 
 def _fit(a: np.ndarray, b: np.ndarray, pts: np.ndarray, cfg: LayoutConfig, cell: float) -> Line:
     """The line of the edge a->b, snapped to the frame's axes when near them, refitted on the
-    traced points along its inner 80 %."""
+    traced points along its inner 80 %. A free edge whose refitted direction lies near an
+    axis is snapped too: a short edge of a ragged face (furniture against the wall) leans
+    more than the face its points lie along."""
     d = b - a
     length = float(np.linalg.norm(d))
     d = d / length
-    ang = math.degrees(math.atan2(d[1], d[0])) % 90
-    if min(ang, 90 - ang) <= cfg.snap_deg:
-        k = round(math.degrees(math.atan2(d[1], d[0])) / 90) % 4
-        d = np.array([[1, 0], [0, 1], [-1, 0], [0, -1]][k], np.float64)
-        snapped = True
-    else:
-        snapped = False
+    axis = _axis(d, cfg.snap_deg)
+    if axis is not None:
+        d = axis
     n = np.array([-d[1], d[0]])
     t = (pts - a) @ d
     near = (
@@ -209,15 +224,17 @@ def _fit(a: np.ndarray, b: np.ndarray, pts: np.ndarray, cfg: LayoutConfig, cell:
     )
     sel = pts[near]
     if len(sel) < 2:
-        return Line(a.astype(np.float64), d, length)
-    if snapped:
-        off = float(np.median(sel @ n))
-        p = a + (off - a @ n) * n
-        return Line(p, d, length)
-    c = sel.mean(0)
-    u = np.linalg.svd(sel - c)[2][0]
-    u = u if u @ d > 0 else -u
-    return Line(c, u, length, snapped=False)
+        return Line(a.astype(np.float64), d, length, snapped=axis is not None)
+    if axis is None:
+        c = sel.mean(0)
+        u = np.linalg.svd(sel - c)[2][0]
+        u = u if u @ d > 0 else -u
+        axis = _axis(u, cfg.snap_deg)
+        if axis is None:
+            return Line(c, u, length, snapped=False)
+        d, n = axis, np.array([-axis[1], axis[0]])
+    off = float(np.median(sel @ n))
+    return Line(a + (off - a @ n) * n, d, length)
 
 
 def outline(mask: np.ndarray, fr: Frame, cfg: LayoutConfig) -> np.ndarray | None:
@@ -245,9 +262,12 @@ def outline(mask: np.ndarray, fr: Frame, cfg: LayoutConfig) -> np.ndarray | None
         else:
             corners = _corners(lines)
             lens = np.linalg.norm(np.roll(corners, -1, axis=0) - corners, axis=1)
-            # a short edge, or an edge off the room's directions too short to be believed
-            short = np.array([ln.snapped for ln in lines]) * cfg.min_wall
-            short[short == 0] = cfg.min_free_wall
+            # a short edge, or an edge off the room's directions too short to be believed:
+            # such an edge counts the traced length behind it, not how far its corners lie
+            # apart (a short slanted piece of a ragged face meets a wall far off)
+            free = ~np.array([ln.snapped for ln in lines])
+            short = np.where(free, cfg.min_free_wall, cfg.min_wall)
+            lens[free] = np.minimum(lens[free], [ln.weight for ln in lines if not ln.snapped])
             k = int(np.argmin(lens - short))
             if lens[k] >= short[k] or len(lines) <= 3:
                 break

@@ -217,7 +217,7 @@ def test_all_depth_invalid_is_an_error(tmp_path):
     frames = room_capture(tmp_path / "cap")
     # every reading beyond depth_max: nothing to fuse
     with pytest.raises(BlunfError, match="no surface fused"):
-        fuse(frames, tmp_path / "out", depth_max=0.5)
+        fuse(frames, tmp_path / "out", depth_max=0.5, far_share=0.0)
 
 
 def test_supporting_views_counts_readings_near_a_point():
@@ -328,3 +328,38 @@ def test_kitchen_fusion(tmp_path):
         f"raycast {stats['raycast_seconds']} s, total {secs:.1f} s, peak RSS {peak:.0f} MB, "
         f"median |raycast - sensor| {np.median(errs) * 100:.1f} cm"
     )
+
+
+def test_far_share_fuses_a_far_wall_that_a_good_share_of_a_view_sees(tmp_path):
+    """The 4 x 3 m room with depth_max 1.5 m stands for a room longer than the far limit: its
+    walls beyond 1.5 m are not fused. With far_share the limit grows to the farthest view's
+    (1 - far_share) quantile of its readings, and the far walls are fused; a stray far
+    reading in every view (1 % of its pixels at 40 m) does not move it."""
+    frames = room_capture(tmp_path / "cap")
+    cap = Capture.load(frames)
+    fs, want = [], 0.0
+    for f in cap.frames:
+        d = read_depth(f.depth, cap.depth_scale)
+        want = max(want, float(np.quantile(d[d > 0], 0.75)))
+        d.reshape(-1)[::100] = 40.0
+        np.save(tmp_path / f"{f.stem}.npy", d.astype(np.float32))
+        fs.append(replace(f, depth=tmp_path / f"{f.stem}.npy"))
+    cap.with_frames(fs).save(tmp_path / "stray.json")
+    near = fuse(tmp_path / "stray.json", tmp_path / "near", depth_max=1.5, far_share=0.0)
+    far = fuse(tmp_path / "stray.json", tmp_path / "far", depth_max=1.5, far_share=0.25)
+    limit = json.loads(far.stats.read_text())["depth_max_m"]
+    assert json.loads(near.stats.read_text())["depth_max_m"] == 1.5
+    assert limit == pytest.approx(want, abs=0.01) and limit > 1.8, limit  # not 40 m
+    v_near = np.asarray(o3d.io.read_triangle_mesh(str(near.mesh)).vertices)
+    v_far = np.asarray(o3d.io.read_triangle_mesh(str(far.mesh)).vertices)
+    assert len(v_far) > 1.2 * len(v_near)
+    # the walls' surface the 1.5 m limit left out: vertices up against the far walls
+    dist = make_scene().compute_distance(o3c.Tensor(v_far.astype(np.float32))).numpy()
+    assert np.percentile(dist, 99) < 2 * VOXEL
+    # far_max bounds it
+    capped = fuse(
+        tmp_path / "stray.json", tmp_path / "cap", depth_max=1.5, far_share=0.25, far_max=1.7
+    )
+    assert json.loads(capped.stats.read_text())["depth_max_m"] == 1.7
+    with pytest.raises(BlunfError, match="far_share"):
+        FusionConfig(far_share=0.5)

@@ -26,6 +26,7 @@ from stages.export.files import ExportInputs
 from stages.export.files import _picture as export_picture
 from stages.layout import IMPLS, LayoutConfig, LayoutInputs
 from stages.layout.draw import write_svg
+from stages.layout.extract import Frame, Line, _fit, _merge, outline
 from stages.layout.walls import build_plan
 from stages.synth import make_room
 
@@ -217,6 +218,47 @@ def _turn(xy, angle: float) -> list:
     c, s = math.cos(math.radians(angle)), math.sin(math.radians(angle))
     x, y = np.asarray(xy, float).T
     return np.stack([c * x - s * y, s * x + c * y], -1).tolist()
+
+
+def _outline(poly) -> np.ndarray:  # noqa: ANN001
+    """The outline traced round a room mask painted from `poly` on a 2 cm grid."""
+    grid = Grid.covering(np.array([-0.5, -0.5]), np.array([4.5, 3.5]), 0.02)
+    c = grid.centers()
+    mask = contains_xy(poly, c[..., 0], c[..., 1])
+    return outline(mask, Frame(mask.astype(np.uint8), grid, 0.0), GT_PLAN)
+
+
+def test_a_doorway_bump_does_not_move_the_wall_face():
+    # the room's mask reaches 12 cm into a 1.9 m doorway of its south wall (the closed
+    # doorway joined the room); the face on either side is 1.0 and 1.1 m long, each shorter
+    # than the bump, both together longer: the face stays at y = 0 whichever side merges first
+    poly = _outline(box(0, 0, 4, 3).union(box(1.0, -0.12, 2.9, 0)))
+    np.testing.assert_allclose(
+        sorted(map(tuple, poly)), [(0, 0), (0, 3), (4, 0), (4, 3)], atol=0.011
+    )
+
+
+def test_merged_faces_take_the_offset_their_pieces_support_most():
+    x = np.array([1.0, 0.0])
+    face_a = Line(np.array([0.0, 0.0]), x, 1.0)
+    bump = Line(np.array([1.0, -0.12]), x, 1.9)
+    face_b = Line(np.array([2.9, 0.0]), x, 1.1)
+    for first, second in ((face_a, face_b), (face_b, face_a)):
+        merged = _merge(_merge(first, bump, 0.06), second, 0.06)
+        assert merged.p[1] == pytest.approx(0.0) and merged.weight == pytest.approx(4.0)
+    # within the step the offsets are averaged by their support
+    assert _merge(face_a, Line(np.array([0.0, 0.03]), x, 3.0), 0.06).p[1] == pytest.approx(0.0225)
+
+
+def test_a_slanted_edge_whose_points_run_along_an_axis_is_snapped():
+    # the simplified edge leans 12 degrees (a step of a ragged face), the traced points along
+    # it 4 degrees: the refit line is the axis through them
+    a, b = np.array([0.0, 0.0]), np.array([1.0, -math.tan(math.radians(12))])
+    t = np.linspace(0, 1, 50)
+    pts = np.stack([t, -0.05 - t * math.tan(math.radians(4))], 1)
+    line = _fit(a, b, pts, GT_PLAN, 0.02)
+    assert line.snapped and line.d.tolist() == [1.0, 0.0]
+    assert line.p[1] == pytest.approx(-0.085, abs=0.01)  # the points' middle
 
 
 @pytest.mark.parametrize("angle", [0.0, 23.0])
