@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+import sys
 from pathlib import Path
 
 import pytest
@@ -42,7 +43,8 @@ def test_rows_ratio_verdict_budget_and_skip(tmp_path: Path):
     md = write([measured, ratio_bar, budget, score, gone], ["head"], ["- run a: 1 s"], {}, tmp_path)
     lines = md.read_text().splitlines()
     row = {ln.split(" | ")[0].strip("| "): ln for ln in lines if ln.startswith("| ")}
-    assert "| 0.5 s | 2 s (volume render) | 0.25 | <= 1 s | pass | 0.5 | 0.9 | `cmd a` |" in row["5a"]
+    want = "| 0.5 s | 2 s (volume render) | 0.25 | <= 1 s | pass | 0.5 | 0.9 | `cmd a` |"
+    assert want in row["5a"]
     assert "| 6 s | 5 s (budget) | 1.2 | <= 5 s | FAIL |" in row["7"]
     assert "| 30 s | 50 s (pycolmap) | 0.6 | ratio <= 0.5 | FAIL |" in row["6a"]
     assert "not measured: /x absent" in row["2"] and "`cmd e`" in row["2"]
@@ -72,10 +74,10 @@ def test_timed_command_counts_the_child_cpu_and_memory(tmp_path: Path):
     # the child spins ~0.3 s of CPU and holds ~200 MB: both show in the kernel's account
     code = "import time; b = bytearray(200 << 20); t = time.process_time()\n"
     code += "while time.process_time() - t < 0.3: b[0] = 1"
-    r = timed_command(["python3", "-c", code], tmp_path / "log", {}, 60)
+    r = timed_command([sys.executable, "-c", code], tmp_path / "log", {}, 60)
     assert r["error"] == "" and r["cpu_s"] >= 0.25 and r["wall_s"] >= r["cpu_s"] * 0.9
     assert 200 <= r["peak_mb"] < 400
-    r = timed_command(["python3", "-c", "raise SystemExit(3)"], tmp_path / "log", {}, 60)
+    r = timed_command([sys.executable, "-c", "raise SystemExit(3)"], tmp_path / "log", {}, 60)
     assert r["error"].startswith("exit 3")
 
 
