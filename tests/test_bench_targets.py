@@ -86,7 +86,7 @@ def test_project_target_row_end_to_end(tmp_path: Path):
     timed run reruns it; the row has its seconds, CPU, command and verdict, and target 8
     reads that run's peak memory."""
     s = Session(tmp_path / "t", quick=True, repeats=1, threads=1)
-    (row,) = target_7(s, views=8, size=(64, 48))
+    (row,) = target_7(s, views=8, size=(64, 48), sets=("fusion.voxel=0.05",))
     assert row.skipped == "", row.skipped
     assert row.figure is not None and 0 < row.figure < 5.0 and row.verdict == "pass"
     assert row.cpu_s is not None and row.cpu_s > 0 and row.ref_name == BUDGET

@@ -123,6 +123,10 @@ def timed_command(argv: list[str], log_file: Path, env: dict, timeout: float) ->
         timer.start()
         try:
             _, status, ru = os.wait4(proc.pid, 0)
+        except BaseException:  # interrupted: the run does not outlive the bench
+            proc.kill()
+            proc.wait()
+            raise
         finally:
             timer.cancel()
         wall = time.perf_counter() - t0

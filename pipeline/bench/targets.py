@@ -227,12 +227,16 @@ def target_6(s: Session) -> list[Row]:
     return rows
 
 
-def target_7(s: Session, views: int = 100, size: tuple[int, int] = (640, 480)) -> list[Row]:
+def target_7(
+    s: Session, views: int = 100, size: tuple[int, int] = (640, 480), sets: Sequence[str] = ()
+) -> list[Row]:
+    """The project stage on the procedural room; `sets`: overrides of every run (tests)."""
     cap = s.capture(views, size)
     name = f"project-{views}-{size[0]}x{size[1]}"
-    v = Variant(name, "project", name, ("run.methods=mvr",), fresh_from="project")
+    v = Variant(name, "project", name, ("run.methods=mvr", *sets), fresh_from="project")
     synth = shown(["blunf", "synth", cap, "--views", views, "--size", f"{size[0]}x{size[1]}"])
-    cmd = f"{synth}; blunf run {shown([cap])} --out RUN --set run.methods=mvr: project stage"
+    opts = shown([x for o in v.sets for x in ("--set", o)])
+    cmd = f"{synth}; blunf run {shown([cap])} --out RUN {opts}: project stage"
     text = f"project stage, {views} frames {size[0]}x{size[1]} (sensor depth)"
     row = Row("7", text, "s", Bar("figure", "<=", 5.0), cmd)
     b = Bench(s.out, s.cores)
@@ -315,16 +319,21 @@ def targets(
         f"{len(os.sched_getaffinity(0))} cores, load average {os.getloadavg()[0]:.2f} at start."
     ]
     rows: list[Row] = []
+
+    def written(done: str) -> Path:
+        extra = {
+            "runs": {k: v if isinstance(v, str) else len(v) for k, v in s.runs.items()},
+            "commands": s.commands,
+        }
+        return write(rows, [*header, done], where_time_went(s), extra, s.out)
+
     for t in chosen:
         log.info("targets: target %d", t)
         try:
             rows += ROWS[t](s)
-        except BlunfError as e:  # one target's bad input does not lose the others' rows
-            log.warning("targets: target %d: %s", t, e)
-            rows.append(Row(str(t), f"target {t}", "", Bar("figure", "<=", 0), "", skipped=str(e)))
-    header.append(f"The bench took {time.perf_counter() - t0:.0f} s.")
-    extra = {
-        "runs": {k: v if isinstance(v, str) else len(v) for k, v in s.runs.items()},
-        "commands": s.commands,
-    }
-    return write(rows, header, where_time_went(s), extra, s.out)
+        except Exception as e:  # a target that fails costs its rows, not the others'
+            log.error("targets: target %d failed", t, exc_info=not isinstance(e, BlunfError))
+            why = f"failed: {e}" if isinstance(e, BlunfError) else f"failed: {e!r}"
+            rows.append(Row(str(t), f"target {t}", "", Bar("figure", "<=", 0), "", skipped=why))
+        written(f"Targets done so far: {len(rows)} row(s).")  # kept if the bench is stopped
+    return written(f"The bench took {time.perf_counter() - t0:.0f} s.")
