@@ -27,7 +27,7 @@ from stages.common.io import read_json
 log = logging.getLogger(__name__)
 
 TIMEOUT_S = 3600  # one run; past it the run is killed and its rows say so
-KITCHEN_QUICK_TIMEOUT_S = 900  # --quick stays bounded: 3x target 2's budget
+KITCHEN_QUICK_TIMEOUT_S = 600  # --quick stays bounded: twice target 2's budget
 _RUN = Variant("targets", "targets", "targets")  # sample_of's variant argument (unused there)
 
 
@@ -52,6 +52,8 @@ class Session:
     runs: dict[str, list[Measured] | str] = field(default_factory=dict)  # name -> runs | error
     dirs: dict[str, Path] = field(default_factory=dict)  # name -> the last repeat's folder
     commands: dict[str, str] = field(default_factory=dict)
+    killed: dict[str, tuple[float, float, str]] = field(default_factory=dict)  # at the limit:
+    # name -> (wall, CPU, the last stage line of its log)
 
     def __post_init__(self) -> None:
         self.out = Path(self.out)
@@ -93,6 +95,11 @@ class Session:
                 timeout or TIMEOUT_S,
             )
             if res["error"]:
+                if res["error"].startswith("timed out"):
+                    log_text = (self.out / "logs" / f"{name}.log").read_text()
+                    stages = [ln for ln in log_text.splitlines() if "pipeline.runner:" in ln]
+                    last = stages[-1].split("pipeline.runner:")[-1].strip() if stages else ""
+                    self.killed[name] = (res["wall_s"], res["cpu_s"], " ".join(last.split()))
                 self.runs[name] = f"{name}: {res['error']}"
                 return self.runs[name]
             shutil.copyfile(run_dir / "report.json", self.out / "reports" / f"{name}-r{rep}.json")
