@@ -79,6 +79,8 @@ def test_timed_command_counts_the_child_cpu_and_memory(tmp_path: Path):
     assert 200 <= r["peak_mb"] < 400
     r = timed_command([sys.executable, "-c", "raise SystemExit(3)"], tmp_path / "log", {}, 60)
     assert r["error"].startswith("exit 3")
+    r = timed_command([sys.executable, "-c", "import time; time.sleep(60)"], tmp_path / "l", {}, 1)
+    assert r["error"] == "timed out after 1 s" and 1 <= r["wall_s"] < 30  # killed at its limit
 
 
 def test_project_target_row_end_to_end(tmp_path: Path):
