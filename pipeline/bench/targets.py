@@ -191,7 +191,7 @@ def target_5(s: Session) -> list[Row]:
     ]
     if isinstance(ms, str):
         return skip(rows, ms)
-    run, n = s.dirs["demo-edit"], max(3, s.repeats)
+    run, n = s.dirs["demo-edit"], s.repeats
     torch.set_num_threads(s.cores)
     res = preview(run, DEMO_EDITS, [], n, quality=False)
     for r, size in zip(rows, ("320x240", "80x60"), strict=True):
