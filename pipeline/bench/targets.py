@@ -199,7 +199,8 @@ def target_5(s: Session) -> list[Row]:
         r.command = cmd.format(run=shown([run]), n=n) + f" --threads {s.cores}"
         r.figure, r.wall_s, r.cpu_s = t["fast"]["wall"], t["fast"]["wall"], t["fast"]["cpu"]
         r.reference, r.ref_name = t["volume"]["wall"], "volume render"
-        r.note = f"all the spec's edits, its views, {n} repeats; volume CPU {t['volume']['cpu']} s"
+        vol_cpu = t["volume"]["cpu"]
+        r.note = f"all the spec's edits, its views, {n} repeat(s); volume CPU {vol_cpu:.2f} s"
     return rows
 
 
@@ -344,4 +345,6 @@ def targets(
             why = f"failed: {e}" if isinstance(e, BlunfError) else f"failed: {e!r}"
             rows.append(Row(str(t), f"target {t}", "", Bar("figure", "<=", 0), "", skipped=why))
         written(f"Targets done so far: {len(rows)} row(s).")  # kept if the bench is stopped
-    return written(f"The bench took {time.perf_counter() - t0:.0f} s.")
+    took = time.perf_counter() - t0
+    load = os.getloadavg()[0]
+    return written(f"The bench took {took:.0f} s; load average {load:.2f} at the end.")
