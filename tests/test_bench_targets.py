@@ -10,9 +10,10 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.bench.target_runs import Session, timed_command
+from pipeline.bench.measure import Sample
+from pipeline.bench.target_runs import Measured, Session, timed_command
 from pipeline.bench.target_table import BUDGET, Bar, Row, write
-from pipeline.bench.targets import parse_only, target_7, target_8
+from pipeline.bench.targets import parse_only, target_7, target_8, worst_view
 from pipeline.cli import main
 from stages.common.errors import BlunfError
 
@@ -100,3 +101,23 @@ def test_project_target_row_end_to_end(tmp_path: Path):
     (mem,) = target_8(s)
     assert mem.figure == pytest.approx(max(st["peak_rss_mb"] for st in ran.values()))
     assert mem.verdict == "pass" and "project-8-64x48" in mem.note
+
+
+def test_worst_view_is_the_lowest_changed_iou_of_any_edit_in_any_view():
+    def run(remove: list, recolor: list) -> Measured:
+        edits = [
+            {"index": 0, "op": "remove", "changed_iou": 0.9, "changed_iou_views": remove},
+            {"index": 1, "op": "recolor", "changed_iou": 0.97, "changed_iou_views": recolor},
+        ]
+        return Measured(Sample(1.0, 1.0, None, {}, {}, {"edit": edits}), {})
+
+    # run 1's lowest is 0.87 (remove, second view = input view 24), run 2's 0.95 (recolor,
+    # None skipped), run 3's 0.89: the median of 0.87, 0.95, 0.89 is 0.89
+    runs = [
+        run([0.91, 0.87, 0.93], [0.97, 0.98, 0.99]),
+        run([0.96, None, 0.97], [0.95, 0.98, 0.99]),
+        run([0.95, 0.89, 0.92], [0.97, 0.98, 0.99]),
+    ]
+    low, where = worst_view(runs, (4, 24, 39))
+    assert low == pytest.approx(0.89) and where == "edit 0 (remove) in view 24"
+    assert worst_view([run([], [])], (4,)) == (None, "")
