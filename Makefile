@@ -7,7 +7,7 @@ PYTHON  := $(BIN)/python
 export GLIBC_TUNABLES ?= glibc.malloc.mmap_threshold=33554432:glibc.malloc.trim_threshold=4294967296
 DEMO    ?= runs/demo
 
-.PHONY: setup sysdeps demo test test-slow check lint typecheck bench bench-quick batch clean FORCE
+.PHONY: setup sysdeps demo test test-slow check lint typecheck bench bench-quick bench-targets batch clean FORCE
 
 # System libraries the wheels link against, as `library:Debian package`: open3d needs libusb,
 # torch and open3d need libgomp. Programs, as `program:Debian package`: the studio's browser
@@ -83,6 +83,12 @@ bench: setup  ## the full grid, 3 repeats (~1 h idle, 89 min measured on a loade
 
 bench-quick: setup  ## a small grid, 1 repeat (< 10 min): runs/bench-quick/
 	$(BIN)/blunf bench --quick --out runs/bench-quick
+
+# Each speed target's figure, the reference measured in the same bench (or its budget), their
+# ratio, pass or fail, and the command behind it (pipeline/bench/targets.py); `blunf bench
+# --targets --quick` is the ~15-minute cut of it.
+bench-targets: setup  ## every speed target against its reference, 3 repeats: runs/targets/targets.md
+	$(BIN)/blunf bench --targets --out runs/targets
 
 # make batch CAPTURES="a b c" JOBS=2: `blunf batch` on a local Dask cluster of JOBS workers (one
 # thread each): runs/batch/<scene>/, <scene>.log, summary.csv, index.html, batch.json. A failed

@@ -81,10 +81,14 @@ def parser() -> argparse.ArgumentParser:
     )
 
     b = sub.add_parser("bench", help="run time against error: table, CSV and plots")
-    b.add_argument("--out", type=Path, default=Path("runs/bench"))
+    b.add_argument("--out", type=Path, help="default runs/bench (--targets: runs/targets)")
     b.add_argument("--quick", action="store_true", help="a small grid (minutes)")
     b.add_argument("--repeats", type=_positive, help="runs per variant (default 1 quick, 3 full)")
-    b.add_argument("--threads", type=_positive, default=1, help="CPU threads a run (default 1)")
+    b.add_argument("--threads", type=_positive,
+                   help="CPU threads a run (default 1; --targets: the run's own)")  # fmt: skip
+    b.add_argument("--targets", action="store_true",
+                   help="each speed target's figure, reference and ratio (targets.md)")  # fmt: skip
+    b.add_argument("--only", metavar="1,5,7", help="with --targets: the targets to measure")
 
     a = sub.add_parser("batch", help="run many captures as Dask tasks (local or a cluster)")
     a.add_argument("captures", nargs="+", type=Path, metavar="CAPTURE")
@@ -236,10 +240,21 @@ def _dispatch(args: argparse.Namespace) -> int:
         print(json.dumps({k: v for k, v in facts.items() if k != "outcomes"}, indent=1))
         return 0 if facts["failed"] == 0 else 1
     if args.cmd == "bench":
+        if args.targets:
+            from pipeline.bench.targets import parse_only, targets
+
+            only = parse_only(args.only)  # a bad list fails before any work
+            setup_runtime(args.threads or 0)
+            out = args.out or Path("runs/targets")
+            print(targets(out, args.quick, args.repeats, args.threads or 0, only))
+            return 0
+        if args.only:
+            raise BlunfError("--only picks targets: use it with --targets")
         from pipeline.bench import bench
 
-        setup_runtime(args.threads)
-        print(bench(args.out, quick=args.quick, repeats=args.repeats, threads=args.threads))
+        setup_runtime(args.threads or 1)
+        out = args.out or Path("runs/bench")
+        print(bench(out, quick=args.quick, repeats=args.repeats, threads=args.threads or 1))
         return 0
     if args.cmd == "render":
         from pipeline.render import render_command

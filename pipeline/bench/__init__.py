@@ -9,6 +9,10 @@ pipeline (measure.py), and writes into `out`:
   reports/<variant>-r<i>.json, logs/<variant>.log   the runs behind each row
 Reference points (the paper's recipe) run in the same bench, interleaved with the others, so
 the ratios to them hold on a noisy machine.
+
+`blunf bench --targets` (targets.py) measures the speed targets instead: each one's figure,
+the reference measured in the same bench (or the target's budget), their ratio, pass or fail
+and the command behind it, in targets.md / .csv / .json.
 """
 
 from __future__ import annotations

@@ -56,7 +56,8 @@ def at(intr: Intrinsics, size: tuple[int, int]) -> Intrinsics:
     return intr if (intr.width, intr.height) == size else intr.scaled(*size)
 
 
-def bench(run: Path, spec: Path, views: list[int], repeats: int) -> dict:
+def bench(run: Path, spec: Path, views: list[int], repeats: int, quality: bool = True) -> dict:
+    """Both paths' timings on the spec's views (and, with `quality`, their agreement)."""
     scene = Scene(run_files(run))
     sp = load_spec(spec)
     edits: tuple[Edit, ...] = sp.edits
@@ -80,6 +81,8 @@ def bench(run: Path, spec: Path, views: list[int], repeats: int) -> dict:
             "speedup_wall": round(med["volume"]["wall"] / med["fast"]["wall"], 1),
             "speedup_cpu": round(med["volume"]["cpu"] / med["fast"]["cpu"], 1),
         }
+    if not quality:
+        return out
     size = SIZES[-1]
 
     def pair(v: int, eds) -> tuple[np.ndarray, np.ndarray, float]:
