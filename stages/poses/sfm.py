@@ -67,6 +67,7 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
     with _colmap_log_level():  # pycolmap extracts and matches in one call each: elapsed only
         with progress("sfm extract"):
             facts["camera"] = _extract(sift_cfg, seen, names, db, img_dir, threads)
+            facts["sift_first_octave"] = first_octave(sift_cfg, seen)
         clock.append((time.perf_counter(), time.process_time()))
         with progress("sfm match"):
             facts["matching"], facts["matching_detail"] = _match(cfg, db, n, threads)
@@ -214,7 +215,13 @@ def _extract(
     eo.use_gpu = False
     eo.max_image_size = cfg.max_image_size
     eo.sift.max_num_features = cfg.max_features
-    log.info("sfm: SIFT on %d images (%d threads)", len(frames), threads)
+    eo.sift.first_octave = first_octave(cfg, frames)
+    log.info(
+        "sfm: SIFT on %d images (%d threads, first octave %d)",
+        len(frames),
+        threads,
+        eo.sift.first_octave,
+    )
     if calib.unknown(frames):
         log.info("sfm: intrinsics not given: estimating them (%s)", SELF_CALIB_WARNING)
         return calib.extract(frames, names, db, img_dir, eo) | {"warning": SELF_CALIB_WARNING}
@@ -258,6 +265,13 @@ def _extract(
     return {"fixed": True, "model": "/".join(sorted(models)), "cameras": len(groups)}
 
 
+def first_octave(cfg: PosesConfig, frames: tuple[Frame, ...]) -> int:
+    """SIFT's first octave: -1 (images doubled) when the longest side SIFT reads, the largest
+    image's capped at max_image_size, is below cfg.double_below; else 0."""
+    longest = min(cfg.max_image_size, max(max(image_size(f.image)) for f in frames))
+    return -1 if longest < cfg.double_below else 0
+
+
 def _match(cfg: PosesConfig, db: Path, n: int, threads: int) -> tuple[str, str]:
     """Match SIFT features. Returns (kind used, its settings in words)."""
     mo = pycolmap.FeatureMatchingOptions()
@@ -294,6 +308,8 @@ def _map(
         o.num_threads = threads
         o.random_seed = cfg.seed
         o.min_model_size = MIN_REGISTERED
+        o.ba_global_max_refinements = cfg.ba_global_max_refinements
+        o.ba_local_max_refinements = cfg.ba_local_max_refinements
         if fixed:
             o.ba_refine_focal_length = False
             o.ba_refine_principal_point = False

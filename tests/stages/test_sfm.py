@@ -23,7 +23,7 @@ from stages.poses.scale import (
     scale_from_distance,
     scale_from_priors,
 )
-from stages.poses.sfm import _colmap_camera, _scale
+from stages.poses.sfm import _colmap_camera, _scale, first_octave
 
 SHARED_DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 
@@ -98,6 +98,8 @@ def test_scale_from_camera_height_ignores_stray_low_points() -> None:
         ({"scale_from": "distance"}, "known_distance"),
         ({"scale_from": "camera_height", "camera_height": -1.0}, "camera_height"),
         ({"min_registered_frac": 1.5}, "min_registered_frac"),
+        ({"double_below": -1}, "double_below"),
+        ({"ba_global_max_refinements": 0}, "ba_global_max_refinements"),
     ],
 )
 def test_bad_config_names_the_field(bad: dict, field: str) -> None:
@@ -111,6 +113,19 @@ def test_colmap_camera_shifts_the_principal_point() -> None:
     assert _colmap_camera(intr) == ("PINHOLE", "500.0,501.0,320.0,240.0")
     model, params = _colmap_camera(Intrinsics(500, 500, 10, 20, 640, 480, (0.1, -0.05)))
     assert (model, params) == ("OPENCV", "500.0,500.0,10.5,20.5,0.1,-0.05,0.0,0.0")
+
+
+def test_sift_doubles_only_images_below_double_below(tmp_path: Path) -> None:
+    # SIFT reads the larger image capped at max_image_size: 640 px is not below 640 (octave
+    # 0); 320 px is (octave -1, doubled); a 640 px image read at most 400 px long is too.
+    big = _write_png(tmp_path / "big.png", np.zeros((480, 640, 3), np.uint8))
+    small = _write_png(tmp_path / "small.png", np.zeros((240, 320, 3), np.uint8))
+    intr = Intrinsics(500, 500, 319.5, 239.5, 640, 480)
+    frames = (Frame("a", small, intr.scaled(320, 240)), Frame("b", big, intr))
+    assert first_octave(PosesConfig(), frames) == 0
+    assert first_octave(PosesConfig(), frames[:1]) == -1
+    assert first_octave(PosesConfig(max_image_size=400), frames) == -1
+    assert first_octave(PosesConfig(double_below=0), frames[:1]) == 0
 
 
 # ---- given ----------------------------------------------------------------------------------
