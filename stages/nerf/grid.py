@@ -53,11 +53,16 @@ def run(cfg: NerfConfig, inputs: NerfInputs, out: Path) -> NerfOutputs:
 
 
 def fit(
-    cfg: NerfConfig, cap: Capture, out: Path, swept: dict[int, np.ndarray] | None = None
+    cfg: NerfConfig,
+    cap: Capture,
+    out: Path,
+    swept: dict[int, np.ndarray] | None = None,
+    swept_scale: int = 1,
 ) -> NerfOutputs:
     """Train on `cap`'s posed frames into `out`. `swept` ({view index: stereo depth}, from
     the stereo implementation's sweep of every view) stands for this stage's own sweep of
-    the training views when the capture's depth is sparse."""
+    the training views when the capture's depth is sparse; `swept_scale` is the resolution
+    divisor that sweep ran at (its stereo.json `scale`)."""
     t_start = time.perf_counter()
     with torch_threads(cfg.threads):
         torch.manual_seed(cfg.seed)
@@ -76,6 +81,7 @@ def fit(
             swept = _take_depth(cap, views, {i: swept[i] for i in tr})
         elif photos_only and cfg.stereo.enabled and views.depth[tr[0]] is not None:
             stereo, swept = _stereo_depth(cap, views, tr, cfg)
+            swept_scale = int(stereo.get("scale", 1))
         else:
             swept = {}
         dense = depth_coverage(views, tr) >= cfg.train.dense_depth  # trains as with dense depth
@@ -103,8 +109,14 @@ def fit(
             # too few stereo readings to train as with dense depth are too few to confirm the
             # render by: it is then fused unchecked
             check = cfg.stereo.check if dense else 0
-            frames, checks = write_depths(model, frames, cfg, outs.depth, prior, check)
-            stats.update(checks)
+            # the render fills stereo's holes no finer than stereo itself ran: stereo.scale 0
+            # picks the coarsest resolution whose pixel still covers the plan's cell (the
+            # 7-Scenes kitchen at 640x480: 1/5), and a finer fill adds nothing the plan keeps
+            k = max(cfg.depth_render_scale, swept_scale if prior else 1)
+            frames, checks = write_depths(
+                model, frames, replace(cfg, depth_render_scale=k), outs.depth, prior, check
+            )
+            stats.update(checks, depth_render_scale=k)
 
         def held_view(i: int):
             return render_view(model, np.asarray(frames[i].pose), frames[i].intrinsics, cfg.chunk)

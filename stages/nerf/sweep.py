@@ -80,7 +80,7 @@ def run(cfg: NerfConfig, inputs: NerfInputs, out: Path) -> StereoOutputs:
     )
     if fill.startswith("field"):  # fit() keeps the stereo readings and renders the rest
         (out / "field").mkdir()
-        field = fit(cfg, cap, out / "field", dict(enumerate(depths)))
+        field = fit(cfg, cap, out / "field", dict(enumerate(depths)), facts["scale"])
         facts["field"] = read_json(field.stats)
         Capture.load(field.frames).save(outs.frames)
     else:

@@ -336,6 +336,25 @@ def test_top_view_labels_find_the_floor(trained):
     assert (lab[floor] == FLOOR).mean() > 0.4
 
 
+def test_the_fill_is_rendered_no_finer_than_stereo_ran(tmp_path):
+    # stereo swept at half resolution (nerf.stereo.scale 2; scale 0 picks it from the plan's
+    # cell): the field's fill is rendered at 1/2 too although depth_render_scale asks for
+    # full resolution, so a held-out view's depth (render alone) is 24 x 18, a swept view's
+    # (its stereo readings, upsampled) full size
+    room = make_room(tmp_path / "room", views=5, seed=3, size=(48, 36))
+    cap = _sparse_copy(read_layout(room), tmp_path / "sparse", keep=0.01)
+    shapes, scales = {}, {}
+    for scale in (1, 2):
+        (tmp_path / f"out{scale}").mkdir()
+        cfg = tune(FAST, train__max_steps=10, depth_render_scale=1, stereo__scale=scale)
+        outs = IMPLS["grid"](cfg, NerfInputs(_frames(cap, tmp_path)), tmp_path / f"out{scale}")
+        scales[scale] = read_json(outs.stats)["depth_render_scale"]
+        shapes[scale] = [np.load(f.depth).shape for f in Capture.load(outs.frames).frames]
+    assert scales == {1: 1, 2: 2}
+    assert shapes[1] == [(36, 48)] * 5
+    assert shapes[2][4] == (18, 24) and shapes[2][:4] == [(36, 48)] * 4  # view 4 held out
+
+
 @pytest.mark.slow
 def test_sparse_depth_accuracy(room8, tmp_path):
     # 1 % of the depth pixels (uniformly at random; SfM tracks are where the texture is):
