@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import open3d as o3d
 import open3d.core as o3c
 
 from stages.common.camera import Intrinsics
@@ -28,3 +29,27 @@ def o3d_intrinsic(intr: Intrinsics) -> o3c.Tensor:
     K = intr.K
     K[:2, 2] += 0.5
     return o3d_tensor(K, o3c.float64)
+
+
+def touched_blocks(
+    probe: o3d.t.geometry.VoxelBlockGrid,
+    depth: o3d.t.geometry.Image,
+    intrinsic: o3c.Tensor,
+    extrinsic: o3c.Tensor,
+    depth_max: float,
+    trunc_voxels: float,
+    seen: set[int],
+) -> o3c.Tensor | None:
+    """The voxel blocks a depth image touches ([M, 3] int32 block coordinates), added to
+    `seen` (one int per block) so that len(seen) sizes a grid that holds every frame's; None
+    when Open3D's probe finds none ("No block is touched": too few readings, which would
+    abort the integration)."""
+    try:
+        bc = probe.compute_unique_block_coordinates(
+            depth, intrinsic, extrinsic, 1.0, depth_max, trunc_voxels
+        )
+    except RuntimeError:
+        return None
+    b = bc.numpy().astype(np.int64) + 2**20  # [M, 3] block coordinates, made >= 0
+    seen.update((b[:, 0] << 42 | b[:, 1] << 21 | b[:, 2]).tolist())
+    return bc

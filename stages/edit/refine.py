@@ -8,9 +8,9 @@ that misplaced outline was most of what the removal missed (per view, 157 / 69 /
 224 / 187 / 88 missed pixels were chair pixels whose fused surface lay elsewhere; the rest,
 leg bottoms below floor_clear and seat edges outside the plan's footprint). Here the depth
 the fusion stage read (sensor or stereo, not its ray-cast) is cropped to a box round each
-selection and fused again as the fusion stage fuses (Open3D's VoxelBlockGrid; the
-stages share no code, so this is the few lines it takes) at a finer voxel and a truncation
-thinner than the parts; the fine surface replaces the coarse one inside the boxes (coarse
+selection and fused again as the fusion stage fuses (Open3D's VoxelBlockGrid, sized by
+stages.common.o3d's block probe as the fusion stage sizes its own) at a finer voxel and a
+truncation thinner than the parts; the fine surface replaces the coarse one inside the boxes (coarse
 faces entirely inside a box go, fine faces whose centroid lies inside one come in: the
 seams overlap rather than crack).
 """
@@ -27,7 +27,7 @@ import numpy as np
 from stages.common.camera import depth_to_points
 from stages.common.capture import Capture, Frame
 from stages.common.io import read_depth
-from stages.common.o3d import CPU, o3d_extrinsic, o3d_intrinsic, o3d_tensor
+from stages.common.o3d import CPU, o3d_extrinsic, o3d_intrinsic, o3d_tensor, touched_blocks
 from stages.edit.select import Extent
 
 log = logging.getLogger(__name__)
@@ -134,20 +134,15 @@ def _fuse(
             ("tsdf", "weight"), (f32, f32), (sv([1]), sv([1])), voxel, BLOCK, blocks, CPU
         )
 
-    probe, seen = grid(1), set()
+    probe, seen = grid(1), set[int]()
     coords: list[o3c.Tensor | None] = []
     for f, d in crops:
-        try:
-            bc = probe.compute_unique_block_coordinates(
-                image(d), o3d_intrinsic(f.intrinsics), o3d_extrinsic(f), 1.0, DEPTH_MAX,
-                trunc_voxels,
-            )  # fmt: skip
-        except RuntimeError:  # "No block is touched": too few readings for Open3D's probe
-            coords.append(None)
-            continue
-        coords.append(bc)
-        b = bc.numpy().astype(np.int64) + 2**20
-        seen.update((b[:, 0] << 42 | b[:, 1] << 21 | b[:, 2]).tolist())
+        coords.append(
+            touched_blocks(
+                probe, image(d), o3d_intrinsic(f.intrinsics), o3d_extrinsic(f), DEPTH_MAX,
+                trunc_voxels, seen,
+            )
+        )  # fmt: skip
     if not seen:
         return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
     vbg = grid(len(seen))

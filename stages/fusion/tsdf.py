@@ -32,7 +32,7 @@ from stages.common.camera import Intrinsics, check_pose
 from stages.common.capture import Capture, Frame
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth, read_image, write_depth_npy, write_json
-from stages.common.o3d import CPU, o3d_extrinsic, o3d_intrinsic, o3d_tensor
+from stages.common.o3d import CPU, o3d_extrinsic, o3d_intrinsic, o3d_tensor, touched_blocks
 from stages.common.progress import track
 from stages.fusion.carve import supporting_views
 from stages.fusion.config import FusionConfig, FusionInputs, FusionOutputs
@@ -216,21 +216,12 @@ def _blocks(cap: Capture, cfg: FusionConfig) -> tuple[list[o3c.Tensor | None], i
         if not valid[-1]:  # Open3D aborts on a frame that touches no block
             coords.append(None)
             continue
-        try:
-            bc = probe.compute_unique_block_coordinates(
-                _image(depth),
-                o3d_intrinsic(k),
-                o3d_extrinsic(f),
-                1.0,
-                cfg.depth_max,
-                cfg.trunc_voxels,
+        coords.append(
+            touched_blocks(
+                probe, _image(depth), o3d_intrinsic(k), o3d_extrinsic(f), cfg.depth_max,
+                cfg.trunc_voxels, seen,
             )
-        except RuntimeError:  # "No block is touched": too few readings for Open3D's probe
-            coords.append(None)
-            continue
-        coords.append(bc)
-        b = bc.numpy().astype(np.int64) + 2**20  # [M, 3] block coordinates, made >= 0
-        seen.update((b[:, 0] << 42 | b[:, 1] << 21 | b[:, 2]).tolist())
+        )  # fmt: skip
     return coords, len(seen), float(np.mean(valid))
 
 
