@@ -120,7 +120,10 @@ class Session:
 
 def timed_command(argv: list[str], log_file: Path, env: dict, timeout: float) -> dict:
     """Run argv (output to log_file): {"error": "" or a line, "wall_s", "cpu_s", "peak_mb"},
-    CPU and peak resident memory from the kernel's account of the process (wait4)."""
+    CPU from the kernel's account of the process (wait4), peak resident memory from its
+    /proc/<pid>/status VmHWM read every POLL_S while it runs. (wait4's ru_maxrss is not
+    used for memory: Linux folds the forking parent's resident size into it at exec, so a
+    child of a 1 GB test process "peaked" at 1.1 GB while holding 200 MB.)"""
     with open(log_file, "a") as lf:
         lf.write(f"$ {shlex.join(argv)}\n")
         lf.flush()
@@ -128,6 +131,10 @@ def timed_command(argv: list[str], log_file: Path, env: dict, timeout: float) ->
         proc = subprocess.Popen(argv, stdout=lf, stderr=subprocess.STDOUT, env=env)
         timer = threading.Timer(timeout, proc.kill)
         timer.start()
+        done = threading.Event()
+        hwm = [0.0]  # MB, the highest VmHWM read
+        watch = threading.Thread(target=_watch_hwm, args=(proc.pid, done, hwm), daemon=True)
+        watch.start()
         try:
             _, status, ru = os.wait4(proc.pid, 0)
         except BaseException:  # interrupted: the run does not outlive the bench
@@ -136,6 +143,8 @@ def timed_command(argv: list[str], log_file: Path, env: dict, timeout: float) ->
             raise
         finally:
             timer.cancel()
+            done.set()
+            watch.join()
         wall = time.perf_counter() - t0
     proc.returncode = rc = os.waitstatus_to_exitcode(status)
     err = ""
@@ -146,8 +155,33 @@ def timed_command(argv: list[str], log_file: Path, env: dict, timeout: float) ->
         "error": err[:200],
         "wall_s": wall,
         "cpu_s": ru.ru_utime + ru.ru_stime,
-        "peak_mb": ru.ru_maxrss / 1024.0,  # Linux: KB
+        "peak_mb": hwm[0] or None,  # None: the run ended before a first reading
     }
+
+
+POLL_S = 0.05  # seconds between readings of a timed command's peak memory
+
+
+def _watch_hwm(pid: int, done: threading.Event, hwm: list[float]) -> None:
+    """Keep hwm[0] at the highest VmHWM (MB) of process `pid` until `done` or its end. The
+    first reading may still be the forking parent's (before exec): VmHWM only rises, so a
+    reading is kept once the process runs its own program (its exe differs from ours)."""
+    ours = os.readlink("/proc/self/exe")
+    while not done.is_set():
+        try:
+            if os.readlink(f"/proc/{pid}/exe") != ours or _cmdline(pid) != _cmdline(os.getpid()):
+                with open(f"/proc/{pid}/status") as f:
+                    for line in f:
+                        if line.startswith("VmHWM:"):
+                            hwm[0] = max(hwm[0], int(line.split()[1]) / 1024.0)
+        except OSError:  # ended (or a zombie without its status lines)
+            pass
+        done.wait(POLL_S)
+
+
+def _cmdline(pid: int) -> bytes:
+    with open(f"/proc/{pid}/cmdline", "rb") as f:
+        return f.read()
 
 
 def stage_peaks(run_dir: Path) -> dict[str, float]:
