@@ -20,6 +20,7 @@ import numpy as np
 
 from stages.common.camera import depth_at, depth_to_points
 from stages.common.errors import BlunfError
+from stages.common.progress import track
 
 
 def consistent_depth(
@@ -60,7 +61,7 @@ def consistent_depth(
     order = overlap_order(depths, Ks, poses, refs=refs)
     out: list[np.ndarray] = []
     total = kept = 0
-    for i in range(n):
+    for i in track(range(n), "depth check", n, "view"):
         pts, flat = depth_to_points(depths[i], Ks[i], poses[i])
         agree = np.zeros(len(pts), np.int32)
         through = np.zeros(len(pts), np.int32)
