@@ -29,6 +29,7 @@ import argparse
 import glob
 import json
 import logging
+import subprocess
 import sys
 import tempfile
 import time
@@ -77,11 +78,12 @@ def stripped_copy(src: Path, out: Path, sensor: bool) -> Path:
 
 
 def run_plan(capture: Path, out: Path, args: list[str]) -> float:
-    """`blunf run capture --out out args...`; returns the seconds it took."""
-    from pipeline.cli import main
-
+    """`blunf run capture --out out args...`; returns the seconds it took. The command runs
+    as a child process (`python -m pipeline`): pipeline.cli reaches this module through
+    `blunf bench --targets`, so importing the CLI here would close a circle."""
     t = time.perf_counter()
-    rc = main(["run", str(capture), "--out", str(out), *args])
+    cmd = [sys.executable, "-m", "pipeline", "run", str(capture), "--out", str(out), *args]
+    rc = subprocess.run(cmd, check=False).returncode
     if rc != 0:
         raise BlunfError(f"{out}: blunf run failed (exit code {rc}); see its report.json")
     return time.perf_counter() - t
