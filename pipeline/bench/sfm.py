@@ -21,7 +21,6 @@ import argparse
 import logging
 import os
 import shutil
-import statistics
 import sys
 import tempfile
 import time
@@ -33,6 +32,7 @@ from pathlib import Path
 import numpy as np  # noqa: I001  (numpy must be loaded before pycolmap, see stages/__init__.py)
 import pycolmap
 
+from pipeline.bench.target_runs import med
 from pipeline.config import load_config
 from stages.common.capture import Capture
 from stages.common.errors import BlunfError
@@ -125,11 +125,6 @@ def _timed(fn: Callable[[], tuple[Poses, dict]], gt: Poses) -> dict:
     return {"wall_s": wall, "cpu_s": cpu, **pose_metrics(poses, gt), "facts": facts}
 
 
-def _median(runs: list[dict], key: str) -> float | None:
-    vals = [r[key] for r in runs if r[key] is not None]
-    return statistics.median(vals) if vals else None
-
-
 def _ratio(a: float | None, b: float | None) -> float | None:
     return a / b if a is not None and b is not None and b > 0 else None
 
@@ -175,10 +170,10 @@ def compare(
                 runs[who].append(res)
     out: dict = {"capture": str(capture), "frames": len(gt), "threads": threads, "sets": [*sets]}
     for who in ("ours", "ref"):
-        out[f"{who}_s"] = _median(runs[who], "wall_s")
-        out[f"{who}_cpu_s"] = _median(runs[who], "cpu_s")
-        out[f"{who}_ate_m"] = _median(runs[who], "ate_rmse_m")
-        out[f"{who}_registered"] = _median(runs[who], "registered")
+        out[f"{who}_s"] = med([r["wall_s"] for r in runs[who]])
+        out[f"{who}_cpu_s"] = med([r["cpu_s"] for r in runs[who]])
+        out[f"{who}_ate_m"] = med([r["ate_rmse_m"] for r in runs[who]])
+        out[f"{who}_registered"] = med([r["registered"] for r in runs[who]])
     out["total"] = len(gt)
     out["ratio_s"] = _ratio(out["ours_s"], out["ref_s"])
     out["ratio_cpu"] = _ratio(out["ours_cpu_s"], out["ref_cpu_s"])

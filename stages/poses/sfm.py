@@ -66,8 +66,8 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
     clock = [(time.perf_counter(), time.process_time())]  # (wall, CPU of all threads)
     with _colmap_log_level():  # pycolmap extracts and matches in one call each: elapsed only
         with progress("sfm extract"):
-            facts["camera"] = _extract(sift_cfg, seen, names, db, img_dir, threads)
-            facts["sift_first_octave"] = first_octave(sift_cfg, seen)
+            facts["sift_first_octave"] = octave = first_octave(sift_cfg, seen)
+            facts["camera"] = _extract(sift_cfg, octave, seen, names, db, img_dir, threads)
         clock.append((time.perf_counter(), time.process_time()))
         with progress("sfm match"):
             facts["matching"], facts["matching_detail"] = _match(cfg, db, n, threads)
@@ -203,19 +203,21 @@ def _colmap_camera(intr: Intrinsics) -> tuple[str, str]:
 
 def _extract(
     cfg: PosesConfig,
+    octave: int,
     frames: tuple[Frame, ...],
     names: list[str],
     db: Path,
     img_dir: Path,
     threads: int,
 ) -> dict:
-    """SIFT features into the database; one fixed camera per distinct intrinsics."""
+    """SIFT features into the database, from SIFT's first `octave` (first_octave); one fixed
+    camera per distinct intrinsics."""
     eo = pycolmap.FeatureExtractionOptions()
     eo.num_threads = threads
     eo.use_gpu = False
     eo.max_image_size = cfg.max_image_size
     eo.sift.max_num_features = cfg.max_features
-    eo.sift.first_octave = first_octave(cfg, frames)
+    eo.sift.first_octave = octave
     log.info(
         "sfm: SIFT on %d images (%d threads, first octave %d)",
         len(frames),
