@@ -19,7 +19,8 @@ The targets, each a row or two of DIR/targets.md (and .csv, .json):
      the run's process)
 Whole runs are the `blunf run` command itself in a child process, timed from its start
 (interpreter and imports included: what a user waits for), with its CPU (all threads, and the
-processes it waited for) and peak memory from the kernel (wait4); each repeat starts from an
+processes it waited for) from the kernel (wait4) and its peak memory from its own VmHWM
+(target_runs.timed_command says why not wait4's); each repeat starts from an
 empty run folder. Runs use the threads the command picks for itself (the free cores) unless
 --threads is given. Figures are medians over the repeats.
 --quick: one repeat, and 30 of the kitchen's 100 views for targets 2 and 6 (the rows say so).
