@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 
 import numpy as np
 import torch
@@ -59,10 +59,15 @@ def build_model(
         # cells round the tracks, for good; updates add the cells the field fills in
         # between (starting from a full grid costs hundreds of samples a ray for minutes)
         dilate = max(dilate, SPARSE_DILATE)
-    n_pts = 0
-    for pts in seeds:
-        occ.seed(torch.from_numpy(pts.astype(np.float32)), SEED_FACTOR * thr, dilate)
-        n_pts += len(pts)
+    counted = [0]
+
+    def point_sets() -> Iterator[Tensor]:
+        for pts in seeds:
+            counted[0] += len(pts)
+            yield torch.from_numpy(pts.astype(np.float32))
+
+    occ.seed(point_sets(), SEED_FACTOR * thr, dilate)
+    n_pts = counted[0]
     if n_pts:
         n = int(occ.binary.sum())
         log.info("nerf: occupancy %s seeded from %d depth points: %d cells", occ.shape, n_pts, n)

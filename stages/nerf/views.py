@@ -3,14 +3,14 @@
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
 from scipy import ndimage
 from torch import Tensor
 
-from stages.common.camera import depth_to_points
+from stages.common.camera import Intrinsics, depth_to_points
 from stages.common.capture import UNKNOWN, Capture, heldout_views
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth, read_image, read_label
@@ -60,6 +60,44 @@ def load_views(cap: Capture, use_labels: bool) -> Views:
             lab = torch.from_numpy(lut[np.clip(lm, 0, 65535)].reshape(-1))
         v.label.append(lab)
     return v
+
+
+def binned(cap: Capture, views: Views, k: int) -> tuple[Capture, Views]:
+    """`cap` and its `views` at 1/k resolution, k x k pixel blocks (rows and columns beyond
+    the whole blocks dropped, as the stereo sweep bins them): a block's mean colour, the
+    nearest of its depth readings (0 = none), its centre pixel's label; each frame's
+    intrinsics those of the binned image (stereo.scaled_K)."""
+    frames, out = [], Views(list(views.stems), [], [], [], views.class_ids)
+    for i, f in enumerate(cap.frames):
+        k_ = f.intrinsics
+        h, w = k_.height // k, k_.width // k
+        if h < 1 or w < 1:
+            raise BlunfError(f"{f.image}: {k_.width}x{k_.height} has no {k}x{k} block")
+
+        hw = (k_.height, k_.width)
+        out.rgb.append(_blocks(views.rgb[i], hw, k).mean(dim=(1, 3)).reshape(-1, 3))
+        d = views.depth[i]
+        if d is not None:
+            b = _blocks(d, hw, k)
+            near = torch.where(b > 0, b, torch.inf).amin(dim=(1, 3)).reshape(-1)
+            d = torch.where(torch.isfinite(near), near, 0.0)
+        out.depth.append(d)
+        lab = views.label[i]
+        if lab is not None:
+            lab = _blocks(lab, hw, k)[:, k // 2, :, k // 2, 0].reshape(-1)
+        out.label.append(lab)
+        intr = Intrinsics(
+            k_.fx / k, k_.fy / k, (k_.cx + 0.5) / k - 0.5, (k_.cy + 0.5) / k - 0.5, w, h, k_.dist
+        )
+        frames.append(replace(f, intrinsics=intr))
+    return cap.with_frames(frames), out
+
+
+def _blocks(t: Tensor, hw: tuple[int, int], k: int) -> Tensor:
+    """A view's flat pixels [H * W, ...] as whole k x k blocks [H // k, k, W // k, k, C]."""
+    h, w = hw[0] // k, hw[1] // k
+    img = t.view(hw[0], hw[1], -1)[: h * k, : w * k]
+    return img.reshape(h, k, w, k, img.shape[-1])
 
 
 def split(n: int, every: int) -> tuple[list[int], list[int]]:

@@ -207,6 +207,27 @@ def test_occupancy_skipping_matches_full_marching():
         torch.testing.assert_close(got[k], ref[k], atol=1e-4, rtol=0)
 
 
+def test_seeding_several_sets_and_refreshing_the_occupancy():
+    lo, hi = torch.zeros(3), torch.ones(3)
+    a, b = torch.tensor([[0.05, 0.05, 0.05]]), torch.tensor([[0.95, 0.95, 0.95]])
+    one, apart = OccupancyGrid(lo, hi, (10, 10, 10)), OccupancyGrid(lo, hi, (10, 10, 10))
+    one.seed([a, b], 5.0, 1)  # the sets' cells dilated once: as if seeded one at a time
+    apart.seed(a, 5.0, 1)
+    apart.seed(b, 5.0, 1)
+    assert torch.equal(one.binary, apart.binary) and int(one.binary.sum()) == 2 * 8
+    assert torch.equal(one.keep, one.binary) and torch.equal(one.ema, apart.ema)
+    # cells the updates added: the refresh drops those where the field is now empty and
+    # keeps those where it is dense; seeded cells stay, free cells stay free
+    one.binary[5, 5, 5] = one.binary[5, 5, 6] = True
+
+    def density(x: torch.Tensor) -> torch.Tensor:  # dense only in cell (5, 5, 6)
+        return torch.where((x[:, 2] >= 0.6) & (x[:, 2] < 0.7), 10.0, 0.0)
+
+    assert one.refresh(density, 1.0) == 2 * 8 + 1
+    assert one.binary[5, 5, 6] and not one.binary[5, 5, 5] and one.binary[0, 0, 0]
+    assert not one.binary[3, 3, 3] and bool(one.coarse.any())
+
+
 def test_edit_hook_reveals_what_is_behind():
     # A wall at x in [2, 2.2) and a far wall at x >= 4. Zeroing the density inside the box
     # x in [1.5, 3] (an edit wrapping density_fn) removes the near wall: the depth goes from

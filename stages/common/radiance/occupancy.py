@@ -9,7 +9,7 @@ cells it fills are added. `Occupancy` is what the marcher asks of such a structu
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any, Protocol
 
 import torch
@@ -134,12 +134,16 @@ class OccupancyGrid(nn.Module):
         self.binary.fill_(True)
         self._changed()
 
-    def seed(self, points: Tensor, value: float, dilate: int) -> int:
-        """Mark the cells holding `points` [N, 3] (and `dilate` cells around) as occupied for
-        good, with estimate `value`; repeated calls add up. Returns the occupied cells."""
-        flat, inside = self._cell(points)
+    def seed(self, points: Tensor | Iterable[Tensor], value: float, dilate: int) -> int:
+        """Mark the cells holding `points` ([N, 3], or several such sets: one per depth map)
+        and `dilate` cells around as occupied for good, with estimate `value`; repeated calls
+        add up. Returns the occupied cells. The sets' cells are gathered first and dilated
+        once: dilating each set on its own cost the 7-Scenes kitchen (88 stereo depth maps)
+        7.5 s of max-pooling for the same cells."""
         mark = torch.zeros(self.ema.numel())
-        mark[flat[inside]] = 1.0
+        for pts in [points] if isinstance(points, Tensor) else points:
+            flat, inside = self._cell(pts)
+            mark[flat[inside]] = 1.0
         mark = mark.view(1, 1, *self.shape)
         if dilate > 0:
             mark = F.max_pool3d(mark, 2 * dilate + 1, stride=1, padding=dilate)
@@ -154,14 +158,15 @@ class OccupancyGrid(nn.Module):
     def refresh(
         self, density_fn: Callable[[Tensor], Tensor], threshold: float, points: int = 4
     ) -> int:
-        """Re-measure every cell at `points` jittered points (seeded) and drop the occupied
-        cells whose highest density is below the threshold (seeded ones stay): the running
-        estimates of `update` lag behind the field, and each stale cell costs samples on every
-        ray. Never adds a cell (the field's density where no ray ever looked is noise).
-        Returns the occupied cells."""
+        """Re-measure the occupied cells at `points` jittered points (seeded) and drop those
+        whose highest density is below the threshold (seeded ones stay): the running estimates
+        of `update` lag behind the field, and each stale cell costs samples on every ray.
+        Never adds a cell (the field's density where no ray ever looked is noise), so only
+        the occupied cells not seeded are measured (the 7-Scenes kitchen from its photos:
+        48 thousand of 640 thousand). Returns the occupied cells."""
         gen = torch.Generator().manual_seed(0)
         dims = torch.tensor(self.shape)
-        idx = torch.arange(self.ema.numel())
+        idx = (self.binary & ~self.keep).view(-1).nonzero().squeeze(1)  # [C] to measure
         ijk = torch.stack(
             [idx // (dims[1] * dims[2]), (idx // dims[2]) % dims[1], idx % dims[2]], dim=-1
         )  # [C, 3]
@@ -172,8 +177,8 @@ class OccupancyGrid(nn.Module):
             for i in range(0, len(x), UPDATE_CHUNK):
                 sig = torch.nan_to_num(density_fn(x[i : i + UPDATE_CHUNK]), nan=0.0)
                 best[i : i + UPDATE_CHUNK] = torch.maximum(best[i : i + UPDATE_CHUNK], sig)
-        self.ema.copy_(best.view(self.shape))
-        self.binary.copy_((self.binary & (self.ema > threshold)) | self.keep)
+        self.ema.view(-1)[idx] = best
+        self.binary.view(-1)[idx] = best > threshold
         self._changed()
         return int(self.binary.sum())
 
