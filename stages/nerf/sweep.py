@@ -69,7 +69,8 @@ def run(cfg: NerfConfig, inputs: NerfInputs, out: Path) -> StereoOutputs:
         frames.append(replace(f, depth=path))
     facts["frames"] = len(frames)
     facts["sweep_seconds"] = round(time.perf_counter() - t0, 3)
-    fill = field_fill_needed(cfg.stereo, facts["kept"])
+    st = cfg.stereo
+    fill = field_fill_needed(st, facts["kept"])
     facts["field_fill"] = fill
     log.info(
         "nerf/stereo: depth on %.1f %% of the pixels (%.1f %% matched) in %.1f s; %s",
@@ -80,7 +81,9 @@ def run(cfg: NerfConfig, inputs: NerfInputs, out: Path) -> StereoOutputs:
     )
     if fill.startswith("field"):  # fit() keeps the stereo readings and renders the rest
         (out / "field").mkdir()
-        field = fit(cfg, cap, out / "field", dict(enumerate(depths)), facts["scale"])
+        step = replace(cfg.sampling, samples_across=st.fill_samples_across)
+        fill_cfg = replace(cfg, sampling=step)
+        field = fit(fill_cfg, cap, out / "field", dict(enumerate(depths)), facts["scale"])
         facts["field"] = read_json(field.stats)
         Capture.load(field.frames).save(outs.frames)
     else:

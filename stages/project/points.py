@@ -57,9 +57,12 @@ def run(cfg: ProjectConfig, inputs: ProjectInputs, out: Path) -> ProjectOutputs:
     held = heldout_views(len(cap.frames), cfg.holdout_every) if held_out else []
     todo = [i for i in range(len(cap.frames)) if i not in held]
 
+    stride = cfg.stride or auto_stride(cap, cfg.cell)
+
     def one(i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
         c = dict.fromkeys(counts, 0)
-        xyz, lab, inst = _frame_points(cap, cap.frames[i], cfg, labelling, ignore, origin, c)
+        f = cap.frames[i]
+        xyz, lab, inst = _frame_points(cap, f, cfg, labelling, ignore, origin, c, stride)
         return xyz, lab, inst, c
 
     # frames in parallel (image decoding and numpy release the GIL), results in frame order
@@ -111,6 +114,7 @@ def run(cfg: ProjectConfig, inputs: ProjectInputs, out: Path) -> ProjectOutputs:
         "labelling": labelling,
         "instances": int(len(np.unique(instance[instance > 0]))),
         "heldout_views": len(held),
+        "stride": stride,
         **counts,
         "grid_shape": list(grid.shape),
         "cell": grid.cell,
@@ -125,6 +129,26 @@ def run(cfg: ProjectConfig, inputs: ProjectInputs, out: Path) -> ProjectOutputs:
         grid.shape[0],
     )
     return outs
+
+
+def auto_stride(cap: Capture, cell: float, frames: int = 8) -> int:
+    """The pixel stride whose samples at the capture's median depth (over up to `frames`
+    frames spread through it) lie nearest `cell` apart: round(cell * f / depth), at least 1.
+    Each view then puts about one sample in each plan cell it sees, and the many views that
+    see a cell make its vote."""
+    pick = np.unique(np.linspace(0, len(cap.frames) - 1, min(frames, len(cap.frames))).round())
+    zs, fs = [], []
+    for i in pick.astype(int):
+        f = cap.frames[i]
+        if f.depth is None:
+            continue
+        d = read_depth(f.depth, cap.depth_scale, cap.depth_invalid)
+        if (d > 0).any():
+            zs.append(float(np.median(d[d > 0])))
+            fs.append(f.intrinsics.fx * d.shape[1] / f.intrinsics.width)
+    if not zs:
+        return 1
+    return max(1, round(cell * float(np.median(fs)) / float(np.median(zs))))
 
 
 def plan_bounds(xy: np.ndarray, cfg: ProjectConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -150,6 +174,7 @@ def _frame_points(
     ignore: np.ndarray,
     origin: np.ndarray,
     counts: dict,
+    stride: int,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Points [N, 3] (float32 offsets from `origin`), labels [N] (int64; by height without
     labels) and instances [N] (int64; zeros without an instance map) of one frame."""
@@ -165,7 +190,7 @@ def _frame_points(
             f"{f.depth}: depth is {depth.shape[1]}x{depth.shape[0]} but the image "
             f"{f.image.name} is {w}x{h}"
         )
-    s = cfg.stride
+    s = stride
     uv = pixel_grid(w, h, s).reshape(-1, 2)  # [N, 2]
     d = depth[s // 2 :: s, s // 2 :: s].reshape(-1)  # [N]
     keep = d > 0
@@ -273,8 +298,8 @@ def _label_classes(cap: Capture, label: np.ndarray) -> dict[int, str]:
 def _check(cfg: ProjectConfig) -> None:
     if cfg.holdout_every < 0 or cfg.holdout_every == 1:
         raise BlunfError(f"project.holdout_every must be 0 (off) or >= 2, got {cfg.holdout_every}")
-    if cfg.stride < 1:
-        raise BlunfError(f"project.stride must be >= 1, got {cfg.stride}")
+    if cfg.stride < 0:
+        raise BlunfError(f"project.stride must be >= 1, or 0 (auto), got {cfg.stride}")
     if not cfg.cell > 0:
         raise BlunfError(f"project.cell must be > 0 metres, got {cfg.cell}")
     if not 0 <= cfg.bounds_pct < 50:

@@ -475,11 +475,15 @@ def test_the_fill_field_trains_and_renders_at_the_sweeps_resolution(tiny_room, t
     cap = read_layout(tiny_room)
     sparse = _sparse_copy(cap, tmp_path / "sparse", keep=0.01)
     cfg = tune(FAST, train__max_steps=3 * DENSE_STEPS, depth_render_scale=1, stereo__scale=2)
-    c = tune(cfg, stereo__field_fill=True, stereo__check=0)
+    c = tune(cfg, stereo__field_fill=True, stereo__check=0, stereo__fill_samples_across=200)
     outs = IMPLS["stereo"](c, NerfInputs(_frames(sparse, tmp_path)), tmp_path)
     st = read_json(outs.stats)
     assert st["scale"] == 2 and st["field"]["train_scale"] == 2
     assert st["field"]["depth_render_scale"] == 2
+    # ... and marches at its own step (nerf.stereo.fill_samples_across), not the fields' one
+    diag = float(np.linalg.norm(np.subtract(*st["field"]["box"][::-1])))
+    assert st["field"]["step_m"] == pytest.approx(diag / c.stereo.fill_samples_across, rel=1e-3)
+    assert c.stereo.fill_samples_across != c.sampling.samples_across
     got = Capture.load(outs.frames)
     assert [f.intrinsics for f in got.frames] == [f.intrinsics for f in cap.frames]
     held = heldout_views(len(cap.frames), c.train.holdout_every)
