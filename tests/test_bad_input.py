@@ -138,7 +138,7 @@ def test_bad_input_subprocess(broken):
 def test_failed_stage_then_good_config_reuses_finished_stages(tiny_room, tmp_path, capsys):
     """A failure inside a stage keeps what finished before it; the fixed rerun reuses that."""
     out = tmp_path / "run"
-    bad = ["--set", "project.stride=0"]  # refused by the project stage, after fusion
+    bad = ["--set", "project.stride=-1"]  # refused by the project stage, after fusion
     assert main(["run", str(tiny_room), "--out", str(out), *FAST, *bad]) == 2
     check_error(2, capsys.readouterr().err, "project.stride", subprocess_run=False)
     assert_cache_clean(out)

@@ -250,3 +250,18 @@ def test_bounds_of_the_points_are_recorded_with_the_grid(tmp_path):
     # origin floor((-0.75 - 0.3) / 0.25) * 0.25 = -1.25 and floor(0.45 / 0.25) * 0.25 = 0.25;
     # W = ceil((3.05 + 1.25) / 0.25) = 18 (17.2), H = ceil((3.55 - 0.25) / 0.25) = 14 (13.2)
     assert grid.origin == (-1.25, 0.25) and grid.shape == (14, 18)
+
+
+def test_auto_stride_puts_about_one_sample_of_each_view_in_a_plan_cell(tmp_path):
+    # fx = 4 px at 2 m: neighbouring pixels land 0.5 m apart on the floor, so a 1 m cell
+    # takes every 2nd pixel and a 2 m cell every 4th; a 0.25 m cell every pixel (at least 1)
+    frames = _capture(tmp_path, np.full((6, 8), 2.0), None)
+    for cell, stride in ((1.0, 2), (2.0, 4), (0.25, 1)):
+        folder = tmp_path / f"c{cell}"
+        folder.mkdir()
+        outs, out = _run(folder, frames, stride=0, cell=cell, pad=0.1, bounds_pct=0.0)
+        facts = json.loads((out / "project.json").read_text())
+        assert facts["stride"] == stride
+        assert facts["sampled"] == len(range(stride // 2, 6, stride)) * len(
+            range(stride // 2, 8, stride)
+        )
