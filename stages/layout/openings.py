@@ -7,6 +7,8 @@ sides of it at their heights."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import open3d as o3d
 
@@ -143,13 +145,12 @@ def _jambs(
     return out[0], out[1]
 
 
-def enclosed(scene: o3d.t.geometry.RaycastingScene, xy: np.ndarray, z: float = 1.0) -> np.ndarray:
-    """Whether the mesh's walls enclose each floor point [N, 2] -> [N] bool: at least ENCLOSED
-    of AROUND horizontal rays at height z meet a surface from its front (a fused surface faces
-    the views that saw it, the room's inside). From outside the walls the rays meet their
-    backs or nothing; through a doorway a few of them leave the room."""
-    if len(xy) == 0:
-        return np.zeros(0, bool)
+def _around(
+    scene: o3d.t.geometry.RaycastingScene, xy: np.ndarray, z: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """AROUND horizontal rays at height z cast round each point [N, 2]: the depth of the
+    first surface met [N, AROUND] (inf: none), whether it was met from its front [N,
+    AROUND], and the rays' directions [AROUND, 3]."""
     a = np.arange(AROUND) * 2 * np.pi / AROUND
     dirs = np.stack([np.cos(a), np.sin(a), np.zeros(AROUND)], 1)
     o = np.concatenate([xy, np.full((len(xy), 1), z)], 1)
@@ -157,7 +158,37 @@ def enclosed(scene: o3d.t.geometry.RaycastingScene, xy: np.ndarray, z: float = 1
     hit = scene.cast_rays(_tensor(rays.astype(np.float32)))
     t = hit["t_hit"].numpy().reshape(-1, AROUND)
     facing = (hit["primitive_normals"].numpy().reshape(-1, AROUND, 3) * dirs).sum(-1) < 0
+    return t, facing, dirs
+
+
+def enclosed(scene: o3d.t.geometry.RaycastingScene, xy: np.ndarray, z: float = 1.0) -> np.ndarray:
+    """Whether the mesh's walls enclose each floor point [N, 2] -> [N] bool: at least ENCLOSED
+    of AROUND horizontal rays at height z meet a surface from its front (a fused surface faces
+    the views that saw it, the room's inside). From outside the walls the rays meet their
+    backs or nothing; through a doorway a few of them leave the room."""
+    if len(xy) == 0:
+        return np.zeros(0, bool)
+    t, facing, _ = _around(scene, xy, z)
     return (np.isfinite(t) & facing).mean(1) >= ENCLOSED
+
+
+def behind_walls(
+    scene: o3d.t.geometry.RaycastingScene,
+    xy: np.ndarray,
+    is_wall: Callable[[np.ndarray], np.ndarray],
+    z: float = 1.0,
+) -> np.ndarray:
+    """How many of AROUND horizontal rays at height z cast round each point [N, 2] meet a
+    surface from its back where the plan has a wall (`is_wall`: world xy [M, 2] -> [M] bool)
+    -> [N] int. A point outside the walls sees their backs; one behind furniture that stands
+    against an unseen stretch of wall sees the furniture's back and nothing, not a wall."""
+    if len(xy) == 0:
+        return np.zeros(0, np.int64)
+    t, facing, dirs = _around(scene, xy, z)
+    back = np.isfinite(t) & ~facing
+    at = xy[:, None, :] + np.where(back, t, 0.0)[..., None] * dirs[None, :, :2]  # [N, A, 2]
+    wall = is_wall(at.reshape(-1, 2)).reshape(back.shape)
+    return (back & wall).sum(1)
 
 
 def ceiling(scene: o3d.t.geometry.RaycastingScene, floor_xy: np.ndarray) -> float | None:

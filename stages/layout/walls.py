@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 import trimesh
+from scipy import ndimage as ndi
 from shapely.errors import GEOSException
 
 from stages.common.blueprint import Blueprint
@@ -19,12 +20,20 @@ from stages.common.errors import BlunfError
 from stages.common.io import write_json
 from stages.layout.config import LayoutConfig, LayoutInputs, LayoutOutputs
 from stages.layout.draw import write_dxf, write_svg
-from stages.layout.openings import ceiling, enclosed, heights, mesh_openings, scene_of
+from stages.layout.openings import (
+    behind_walls,
+    ceiling,
+    enclosed,
+    heights,
+    mesh_openings,
+    scene_of,
+)
 from stages.layout.plan import architecture, in_rooms, objects
 
 log = logging.getLogger(__name__)
 
 FLOOR_BAND = 0.15  # metres: floor cells need a surface of the mesh within this of z = 0
+WALL_NEAR = 3  # cells: a surface met this close to the plan's wall cells is a wall's
 
 
 def build_plan(bp: Blueprint, cfg: LayoutConfig, mesh: Path | None = None) -> dict:
@@ -61,11 +70,16 @@ def build_plan(bp: Blueprint, cfg: LayoutConfig, mesh: Path | None = None) -> di
 def seen_floor(bp: Blueprint, scene: o3d.t.geometry.RaycastingScene) -> Blueprint:
     """The blueprint with its floor cells that have no surface of the mesh at floor level
     (a ray cast down from FLOOR_BAND meets nothing within 2 x FLOOR_BAND) made unknown when
-    they lie outside the mesh's walls (openings.enclosed): the plan's field fills ground no
-    view saw outside an L's walls and behind a doorway, which is no room. Unseen floor the
-    walls enclose stays floor: the shadow of a bed or a chair against a wall (measured up to
+    they lie outside the mesh's walls: not enclosed by them (openings.enclosed) and with a
+    wall's back in view (openings.behind_walls: a ray meets a surface from behind within
+    WALL_NEAR cells of the plan's wall cells). The plan's field fills ground no view saw
+    outside an L's walls and behind a doorway, which is no room. Unseen floor the walls
+    enclose stays floor: the shadow of a bed or a chair against a wall (measured up to
     1.5 x 1 m in a rectangular room, which bent its outline round the shadow: corner F1 0.35
-    against 1.0)."""
+    against 1.0). So does unseen floor that sees no wall's back: behind and beside a tall
+    cabinet before a stretch of wall stereo did not fuse, whose rays meet the cabinet's back
+    or nothing (photos alone, rectangle seed 5: the outline stepped 0.56 m inside the north
+    wall round it, corner F1 0.6 against 1.0)."""
     fid = [k for k, v in bp.classes.items() if v == "floor"]
     floor = np.isin(bp.labels, fid)
     if not floor.any():
@@ -79,6 +93,14 @@ def seen_floor(bp: Blueprint, scene: o3d.t.geometry.RaycastingScene) -> Blueprin
     rows, cols = np.nonzero(floor)
     gone = np.nonzero(~(t <= 2 * FLOOR_BAND))[0]
     gone = gone[~enclosed(scene, xy[gone])]
+    wid = [k for k, v in bp.classes.items() if v == "wall"]
+    near = ndi.binary_dilation(np.isin(bp.labels, wid), iterations=WALL_NEAR)
+
+    def is_wall(pts: np.ndarray) -> np.ndarray:
+        row, col, inside = bp.grid.cell_of(pts)
+        return near[row, col] & inside
+
+    gone = gone[behind_walls(scene, xy[gone], is_wall) > 0]
     labels[rows[gone], cols[gone]] = UNKNOWN
     return replace(bp, labels=labels)
 

@@ -146,6 +146,45 @@ def test_floor_no_view_saw_inside_the_walls_is_the_room_outside_them_is_none(tmp
     assert s["wall_length_err_m"] <= 0.02, s
 
 
+def test_floor_behind_a_tall_cabinet_before_a_wall_no_view_fused_is_the_room(tmp_path):
+    # a 4 x 3 m room whose north wall the views fused only east of x = 2.4 (photos alone: a
+    # plain stretch behind a cabinet); the cabinet, 1.9 m tall, stands 10 cm off that wall
+    # from x = 0.8 to 1.9, its front and sides fused, its back not; no floor was fused behind
+    # it, under it or west of it up to the wall. Rays from there meet the cabinet's back and
+    # nothing, no wall's back: the room, not ground outside its walls
+    t, z = 0.12, 1.9
+    m = _Mesh()
+    m.wall((0.0, 0.0), (4.0, 0.0))
+    m.wall((4.0, 0.0), (4.0, 3.0))
+    m.wall((4.0, 3.0), (2.4, 3.0))
+    m.wall((0.0, 3.0), (0.0, 0.0))
+    m.wall((0.8, 2.4), (1.9, 2.4), 0.0, z)  # the cabinet's front, facing the room
+    m.wall((0.8, 2.9), (0.8, 2.4), 0.0, z)  # its west side
+    m.wall((1.9, 2.4), (1.9, 2.9), 0.0, z)  # its east side
+    m.floor(0.0, 0.0, 4.0, 2.2)
+    m.floor(2.4, 2.2, 4.0, 3.0)
+    verts, tris = m.arrays()
+    _write_ply(tmp_path / "mesh.ply", verts, tris)
+    # the plan: the walls all round (the field draws the north wall on), floor under and
+    # behind the cabinet (the floor seen through its unfused front), the front as object
+    bp = _plan(
+        [
+            (box(-t, -t, 4 + t, 3 + t), 1),
+            (box(0, 0, 4, 3), 0),
+            (box(0.8, 2.36, 1.9, 2.44), 2),
+        ],
+        {0: "floor", 1: "wall", 2: "object"},
+    )
+    plan = build_plan(bp, LayoutConfig(face_offset=0.0), tmp_path / "mesh.ply")
+    gt = {"rooms": [{"polygon": [[0, 0], [4, 0], [4, 3], [0, 3]]}], "openings": []}
+    s = score_layout(plan, gt)
+    # before, the floor there was dropped (a quarter of the rays met nothing): the outline
+    # stepped round it 0.8 m inside the north wall
+    assert len(plan["rooms"]) == 1, plan["rooms"]
+    assert s["corner_f1"] == s["angle_f1"] == 1.0, s
+    assert s["wall_length_err_m"] <= 0.02, s
+
+
 def test_a_closed_space_of_objects_is_no_room():
     # east of a 4 x 3 m room, a 1.5 x 3 m closed space labelled object with a 0.5 x 0.5 m
     # speck of floor (stereo's noise behind a photos-only plan's walls)
