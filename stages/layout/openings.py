@@ -7,6 +7,8 @@ sides of it at their heights."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import open3d as o3d
 
@@ -143,13 +145,12 @@ def _jambs(
     return out[0], out[1]
 
 
-def enclosed(scene: o3d.t.geometry.RaycastingScene, xy: np.ndarray, z: float = 1.0) -> np.ndarray:
-    """Whether the mesh's walls enclose each floor point [N, 2] -> [N] bool: at least ENCLOSED
-    of AROUND horizontal rays at height z meet a surface from its front (a fused surface faces
-    the views that saw it, the room's inside). From outside the walls the rays meet their
-    backs or nothing; through a doorway a few of them leave the room."""
-    if len(xy) == 0:
-        return np.zeros(0, bool)
+def _around(
+    scene: o3d.t.geometry.RaycastingScene, xy: np.ndarray, z: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """AROUND horizontal rays at height z cast round each point [N, 2]: the depth of the
+    first surface met [N, AROUND] (inf: none), whether it was met from its front [N,
+    AROUND], and the rays' directions [AROUND, 3]."""
     a = np.arange(AROUND) * 2 * np.pi / AROUND
     dirs = np.stack([np.cos(a), np.sin(a), np.zeros(AROUND)], 1)
     o = np.concatenate([xy, np.full((len(xy), 1), z)], 1)
@@ -157,7 +158,37 @@ def enclosed(scene: o3d.t.geometry.RaycastingScene, xy: np.ndarray, z: float = 1
     hit = scene.cast_rays(_tensor(rays.astype(np.float32)))
     t = hit["t_hit"].numpy().reshape(-1, AROUND)
     facing = (hit["primitive_normals"].numpy().reshape(-1, AROUND, 3) * dirs).sum(-1) < 0
+    return t, facing, dirs
+
+
+def enclosed(scene: o3d.t.geometry.RaycastingScene, xy: np.ndarray, z: float = 1.0) -> np.ndarray:
+    """Whether the mesh's walls enclose each floor point [N, 2] -> [N] bool: at least ENCLOSED
+    of AROUND horizontal rays at height z meet a surface from its front (a fused surface faces
+    the views that saw it, the room's inside). From outside the walls the rays meet their
+    backs or nothing; through a doorway a few of them leave the room."""
+    if len(xy) == 0:
+        return np.zeros(0, bool)
+    t, facing, _ = _around(scene, xy, z)
     return (np.isfinite(t) & facing).mean(1) >= ENCLOSED
+
+
+def behind_walls(
+    scene: o3d.t.geometry.RaycastingScene,
+    xy: np.ndarray,
+    is_wall: Callable[[np.ndarray], np.ndarray],
+    z: float = 1.0,
+) -> np.ndarray:
+    """How many of AROUND horizontal rays at height z cast round each point [N, 2] meet a
+    surface from its back where the plan has a wall (`is_wall`: world xy [M, 2] -> [M] bool)
+    -> [N] int. A point outside the walls sees their backs; one behind furniture that stands
+    against an unseen stretch of wall sees the furniture's back and nothing, not a wall."""
+    if len(xy) == 0:
+        return np.zeros(0, np.int64)
+    t, facing, dirs = _around(scene, xy, z)
+    back = np.isfinite(t) & ~facing
+    at = xy[:, None, :] + np.where(back, t, 0.0)[..., None] * dirs[None, :, :2]  # [N, A, 2]
+    wall = is_wall(at.reshape(-1, 2)).reshape(back.shape)
+    return (back & wall).sum(1)
 
 
 def ceiling(scene: o3d.t.geometry.RaycastingScene, floor_xy: np.ndarray) -> float | None:
@@ -187,4 +218,41 @@ def heights(
         t = scene.cast_rays(_tensor(rays.astype(np.float32)))["t_hit"].numpy()
         t = t[np.isfinite(t)]
         out.append(round(float(np.percentile(z0 - t, 98)), 4) if len(t) else None)
+    return out
+
+
+FACE_HEIGHTS = (0.3, 0.6, 1.0, 1.3, 1.6)  # metres: where a wall's face is read in the mesh
+FACE_REACH = 0.06  # metres: a face read this far either side of the traced one moves it
+FACE_SUPPORT = 0.3  # share of the rays that must meet the face within FACE_REACH
+
+
+def face_offsets(scene: o3d.t.geometry.RaycastingScene, walls: list[dict]) -> np.ndarray:
+    """How far each wall's face lies in the mesh beyond the traced one [W] (metres, along
+    its outward normal; 0 where too few rays meet a surface within FACE_REACH): the median
+    depth of the first surfaces met from inside by rays out through its inner 80 % at
+    FACE_HEIGHTS, every BIN. The traced outline follows the plan's 2 cm cells and the
+    field's boundary; the mesh's face is measured."""
+    out = np.zeros(len(walls))
+    for wi, w in enumerate(walls):
+        a, b = np.asarray(w["start"], np.float64), np.asarray(w["end"], np.float64)
+        length = float(np.linalg.norm(b - a))
+        if length < 4 * BIN:
+            continue
+        d = (b - a) / length
+        n = np.array([d[1], -d[0]])
+        s = np.arange(0.1 * length, 0.9 * length, BIN)
+        back = FACE_REACH + INSET  # rays start FACE_REACH inside the face
+        xy = a + s[:, None] * d - n * back
+        rays = np.concatenate(
+            [
+                np.concatenate([xy, np.full((len(s), 1), h), np.tile([*n, 0.0], (len(s), 1))], 1)
+                for h in FACE_HEIGHTS
+            ]
+        ).astype(np.float32)
+        hit = scene.cast_rays(_tensor(rays))
+        t = hit["t_hit"].numpy() - back
+        facing = (hit["primitive_normals"].numpy()[:, :2] * n).sum(1) < 0
+        ok = np.isfinite(t) & (np.abs(t) <= FACE_REACH) & facing
+        if ok.mean() >= FACE_SUPPORT:
+            out[wi] = float(np.median(t[ok]))
     return out

@@ -146,6 +146,70 @@ def test_floor_no_view_saw_inside_the_walls_is_the_room_outside_them_is_none(tmp
     assert s["wall_length_err_m"] <= 0.02, s
 
 
+def test_floor_behind_a_tall_cabinet_before_a_wall_no_view_fused_is_the_room(tmp_path):
+    # a 4 x 3 m room whose north wall the views fused only east of x = 2.4 (photos alone: a
+    # plain stretch behind a cabinet); the cabinet, 1.9 m tall, stands 10 cm off that wall
+    # from x = 0.8 to 1.9, its front and sides fused, its back not; no floor was fused behind
+    # it, under it or west of it up to the wall. Rays from there meet the cabinet's back and
+    # nothing, no wall's back: the room, not ground outside its walls
+    t, z = 0.12, 1.9
+    m = _Mesh()
+    m.wall((0.0, 0.0), (4.0, 0.0))
+    m.wall((4.0, 0.0), (4.0, 3.0))
+    m.wall((4.0, 3.0), (2.4, 3.0))
+    m.wall((0.0, 3.0), (0.0, 0.0))
+    m.wall((0.8, 2.4), (1.9, 2.4), 0.0, z)  # the cabinet's front, facing the room
+    m.wall((0.8, 2.9), (0.8, 2.4), 0.0, z)  # its west side
+    m.wall((1.9, 2.4), (1.9, 2.9), 0.0, z)  # its east side
+    m.floor(0.0, 0.0, 4.0, 2.2)
+    m.floor(2.4, 2.2, 4.0, 3.0)
+    verts, tris = m.arrays()
+    _write_ply(tmp_path / "mesh.ply", verts, tris)
+    # the plan: the walls all round (the field draws the north wall on), floor under and
+    # behind the cabinet (the floor seen through its unfused front), the front as object
+    bp = _plan(
+        [
+            (box(-t, -t, 4 + t, 3 + t), 1),
+            (box(0, 0, 4, 3), 0),
+            (box(0.8, 2.36, 1.9, 2.44), 2),
+        ],
+        {0: "floor", 1: "wall", 2: "object"},
+    )
+    plan = build_plan(bp, LayoutConfig(face_offset=0.0), tmp_path / "mesh.ply")
+    gt = {"rooms": [{"polygon": [[0, 0], [4, 0], [4, 3], [0, 3]]}], "openings": []}
+    s = score_layout(plan, gt)
+    # before, the floor there was dropped (a quarter of the rays met nothing): the outline
+    # stepped round it 0.8 m inside the north wall
+    assert len(plan["rooms"]) == 1, plan["rooms"]
+    assert s["corner_f1"] == s["angle_f1"] == 1.0, s
+    assert s["wall_length_err_m"] <= 0.02, s
+
+
+def test_walls_are_drawn_on_the_mesh_faces_not_on_the_plan_cells(tmp_path):
+    # a 4 x 3 m room whose mesh has its faces where they are; the plan's walls start 4 cm
+    # inside the east and north faces and 2 cm outside the west one (the field's boundary
+    # wanders by a few cells), a sofa 30 cm off the north wall
+    t = 0.12
+    m = _room_mesh((0.0, 3.0, 0.0, 3.0))  # all the floor seen
+    m.wall((1.0, 2.4), (2.5, 2.4), 0.0, 0.8)  # the sofa's front, below most of the rays
+    verts, tris = m.arrays()
+    _write_ply(tmp_path / "mesh.ply", verts, tris)
+    bp = _plan(
+        [(box(-t, -t, 4 + t, 3 + t), 1), (box(-0.02, 0, 3.96, 2.96), 0)],
+        {0: "floor", 1: "wall"},
+    )
+    plan = build_plan(bp, LayoutConfig(face_offset=0.0), tmp_path / "mesh.ply")
+    gt = {"rooms": [{"polygon": [[0, 0], [4, 0], [4, 3], [0, 3]]}], "openings": []}
+    s = score_layout(plan, gt)
+    # traced on the plan's cells: 3.98 x 2.96 m, the median wall length 4 cm off
+    assert s["corner_f1"] == 1.0 and s["wall_length_err_m"] <= 0.005, s
+    assert plan["rooms"][0]["area"] == pytest.approx(12.0, abs=0.03)
+    east = [
+        w for w in plan["walls"] if abs(w["start"][0] - w["end"][0]) < 1e-6 and w["start"][0] > 2
+    ]
+    assert east[0]["thickness"] == pytest.approx(t, abs=0.01)  # the band behind, 0.16 m, less 4 cm
+
+
 def test_a_closed_space_of_objects_is_no_room():
     # east of a 4 x 3 m room, a 1.5 x 3 m closed space labelled object with a 0.5 x 0.5 m
     # speck of floor (stereo's noise behind a photos-only plan's walls)
