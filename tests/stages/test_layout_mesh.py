@@ -138,9 +138,14 @@ def test_floor_no_view_saw_inside_the_walls_is_the_room_outside_them_is_none(tmp
     )
     _write_ply(tmp_path / "mesh.ply", verts, tris)
     plan = build_plan(bp, LayoutConfig(face_offset=0.0), tmp_path / "mesh.ply")
+    # one room, its outline along the north wall behind the shadow (not round it)
+    _assert_the_4x3_room(plan)
+
+
+def _assert_the_4x3_room(plan: dict) -> None:
+    """`plan` draws one room, the 4 x 3 m rectangle from the origin, within 2 cm."""
     gt = {"rooms": [{"polygon": [[0, 0], [4, 0], [4, 3], [0, 3]]}], "openings": []}
     s = score_layout(plan, gt)
-    # one room, its outline along the north wall behind the shadow (not round it)
     assert len(plan["rooms"]) == 1, plan["rooms"]
     assert s["corner_f1"] == s["angle_f1"] == 1.0, s
     assert s["wall_length_err_m"] <= 0.02, s
@@ -176,13 +181,9 @@ def test_floor_behind_a_tall_cabinet_before_a_wall_no_view_fused_is_the_room(tmp
         {0: "floor", 1: "wall", 2: "object"},
     )
     plan = build_plan(bp, LayoutConfig(face_offset=0.0), tmp_path / "mesh.ply")
-    gt = {"rooms": [{"polygon": [[0, 0], [4, 0], [4, 3], [0, 3]]}], "openings": []}
-    s = score_layout(plan, gt)
     # before, the floor there was dropped (a quarter of the rays met nothing): the outline
     # stepped round it 0.8 m inside the north wall
-    assert len(plan["rooms"]) == 1, plan["rooms"]
-    assert s["corner_f1"] == s["angle_f1"] == 1.0, s
-    assert s["wall_length_err_m"] <= 0.02, s
+    _assert_the_4x3_room(plan)
 
 
 def test_walls_are_drawn_on_the_mesh_faces_not_on_the_plan_cells(tmp_path):
