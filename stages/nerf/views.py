@@ -73,7 +73,6 @@ def binned(cap: Capture, views: Views, k: int) -> tuple[Capture, Views]:
         h, w = k_.height // k, k_.width // k
         if h < 1 or w < 1:
             raise BlunfError(f"{f.image}: {k_.width}x{k_.height} has no {k}x{k} block")
-
         hw = (k_.height, k_.width)
         out.rgb.append(_blocks(views.rgb[i], hw, k).mean(dim=(1, 3)).reshape(-1, 3))
         d = views.depth[i]

@@ -166,17 +166,22 @@ def test_photos_only_plan_is_within_5_of_the_plan_from_true_depth(tmp_path):
     (with_depth / "cameras.json").write_text(json.dumps(cams))
     steps = ["--set", "nerf.train.time_budget=0", "--set", "nerf.train.max_steps=250"]
     config = ["--config", str(ROOT / "configs" / "phone.yaml")]
-    fwiou = {}
+    fwiou, layout = {}, {}
     for name, cap, extra in [("photos", phone, [*config, *steps]), ("depth", with_depth, [])]:
         out = tmp_path / f"run_{name}"
         assert main(["run", str(cap), "--out", str(out), *extra]) == 0
         r = json.loads((out / "report.json").read_text())
         m = r["metrics"]["blueprint"]["blunf"]
         assert m["frame"] == "aligned to gt poses", m
-        fwiou[name] = m["fwiou"]
+        fwiou[name], layout[name] = m["fwiou"], r["metrics"]["layout"]
     print(f"\nphotos-only plan fwIoU {fwiou['photos']:.1f}, from exact depth {fwiou['depth']:.1f}")
+    print(f"photos-only layout {layout['photos']}")
     assert fwiou["depth"] > 80, fwiou  # the reference itself is sound
     assert fwiou["photos"] >= fwiou["depth"] - 5, fwiou
+    # the architect's drawing from the photos alone holds the layout targets
+    s = layout["photos"]
+    assert s["room_f1"] >= 0.9 and s["corner_f1"] >= 0.85 and s["angle_f1"] >= 0.85, s
+    assert s["wall_length_err_m"] <= 0.05, s
 
 
 def _click_on(run: Path, cls: str, rank: int = 0) -> tuple[float, float]:
