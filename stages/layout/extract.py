@@ -158,9 +158,11 @@ class Line:
         return self.parts or ((self.p, self.weight),)
 
 
-def _intersect(a: Line, b: Line) -> np.ndarray | None:
+def intersect(a: Line, b: Line, tol: float = 1e-6) -> np.ndarray | None:
+    """Where lines a and b meet [2]; None when they are parallel within `tol` (the
+    determinant of their directions: the sine of the angle between them)."""
     m = np.array([a.d, -b.d]).T
-    if abs(np.linalg.det(m)) < 1e-6:
+    if abs(np.linalg.det(m)) < tol:
         return None
     t = np.linalg.solve(m, b.p - a.p)
     return a.p + t[0] * a.d
@@ -171,7 +173,7 @@ def _corners(lines: list[Line]) -> np.ndarray:
     those were merged; a pair that still is meets halfway between their points)."""
     out = []
     for i in range(len(lines)):
-        c = _intersect(lines[i - 1], lines[i])
+        c = intersect(lines[i - 1], lines[i])
         out.append((lines[i - 1].p + lines[i].p) / 2 if c is None else c)
     return np.array(out)
 

@@ -169,26 +169,32 @@ def enclosed(scene: o3d.t.geometry.RaycastingScene, xy: np.ndarray, z: float = 1
     if len(xy) == 0:
         return np.zeros(0, bool)
     t, facing, _ = _around(scene, xy, z)
+    return _enclosing(t, facing)
+
+
+def _enclosing(t: np.ndarray, facing: np.ndarray) -> np.ndarray:
+    """`enclosed` from the rays cast round each point (`_around`'s depths and facings)."""
     return (np.isfinite(t) & facing).mean(1) >= ENCLOSED
 
 
-def behind_walls(
+def outside_walls(
     scene: o3d.t.geometry.RaycastingScene,
     xy: np.ndarray,
     is_wall: Callable[[np.ndarray], np.ndarray],
     z: float = 1.0,
 ) -> np.ndarray:
-    """How many of AROUND horizontal rays at height z cast round each point [N, 2] meet a
-    surface from its back where the plan has a wall (`is_wall`: world xy [M, 2] -> [M] bool)
-    -> [N] int. A point outside the walls sees their backs; one behind furniture that stands
-    against an unseen stretch of wall sees the furniture's back and nothing, not a wall."""
+    """Whether each point [N, 2] lies outside the walls -> [N] bool: not `enclosed`, and at
+    least one of the same AROUND rays meets a surface from its back where the plan has a
+    wall (`is_wall`: world xy [M, 2] -> [M] bool). A point outside the walls sees their
+    backs; one behind furniture that stands against an unseen stretch of wall sees the
+    furniture's back and nothing, not a wall. One cast of the rays serves both readings."""
     if len(xy) == 0:
-        return np.zeros(0, np.int64)
+        return np.zeros(0, bool)
     t, facing, dirs = _around(scene, xy, z)
     back = np.isfinite(t) & ~facing
     at = xy[:, None, :] + np.where(back, t, 0.0)[..., None] * dirs[None, :, :2]  # [N, A, 2]
     wall = is_wall(at.reshape(-1, 2)).reshape(back.shape)
-    return (back & wall).sum(1)
+    return ~_enclosing(t, facing) & (back & wall).any(1)
 
 
 def ceiling(scene: o3d.t.geometry.RaycastingScene, floor_xy: np.ndarray) -> float | None:

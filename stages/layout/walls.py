@@ -21,13 +21,13 @@ from stages.common.errors import BlunfError
 from stages.common.io import write_json
 from stages.layout.config import LayoutConfig, LayoutInputs, LayoutOutputs
 from stages.layout.draw import write_dxf, write_svg
+from stages.layout.extract import Line, intersect
 from stages.layout.openings import (
-    behind_walls,
     ceiling,
-    enclosed,
     face_offsets,
     heights,
     mesh_openings,
+    outside_walls,
     scene_of,
 )
 from stages.layout.plan import architecture, in_rooms, objects
@@ -74,7 +74,7 @@ def seen_floor(bp: Blueprint, scene: o3d.t.geometry.RaycastingScene) -> Blueprin
     """The blueprint with its floor cells that have no surface of the mesh at floor level
     (a ray cast down from FLOOR_BAND meets nothing within 2 x FLOOR_BAND) made unknown when
     they lie outside the mesh's walls: not enclosed by them (openings.enclosed) and with a
-    wall's back in view (openings.behind_walls: a ray meets a surface from behind within
+    wall's back in view (openings.outside_walls: a ray meets a surface from behind within
     WALL_NEAR cells of the plan's wall cells). The plan's field fills ground no view saw
     outside an L's walls and behind a doorway, which is no room. Unseen floor the walls
     enclose stays floor: the shadow of a bed or a chair against a wall (measured up to
@@ -95,7 +95,6 @@ def seen_floor(bp: Blueprint, scene: o3d.t.geometry.RaycastingScene) -> Blueprin
     labels = bp.labels.copy()
     rows, cols = np.nonzero(floor)
     gone = np.nonzero(~(t <= 2 * FLOOR_BAND))[0]
-    gone = gone[~enclosed(scene, xy[gone])]
     wid = [k for k, v in bp.classes.items() if v == "wall"]
     near = ndi.binary_dilation(np.isin(bp.labels, wid), iterations=WALL_NEAR)
 
@@ -103,7 +102,7 @@ def seen_floor(bp: Blueprint, scene: o3d.t.geometry.RaycastingScene) -> Blueprin
         row, col, inside = bp.grid.cell_of(pts)
         return near[row, col] & inside
 
-    gone = gone[behind_walls(scene, xy[gone], is_wall) > 0]
+    gone = gone[outside_walls(scene, xy[gone], is_wall)]
     labels[rows[gone], cols[gone]] = UNKNOWN
     return replace(bp, labels=labels)
 
@@ -128,14 +127,12 @@ def moved_to_faces(plan: dict, offsets: np.ndarray, cfg: LayoutConfig, cell: flo
         d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
         n = np.stack([d[:, 1], -d[:, 0]], 1)  # outward of a counter-clockwise outline
         p = poly + offsets[idx][:, None] * n  # a point on each moved face
+        faces = [Line(p[i], d[i], 0.0) for i in range(k)]
         new = poly.copy()
-        for i in range(k):
-            j = i - 1  # corner i joins face i-1 and face i
-            m = np.array([d[j], -d[i]]).T
-            if abs(np.linalg.det(m)) < 0.05:
-                continue
-            u = np.linalg.solve(m, p[i] - p[j])
-            new[i] = p[j] + u[0] * d[j]
+        for i in range(k):  # corner i joins face i-1 and face i
+            c = intersect(faces[i - 1], faces[i], tol=0.05)
+            if c is not None:
+                new[i] = c
         moved = Polygon(new)
         if not moved.is_valid or not moved.exterior.is_ccw:
             rooms.append(room)
