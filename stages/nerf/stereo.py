@@ -298,15 +298,18 @@ def _window_stats(x: Tensor, window: int) -> tuple[Tensor, Tensor]:
 
 def _box(x: Tensor, window: int) -> Tensor:
     """Mean over a window x window box at every pixel of x [B, 1, H, W] (edges average what
-    lies inside). Sums over unfolded windows: ~9x faster here than avg_pool2d on these
-    one-channel stacks."""
+    lies inside)."""
+    h, w = x.shape[2:]
+    return _box_sum(x, window) / _box_sum(torch.ones(1, 1, h, w, dtype=x.dtype), window)
+
+
+def _box_sum(x: Tensor, window: int) -> Tensor:
+    """Sum over a window x window box at every pixel of x [B, 1, H, W] (zeros beyond the
+    edges). Sums over unfolded windows: ~9x faster here than avg_pool2d on these one-channel
+    stacks, and faster than running sums (cumsum) at these window sizes."""
     p = window // 2
-
-    def total(t: Tensor) -> Tensor:
-        t = F.pad(t, (p, p, p, p))
-        return t.unfold(3, window, 1).sum(-1).unfold(2, window, 1).sum(-1)
-
-    return total(x) / total(torch.ones((1, 1) + tuple(x.shape[2:]), dtype=x.dtype))
+    t = F.pad(x, (p, p, p, p))
+    return t.unfold(3, window, 1).sum(-1).unfold(2, window, 1).sum(-1)
 
 
 def costs_for(
@@ -326,23 +329,33 @@ def costs_for(
     Returns [D, H, W]."""
     h, w = ref.shape
     hn, wn = gray.shape
-    d = depth[:, :, None] if depth.dim() == 2 else depth[:, None, None]  # [D, HW | 1, 1]
-    num = d * ka[None] + kb  # [D, HW, 3]
-    zc = num[..., 2:]  # [D, HW, 1]
-    front = zc > 1e-6
+    n = len(depth)
+    d = depth if depth.dim() == 2 else depth[:, None]  # [D, HW | 1]
+    # each coordinate as its own [D, HW] (no [D, HW, 3] product), in place where it can be:
+    # these ops are memory-bound. One neighbour, 32 planes of 320x240: 82 against 129 ms for
+    # the plain expressions; the demo room's stereo 22.5 against 29.8 s
+    z = torch.addcmul(kb[2], d, ka[:, 2])  # [D, HW] depth in the neighbour
+    front = z > 1e-6
+    iz = torch.where(front, z, torch.ones_like(z)).reciprocal_()
     # grid_sample's normalised coordinates (align_corners=True: -1 and 1 are pixel centres)
-    to_grid = torch.tensor([2.0 / max(1, wn - 1), 2.0 / max(1, hn - 1)], dtype=num.dtype)
-    grid = num[..., :2] / torch.where(front, zc, torch.ones_like(zc)) * to_grid - 1.0
-    inside = front[..., 0] & (grid.abs().amax(-1) <= 1.0)  # [D, HW]
-    grid = grid.view(len(depth), h, w, 2)
-    src = gray[None, None].expand(len(depth), 1, hn, wn)
-    warped = F.grid_sample(src, grid, mode="bilinear", padding_mode="border", align_corners=True)
-    s_mean, s_std = _window_stats(warped, window)  # [D, 1, H, W]
-    cross = _box(warped * ref[None, None], window) - s_mean * r_mean
-    ncc = cross / (s_std * r_std).clamp(min=1e-4)
-    cost = (1.0 - ncc).clamp(0.0, 2.0)[:, 0]  # [D, H, W]
-    seen = _window_inside(inside.view(len(depth), h, w), window)
-    return torch.where(seen, cost, torch.full_like(cost, 2.0))
+    grid = torch.empty(n, h * w, 2, dtype=z.dtype)
+    for c, size in ((0, wn), (1, hn)):
+        torch.mul(torch.addcmul(kb[c], d, ka[:, c]), iz, out=grid[..., c])
+        grid[..., c].mul_(2.0 / max(1, size - 1)).sub_(1.0)
+    inside = front & (grid.abs().amax(-1) <= 1.0)  # [D, HW]
+    src = gray[None, None].expand(n, 1, hn, wn)
+    warped = F.grid_sample(
+        src, grid.view(n, h, w, 2), mode="bilinear", padding_mode="border", align_corners=True
+    )  # [D, 1, H, W]
+    count = _box_sum(torch.ones(1, 1, h, w, dtype=z.dtype), window)  # pixels in each window
+    s_mean = _box_sum(warped, window).div_(count)
+    s_std = _box_sum(warped * warped, window).div_(count).sub_(s_mean * s_mean)
+    s_std = s_std.clamp_(min=0.0).sqrt_()
+    cross = _box_sum(warped * ref, window).div_(count).sub_(s_mean * r_mean)
+    ncc = cross.div_(s_std.mul_(r_std).clamp_(min=1e-4))
+    cost = ncc.neg_().add_(1.0).clamp_(0.0, 2.0)[:, 0]  # [D, H, W] = 1 - ZNCC
+    seen = _window_inside(inside.view(n, h, w), window)
+    return cost.masked_fill_(~seen, 2.0)
 
 
 def _window_inside(inside: Tensor, window: int) -> Tensor:

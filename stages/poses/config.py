@@ -34,6 +34,11 @@ class PosesConfig:
     ba_global_max_refinements: int = 5  # incremental mapper: global bundle adjustments
     #                                     rerun at most this often after filtering outliers
     ba_local_max_refinements: int = 2  # ...and local ones (COLMAP's defaults: 5 and 2)
+    ba_global_growth: float = 1.4  # incremental mapper: the next global bundle adjustment
+    #                                once the model has this many times the images or the
+    #                                points it had at the last (COLMAP's frames and points
+    #                                ratios, 1.1). The 60-view demo room at 320x240, mapping
+    #                                alone: 20.3 -> 12.2 s, ATE 0.118 -> 0.113 cm
     full_size_images: bool = True  # SIFT on the capture's own images when ingest downscaled
     #                                them; poses, intrinsics and the model are given at the
     #                                working size either way
@@ -80,6 +85,10 @@ class PosesConfig:
         ):
             if getattr(self, name) < 1:
                 raise BlunfError(f"poses.{name}: must be >= 1, got {getattr(self, name)}")
+        if not 1.0 < self.ba_global_growth < float("inf"):
+            raise BlunfError(
+                f"poses.ba_global_growth: must be a finite number > 1, got {self.ba_global_growth}"
+            )
         if self.max_image_size < 64:
             raise BlunfError(f"poses.max_image_size: must be >= 64 px, got {self.max_image_size}")
         if self.full_size_max_side < 0:

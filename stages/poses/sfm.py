@@ -312,6 +312,8 @@ def _map(
         o.min_model_size = MIN_REGISTERED
         o.ba_global_max_refinements = cfg.ba_global_max_refinements
         o.ba_local_max_refinements = cfg.ba_local_max_refinements
+        o.ba_global_frames_ratio = cfg.ba_global_growth
+        o.ba_global_points_ratio = cfg.ba_global_growth
         if fixed:
             o.ba_refine_focal_length = False
             o.ba_refine_principal_point = False

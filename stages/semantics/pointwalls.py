@@ -35,6 +35,7 @@ import numpy as np
 from stages.common.camera import unproject
 from stages.common.capture import Capture
 from stages.common.io import read_depth
+from stages.common.points import unique_rows
 
 COVER_CELL = 0.1  # metres: cells (along the wall x height) for the coverage and the extent
 MAX_TURN = 3.0  # degrees: a wall's direction is the room's turned by at most this
@@ -74,7 +75,7 @@ def evidence_points(frames: list[Capture], stride: int = 2) -> np.ndarray:
     if len(p) == 0:
         return p
     keys = np.floor(p / VOXEL).astype(np.int64)
-    _, first = np.unique(keys, axis=0, return_index=True)
+    _, first, _ = unique_rows(keys)
     return p[np.sort(first)]
 
 

@@ -34,6 +34,7 @@ import numpy as np
 import open3d as o3d
 
 from stages.common.capture import UNKNOWN
+from stages.common.points import unique_rows
 from stages.semantics.config import CEILING, FLOOR, OBJECT, WALL, SemanticsConfig
 
 log = logging.getLogger(__name__)
@@ -276,8 +277,7 @@ def _objects(
         return
     vox = cfg.cluster_eps / 2.0
     keys = np.floor(c[rest] / vox).astype(np.int64)  # [N, 3]
-    cells, inv = np.unique(keys, axis=0, return_inverse=True)  # [M, 3], [N]
-    inv = inv.reshape(-1)
+    cells, _, inv = unique_rows(keys)  # [M, 3], [N]
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector((cells + 0.5) * vox))
     lab = np.asarray(pc.cluster_dbscan(cfg.cluster_eps, cfg.cluster_min_points), np.int64)[inv]
     seg.noise_triangles = int((lab < 0).sum())

@@ -100,6 +100,8 @@ def test_scale_from_camera_height_ignores_stray_low_points() -> None:
         ({"min_registered_frac": 1.5}, "min_registered_frac"),
         ({"double_below": -1}, "double_below"),
         ({"ba_global_max_refinements": 0}, "ba_global_max_refinements"),
+        ({"ba_global_growth": 1.0}, "ba_global_growth"),
+        ({"ba_global_growth": float("nan")}, "ba_global_growth"),
     ],
 )
 def test_bad_config_names_the_field(bad: dict, field: str) -> None:
