@@ -11,7 +11,15 @@ from stages.common.capture import read_layout
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth, read_image
 from stages.nerf.config import StereoConfig
-from stages.nerf.stereo import _box, _window_inside, plane_count, smallest_mean, sweep_depths
+from stages.nerf.stereo import (
+    _box,
+    _window_inside,
+    _window_stats,
+    costs_for,
+    plane_count,
+    smallest_mean,
+    sweep_depths,
+)
 
 
 @pytest.fixture(scope="module")
@@ -101,6 +109,33 @@ def test_box_mean_matches_a_direct_sum():
     assert float(m[0, 0]) == pytest.approx(float(v[:2, :2].mean()))
     assert float(m[0, 3]) == pytest.approx(float(v[:2, 2:5].mean()))
     assert float(m[2, 2]) == pytest.approx(float(v[1:4, 1:4].mean()))
+
+
+def test_matching_cost_is_one_minus_the_windows_zncc():
+    # the neighbour is the reference shifted 2 px right: depth d lands ref pixel (u, v) at
+    # ((d u + 2 d) / d, v) in it, so every depth is the true one; a direct ZNCC of the two
+    # 5x5 windows, the cost of a window leaving the neighbour, and a negated image
+    rng = np.random.default_rng(0)
+    h, w, win = 12, 16, 5
+    ref = torch.from_numpy(rng.random((h, w), dtype=np.float32))
+    nbr = torch.roll(ref, 2, dims=1)  # nbr[v, u + 2] = ref[v, u]
+    v, u = np.mgrid[0:h, 0:w]
+    ka = torch.from_numpy(np.stack([u + 2.0, v, np.ones_like(u)], -1).reshape(-1, 3)).float()
+    kb = torch.zeros(3)
+    r_mean, r_std = _window_stats(ref[None, None], win)
+    cost = costs_for(nbr, ka, kb, torch.tensor([1.0, 3.0]), ref, r_mean, r_std, win)
+    assert cost.shape == (2, h, w)
+    np.testing.assert_allclose(cost[:, 2:-2, 2:-4].numpy(), 0.0, atol=1e-4)  # same windows
+    assert (cost[:, :, -4:] == 2.0).all()  # windows reaching past the neighbour's edge
+    # another neighbour: not the same texture; the cost against a direct ZNCC at a pixel
+    other = torch.from_numpy(rng.random((h, w), dtype=np.float32))
+    c = costs_for(other, ka, kb, torch.tensor([1.0]), ref, r_mean, r_std, win)[0]
+    a = ref[3:8, 4:9].numpy().ravel()
+    b = other[3:8, 6:11].numpy().ravel()
+    zncc = ((a - a.mean()) * (b - b.mean())).mean() / (a.std() * b.std())
+    assert float(c[5, 6]) == pytest.approx(1.0 - zncc, abs=1e-4)
+    flipped = costs_for(1.0 - nbr, ka, kb, torch.tensor([1.0]), ref, r_mean, r_std, win)
+    np.testing.assert_allclose(flipped[0, 2:-2, 2:-4].numpy(), 2.0, atol=1e-4)  # ZNCC -1
 
 
 @pytest.mark.parametrize(
