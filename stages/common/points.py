@@ -103,26 +103,3 @@ def read_bounds(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
     if lo.shape != (2,) or hi.shape != (2,) or not (lo <= hi).all():
         raise BlunfError(f"{path}: bounds must be [xmin, ymin, xmax, ymax], got {b}")
     return lo, hi
-
-
-def unique_rows(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """np.unique(keys, axis=0, return_index=True, return_inverse=True) for integer rows
-    [N, C]: (the distinct rows in the same lexicographic order [M, C], the index of each one's
-    first occurrence [M], each row's distinct row [N]). The rows are packed into one int64
-    each (offsets from the column minima, mixed radix) and np.unique runs on those: numpy's
-    axis=0 path sorts structured records, ~10x slower on the millions of voxel keys here."""
-    keys = np.asarray(keys)
-    if keys.ndim != 2 or not np.issubdtype(keys.dtype, np.integer):
-        raise BlunfError(f"unique_rows: want integer rows [N, C], got {keys.dtype} {keys.shape}")
-    if len(keys) == 0:
-        return keys, np.zeros(0, np.int64), np.zeros(0, np.int64)
-    lo = keys.min(axis=0).astype(np.int64)
-    span = keys.max(axis=0).astype(np.int64) - lo + 1  # [C]
-    if float(np.prod(span.astype(np.float64))) >= 2.0**62:  # would overflow: numpy's own way
-        rows, first, inv = np.unique(keys, axis=0, return_index=True, return_inverse=True)
-        return rows, first, inv.reshape(-1)
-    packed = np.zeros(len(keys), np.int64)
-    for c in range(keys.shape[1]):  # column 0 most significant: lexicographic order kept
-        packed = packed * span[c] + (keys[:, c].astype(np.int64) - lo[c])
-    _, first, inv = np.unique(packed, return_index=True, return_inverse=True)
-    return keys[first], first, inv.reshape(-1)

@@ -35,7 +35,7 @@ import numpy as np
 from stages.common.camera import unproject
 from stages.common.capture import Capture
 from stages.common.io import read_depth
-from stages.common.points import unique_rows
+from stages.common.rows import unique_rows
 
 COVER_CELL = 0.1  # metres: cells (along the wall x height) for the coverage and the extent
 MAX_TURN = 3.0  # degrees: a wall's direction is the room's turned by at most this

@@ -34,7 +34,7 @@ import numpy as np
 import open3d as o3d
 
 from stages.common.capture import UNKNOWN
-from stages.common.points import unique_rows
+from stages.common.rows import unique_rows
 from stages.semantics.config import CEILING, FLOOR, OBJECT, WALL, SemanticsConfig
 
 log = logging.getLogger(__name__)
