@@ -38,7 +38,9 @@ class PosesConfig:
     #                                once the model has this many times the images or the
     #                                points it had at the last (COLMAP's frames and points
     #                                ratios, 1.1). The 60-view demo room at 320x240, mapping
-    #                                alone: 20.3 -> 12.2 s, ATE 0.118 -> 0.113 cm
+    #                                alone: 20.3 -> 12.2 s, ATE 0.118 -> 0.113 cm; 7-Scenes
+    #                                kitchen, 100 views (pipeline.bench.sfm, one thread): the
+    #                                stage 28.0 -> 19.9 s, ATE 4.74 -> 4.79 cm (pycolmap 4.92)
     full_size_images: bool = True  # SIFT on the capture's own images when ingest downscaled
     #                                them; poses, intrinsics and the model are given at the
     #                                working size either way
