@@ -290,17 +290,18 @@ def _cheapest(cost: Tensor) -> tuple[Tensor, Tensor, Tensor]:
 
 
 def _window_stats(x: Tensor, window: int) -> tuple[Tensor, Tensor]:
-    """Mean and standard deviation of x [B, 1, H, W] over each pixel's window."""
+    """Mean and standard deviation of x [B, 1, H, W] over each pixel's window (in place where
+    it can be: on the sweep's [D, 1, H, W] stacks these ops are memory-bound)."""
     m = _box(x, window)
-    var = (_box(x * x, window) - m * m).clamp(min=0.0)
-    return m, var.sqrt()
+    var = _box(x * x, window).sub_(m * m).clamp_(min=0.0)
+    return m, var.sqrt_()
 
 
 def _box(x: Tensor, window: int) -> Tensor:
     """Mean over a window x window box at every pixel of x [B, 1, H, W] (edges average what
     lies inside)."""
     h, w = x.shape[2:]
-    return _box_sum(x, window) / _box_sum(torch.ones(1, 1, h, w, dtype=x.dtype), window)
+    return _box_sum(x, window).div_(_box_sum(torch.ones(1, 1, h, w, dtype=x.dtype), window))
 
 
 def _box_sum(x: Tensor, window: int) -> Tensor:
@@ -347,11 +348,8 @@ def costs_for(
     warped = F.grid_sample(
         src, grid.view(n, h, w, 2), mode="bilinear", padding_mode="border", align_corners=True
     )  # [D, 1, H, W]
-    count = _box_sum(torch.ones(1, 1, h, w, dtype=z.dtype), window)  # pixels in each window
-    s_mean = _box_sum(warped, window).div_(count)
-    s_std = _box_sum(warped * warped, window).div_(count).sub_(s_mean * s_mean)
-    s_std = s_std.clamp_(min=0.0).sqrt_()
-    cross = _box_sum(warped * ref, window).div_(count).sub_(s_mean * r_mean)
+    s_mean, s_std = _window_stats(warped, window)  # [D, 1, H, W]
+    cross = _box(warped * ref, window).sub_(s_mean * r_mean)
     ncc = cross.div_(s_std.mul_(r_std).clamp_(min=1e-4))
     cost = ncc.neg_().add_(1.0).clamp_(0.0, 2.0)[:, 0]  # [D, H, W] = 1 - ZNCC
     seen = _window_inside(inside.view(n, h, w), window)
