@@ -44,7 +44,7 @@ $(BIN)/.installed: pyproject.toml | sysdeps
 
 setup: sysdeps $(BIN)/.installed  ## idempotent: system libraries, .venv and the project
 
-demo: setup  ## the default room from photos alone, then edited through its NeRF (~3 min)
+demo: setup  ## the default room from photos alone, then edited through its NeRF (~2 min after setup)
 	# 1. photos and intrinsics only, as a phone gives: SfM poses, stereo depth (no NeRF trained), geometric classes
 	test -d $(DEMO)/phone || $(BIN)/blunf synth $(DEMO)/phone --views 60 --seed 0 --photos-only
 	$(BIN)/blunf run $(DEMO)/phone --out $(DEMO)/phone-run --config configs/phone.yaml
