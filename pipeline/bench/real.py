@@ -52,10 +52,13 @@ log = logging.getLogger(__name__)
 CLASSES = ("floor", "wall", "object")  # the classes the geometry labels the plan with
 
 
-def stripped_copy(src: Path, out: Path, sensor: bool) -> Path:
-    """Write `src` in the project's layout without labels: with `sensor`, colour, depth, poses
-    and gravity as the capture has them; else colour images and intrinsics only. Returns out
-    (kept as it is when it already holds a copy)."""
+def stripped_copy(src: Path, out: Path, sensor: bool, poses: bool | None = None) -> Path:
+    """Write `src` in the project's layout without labels: with `sensor`, colour, depth and
+    (with `poses`, by default as `sensor`) the poses and gravity as the capture has them;
+    else colour images and intrinsics only. Returns out (kept as it is when it already holds
+    a copy). `sensor` without `poses` is the measuring stick's reference: SfM finds the poses
+    from the colour images and the sensor depth gives the plan."""
+    poses = sensor if poses is None else poses
     out = Path(out)
     if (out / "cameras.json").is_file():
         return out
@@ -65,16 +68,16 @@ def stripped_copy(src: Path, out: Path, sensor: bool) -> Path:
             replace(
                 f,
                 depth=f.depth if sensor else None,
-                pose=f.pose if sensor else None,
+                pose=f.pose if poses else None,
                 label=None,
                 instance=None,
             )
             for f in cap.frames
         ]
         cap = replace(cap.with_frames(bare), classes={}, ignore=(), gt=None)
-        if not sensor:
+        if not poses:
             cap = replace(cap, gravity=None)
-        return write_layout(cap, out, with_poses=sensor)
+        return write_layout(cap, out, with_poses=poses)
 
 
 def run_plan(capture: Path, out: Path, args: list[str]) -> float:
@@ -178,22 +181,34 @@ def measure(
     frames: int = 0,
     ref_run: Path | None = None,
 ) -> dict:
-    """Both runs of `src` under `out`, scored; writes and returns out/real.json.
-    `ref_run`: a finished reference run folder to score against instead of running one."""
+    """The three runs of `src` under `out`, scored; writes and returns out/real.json.
+
+    out/sfm-ref: the sensor's depth at SfM poses (the reference the photos-only plan is
+    scored against: "plan", "padded", "poses", "scale"); out/ref: the sensor's depth at the
+    dataset's poses (`ref_run`: a finished one to use instead), the old reference, under
+    "dataset_poses"; "references": the two references against each other (the SfM
+    reference's plan scored against the dataset-pose plan, its poses against the dataset's:
+    the pose disagreement no depth method can remove).
+    """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     pick = ["--frames", str(frames)] if frames else []
     t0 = time.perf_counter()
     bare = stripped_copy(src, out / "photos-capture", sensor=False)
+    at_sfm = stripped_copy(src, out / "sensor-sfm-capture", sensor=True, poses=False)
     copy_s = time.perf_counter() - t0
     ref_s = 0.0
     if ref_run is None:
         sensor = stripped_copy(src, out / "sensor-capture", sensor=True)
         ref_run = out / "ref"
         ref_s = run_plan(sensor, ref_run, [*ref_args, *pick])
+    sfm_s = run_plan(at_sfm, out / "sfm-ref", [*ref_args, *pick])
     photo_s = run_plan(bare, out / "photos", [*photo_args, *pick])
-    res = score(ref_run, out / "photos")
-    res["seconds"] = {"copy": copy_s, "ref": ref_s, "photos": photo_s}
+    res = score(out / "sfm-ref", out / "photos")
+    res["dataset_poses"] = score(ref_run, out / "photos")
+    both = score(ref_run, out / "sfm-ref")
+    res["references"] = {k: both[k] for k in ("plan", "poses", "scale")}
+    res["seconds"] = {"copy": copy_s, "ref": ref_s, "sfm_ref": sfm_s, "photos": photo_s}
     res["seconds"]["total"] = time.perf_counter() - t0
     res["capture"], res["photos_args"], res["ref_args"] = str(src), photo_args, ref_args
     res["ref_run"] = str(ref_run)
@@ -202,14 +217,26 @@ def measure(
 
 
 def summary(res: dict) -> str:
-    """One line: fwIoU, per-class IoU, registration and the photos-only scale's error."""
-    p, q = res["plan"], res["poses"]
-    per = " ".join(f"{c} {p['per_class'].get(c, float('nan')):.1f}" for c in CLASSES)
-    return (
-        f"fwIoU {p['fwiou']:.1f} pAcc {p['pacc']:.1f} | IoU {per} | registered "
-        f"{q['registered']}/{q['total']} ATE {q.get('ate_rmse_m') or float('nan'):.3f} m | "
-        f"scale x{q.get('align_scale') or float('nan'):.3f} ({res['scale'].get('method', '?')})"
-    )
+    """Lines: the photos-only plan against the sensor depth at SfM poses and at the
+    dataset's (fwIoU, per-class IoU, registration, the photos-only scale's error), then the
+    two references against each other."""
+    lines = []
+    for name, r in (
+        ("photos vs sensor at SfM poses", res),
+        ("photos vs sensor at dataset poses", res.get("dataset_poses")),
+        ("sensor at SfM poses vs at dataset poses", res.get("references")),
+    ):
+        if not r:
+            continue
+        p, q = r["plan"], r["poses"]
+        per = " ".join(f"{c} {p['per_class'].get(c, float('nan')):.1f}" for c in CLASSES)
+        lines.append(
+            f"{name}: fwIoU {p['fwiou']:.1f} pAcc {p['pacc']:.1f} | IoU {per} | registered "
+            f"{q['registered']}/{q['total']} rot {q.get('rot_err_deg_median') or float('nan'):.2f}"
+            f" deg ATE {q.get('ate_rmse_m') or float('nan'):.3f} m | scale "
+            f"x{q.get('align_scale') or float('nan'):.3f} ({r['scale'].get('method', '?')})"
+        )
+    return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,11 +1,11 @@
 """Pose metrics: estimated camera-to-world poses against ground truth, up to a similarity
-(`stages.common.gt_frame.similarity`)."""
+of the whole poses (`stages.common.gt_frame.pose_similarity`)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from stages.common.gt_frame import MIN_ALIGN, similarity
+from stages.common.gt_frame import MIN_ALIGN, pose_similarity
 
 
 def _rotation(m: np.ndarray) -> np.ndarray:
@@ -33,7 +33,8 @@ def pose_metrics(est: dict[str, np.ndarray], gt: dict[str, np.ndarray]) -> dict:
     Returns:
         registered (gt frames with an estimate), total (= len(gt)), rot_err_deg_median,
         center_err_median_m, ate_rmse_m (RMSE of aligned camera centres) and align_scale (the
-        alignment's scale: 1 when the estimate is metric). The error entries are None when fewer
+        alignment's scale: 1 when the estimate is metric), "alignment" (pose_similarity's
+        facts: how well the poses fix it). The error entries are None when fewer
         than 3 frames are shared or the centres are degenerate (all equal).
     """
     common = [s for s in gt if s in est]
@@ -44,13 +45,14 @@ def pose_metrics(est: dict[str, np.ndarray], gt: dict[str, np.ndarray]) -> dict:
         "center_err_median_m": None,
         "ate_rmse_m": None,
         "align_scale": None,
+        "alignment": None,
     }
     if len(common) < MIN_ALIGN:
         return out
     pe = np.stack([np.asarray(est[s], np.float64) for s in common])  # [C, 4, 4]
     pg = np.stack([np.asarray(gt[s], np.float64) for s in common])  # [C, 4, 4]
     ce, cg = pe[:, :3, 3], pg[:, :3, 3]  # [C, 3] camera centres
-    m = similarity(ce, cg)
+    m, out["alignment"] = pose_similarity(list(pe), list(pg))
     if m is None:
         return out
     scale = float(np.cbrt(np.linalg.det(m[:3, :3])))
