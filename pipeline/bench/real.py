@@ -180,6 +180,7 @@ def measure(
     ref_args: list[str],
     frames: int = 0,
     ref_run: Path | None = None,
+    depth_erode: int | None = None,
 ) -> dict:
     """The three runs of `src` under `out`, scored; writes and returns out/real.json.
 
@@ -188,7 +189,7 @@ def measure(
     dataset's poses (`ref_run`: a finished one to use instead), the old reference, under
     "dataset_poses"; "references": the two references against each other (the SfM
     reference's plan scored against the dataset-pose plan, its poses against the dataset's:
-    the pose disagreement no depth method can remove).
+    the pose disagreement no depth method can remove); "depth": record_depth's.
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -208,12 +209,34 @@ def measure(
     res["dataset_poses"] = score(ref_run, out / "photos")
     both = score(ref_run, out / "sfm-ref")
     res["references"] = {k: both[k] for k in ("plan", "poses", "scale")}
+    res["depth"] = record_depth(src, out / "photos", out / "sfm-ref", res, depth_erode)
     res["seconds"] = {"copy": copy_s, "ref": ref_s, "sfm_ref": sfm_s, "photos": photo_s}
     res["seconds"]["total"] = time.perf_counter() - t0
     res["capture"], res["photos_args"], res["ref_args"] = str(src), photo_args, ref_args
     res["ref_run"] = str(ref_run)
     write_json(out / "real.json", res)
     return res
+
+
+def record_depth(src: Path, photos: Path, sfm_ref: Path, res: dict, erode: int | None) -> dict:
+    """The photos-only depth maps against the sensor's (pipeline.bench.depth), their lengths
+    taken to metres by the photos-only poses' scale against the SfM-pose reference's; written
+    into the photos-only run's report.json as metrics.depth, the per-view figures beside
+    real.json (depth.json). `erode` None: 4 px round the sensor's edges on a 7-Scenes capture
+    (its colour and depth are not registered; ~1 % of the kitchen's pixels per px), else 0."""
+    from pipeline.bench.depth import depth_metrics
+    from stages.ingest import detect
+
+    if erode is None:
+        erode = 4 if Path(src).exists() and detect(Path(src)) == "7scenes" else 0
+    m = depth_metrics(photos, sfm_ref, erode, res["poses"].get("align_scale"))
+    write_json(Path(photos).parent / "depth.json", m.pop("per_view"))
+    report = Path(photos) / "report.json"
+    if report.is_file():
+        doc = read_json(report)
+        doc.setdefault("metrics", {})["depth"] = m
+        write_json(report, doc)
+    return m
 
 
 def summary(res: dict) -> str:
@@ -236,6 +259,17 @@ def summary(res: dict) -> str:
             f" deg ATE {q.get('ate_rmse_m') or float('nan'):.3f} m | scale "
             f"x{q.get('align_scale') or float('nan'):.3f} ({r['scale'].get('method', '?')})"
         )
+    d = res.get("depth")
+    if d:
+        per = " ".join(
+            f"{k} {v['coverage']:.1f}/{v['within_5cm'] or float('nan'):.1f}"
+            for k, v in {**d["sources"], **d["classes"]}.items()
+            if v["coverage"]
+        )
+        lines.append(
+            f"depth: coverage {d['coverage']:.1f} % within 5 cm {d['within_5cm']:.1f} % AbsRel "
+            f"{d['absrel']:.3f} (coverage/within 5 cm: {per}; erode {d['erode_px']} px)"
+        )
     return "\n".join(lines)
 
 
@@ -247,13 +281,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", action="append", default=[], help="photos-only run: stage.key=v")
     ap.add_argument("--ref-set", action="append", default=[], help="reference run: stage.key=v")
     ap.add_argument("--frames", type=int, default=0, help="N views spread evenly (0 = all)")
-    ap.add_argument("--ref-run", type=Path, help="a finished reference run to score against")
+    ap.add_argument("--ref-run", type=Path, help="a finished dataset-pose reference run")
+    ap.add_argument("--depth-erode", type=int, help="px dropped round sensor depth edges")
     a = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
     photo = ["--config", a.config, *(x for s in a.set for x in ("--set", s))]
     ref = [x for s in a.ref_set for x in ("--set", s)]
     try:
-        res = measure(a.capture, a.out, photo, ref, a.frames, a.ref_run)
+        res = measure(a.capture, a.out, photo, ref, a.frames, a.ref_run, a.depth_erode)
     except BlunfError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

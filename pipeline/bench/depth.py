@@ -1,0 +1,249 @@
+"""The photos-only run's depth maps against the sensor's depth of the same views.
+
+For each view the depth stage wrote (`depth/<stem>.npy`, 0 = no reading), every pixel is
+read against the sensor depth at that pixel's centre (the same view: no pose enters, only
+the photos-only run's metric scale, which the SfM-pose similarity to the sensor-depth run
+corrects):
+  coverage     percent of the view's pixels with a reading,
+  within_5cm   percent of the readings with a sensor reading that lie within 5 cm of it,
+  absrel       mean |depth - sensor| / sensor over those readings,
+pooled over all views, and again per source (`sources/<stem>.png` beside the depth maps:
+1 stereo, 2 planes, 3 field; without it every reading counts as stereo; a source's coverage
+is its share of all pixels) and per class of the reference run's labels (the sensor-depth
+run's semantics: floor, wall, object; coverage: share of that class's pixels).
+Sensor readings next to a depth edge or a hole are left out within `erode_px` pixels (the
+7-Scenes Kinect's colour and depth are not registered: its edges sit a few pixels off the
+colour's).
+
+    python -m pipeline.bench.depth PHOTOS_RUN REFERENCE_RUN [--erode PX] [--scale S]
+prints the metrics as JSON (pipeline.bench.real writes them into real.json and the
+photos-only run's report.json under metrics.depth).
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage
+
+from stages.common.capture import Capture
+from stages.common.errors import BlunfError
+from stages.common.gt_frame import pose_similarity
+from stages.common.io import read_depth, read_json, read_label
+
+SOURCES = {1: "stereo", 2: "planes", 3: "field"}  # sources/<stem>.png codes (0: none)
+CLASSES = ("floor", "wall", "object")
+NEAR_M = 0.05  # within_5cm
+DEPTH_STAGES = ("depth", "nerf")  # the stage that writes a photos-only run's depth maps
+
+
+def depth_folder(run: Path) -> Path:
+    """The folder holding the run's depth maps (`depth/<stem>.npy`): the depth stage's, named
+    in report.json (`depth`, or `nerf` before depth had a stage of its own)."""
+    run = Path(run)
+    report = run / "report.json"
+    if report.is_file():
+        for s in read_json(report).get("stages", []):
+            if s.get("name") in DEPTH_STAGES and s.get("key"):
+                folder = run / s["name"] / s["key"]
+                if (folder / "depth").is_dir():
+                    return folder
+    found = [Path(p).parent for n in DEPTH_STAGES for p in glob.glob(str(run / n / "*" / "depth"))]
+    if not found:
+        raise BlunfError(f"{run}: no depth maps (no depth/ or nerf/ stage folder with depth/)")
+    return max(found, key=lambda p: p.stat().st_mtime)
+
+
+def _stage_file(run: Path, stage: str, name: str) -> Path:
+    """run/stage/<key>/name, the newest when several keys hold it."""
+    found = glob.glob(str(Path(run) / stage / "*" / name))
+    if not found:
+        raise BlunfError(f"{run}: no {stage}/*/{name} (not a finished run folder)")
+    return Path(max(found, key=lambda p: Path(p).stat().st_mtime))
+
+
+def sensor_views(ref_run: Path) -> tuple[Capture, dict[str, Path], dict[int, str]]:
+    """(the reference run's ingested capture: sensor depth paths; stem -> its semantics label
+    PNG; class id -> name) of a run made from sensor depth."""
+    cap = Capture.load(_stage_file(ref_run, "ingest", "frames.json"))
+    sem = Capture.load(_stage_file(ref_run, "semantics", "frames.json"))
+    labels = {f.stem: Path(f.label) for f in sem.frames if f.label is not None}
+    return cap, labels, {int(k): v for k, v in sem.classes.items()}
+
+
+def sensor_depth(cap: Capture, stem: str, erode_px: int = 0) -> np.ndarray:
+    """The sensor's depth of one view in metres, 0 where missing or (erode_px > 0) within
+    erode_px pixels of a hole or of a depth edge (neighbours more than 5 % apart)."""
+    f = next(x for x in cap.frames if x.stem == stem)
+    if f.depth is None:
+        raise BlunfError(f"{cap.root}: frame {stem!r} has no depth map")
+    d = read_depth(f.depth, cap.depth_scale, cap.depth_invalid).astype(np.float64)
+    d = np.where(np.isfinite(d) & (d > 0), d, 0.0)
+    if erode_px <= 0:
+        return d
+    lo = ndimage.minimum_filter(np.where(d > 0, d, np.inf), size=3)
+    hi = ndimage.maximum_filter(d, size=3)
+    bad = (d <= 0) | (hi - lo > 0.05 * np.maximum(d, 1e-6))
+    bad = ndimage.binary_dilation(bad, np.ones((3, 3), bool), iterations=int(erode_px))
+    return np.where(bad, 0.0, d)
+
+
+def at_centres(a: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """`a` [H, W] read at the pixel centres of a [h, w] map of the same view (nearest)."""
+    h, w = shape
+    rows = np.minimum(((np.arange(h) + 0.5) * a.shape[0] / h).astype(np.int64), a.shape[0] - 1)
+    cols = np.minimum(((np.arange(w) + 0.5) * a.shape[1] / w).astype(np.int64), a.shape[1] - 1)
+    return a[rows[:, None], cols[None, :]]
+
+
+class _Tally:
+    """Pixel counts and sums for one group (all, a source, a class)."""
+
+    def __init__(self) -> None:
+        self.pixels = self.read = self.compared = self.near = 0
+        self.rel = 0.0
+
+    def add(self, sel: np.ndarray, got: np.ndarray, ref: np.ndarray) -> None:
+        """sel: the group's pixels; got: the run's depth (0 = none); ref: the sensor's."""
+        has = sel & (got > 0)
+        both = has & (ref > 0)
+        err = np.abs(got[both] - ref[both])
+        self.pixels += int(sel.sum())
+        self.read += int(has.sum())
+        self.compared += int(both.sum())
+        self.near += int((err < NEAR_M).sum())
+        self.rel += float((err / ref[both]).sum())
+
+    def result(self) -> dict:
+        def pct(a: int, b: int) -> float | None:
+            return round(100.0 * a / b, 2) if b else None
+
+        return {
+            "coverage": pct(self.read, self.pixels),
+            "within_5cm": pct(self.near, self.compared),
+            "absrel": round(self.rel / self.compared, 4) if self.compared else None,
+            "pixels": self.pixels,
+            "compared": self.compared,
+        }
+
+
+def photos_scale(photos_run: Path, ref_run: Path) -> float:
+    """The factor that takes the photos-only run's lengths to the reference run's metres:
+    the scale of the whole-pose similarity between the two runs' poses (1 when no fit)."""
+    from pipeline.bench.real import run_poses  # real.py imports this module
+
+    est, gt = run_poses(photos_run), run_poses(ref_run)
+    common = [s for s in gt if s in est]
+    m, _ = pose_similarity([est[s] for s in common], [gt[s] for s in common])
+    return 1.0 if m is None else float(np.cbrt(np.linalg.det(m[:3, :3])))
+
+
+def _metres(path: Path, scale: float) -> np.ndarray:
+    """A depth map of the run in metres (`scale` times its lengths), 0 where missing."""
+    d = np.load(path).astype(np.float64) * scale
+    return np.where(np.isfinite(d) & (d > 0), d, 0.0)
+
+
+def _sources(folder: Path, stem: str, used: Path, got: np.ndarray) -> np.ndarray:
+    """Where each reading of `got` (the map the stage hands on) comes from, coded as
+    SOURCES: the stage's sources/<stem>.png; else, when the map handed on is not the stage's
+    depth/<stem>.npy (a field fill), stereo where that map has a reading and field
+    elsewhere; else stereo everywhere."""
+    src = folder / "sources" / f"{stem}.png"
+    if src.is_file():
+        code = read_label(src)
+        if code.shape != got.shape:
+            raise BlunfError(f"{src}: {code.shape} pixels, its depth map has {got.shape}")
+        return code
+    code = np.where(got > 0, 1, 0)
+    stereo = folder / "depth" / f"{stem}.npy"
+    if stereo.is_file() and stereo.resolve() != Path(used).resolve():
+        raw = _metres(stereo, 1.0)
+        if raw.shape == got.shape:
+            code = np.where(got > 0, np.where(raw > 0, 1, 3), 0)
+    return code
+
+
+def depth_metrics(
+    photos_run: Path, ref_run: Path, erode_px: int = 0, scale: float | None = None
+) -> dict:
+    """metrics.depth of the photos-only run against the sensor depth of the reference run
+    (see the module doc). `scale`: photos-only lengths to metres (None: photos_scale)."""
+    folder = depth_folder(photos_run)
+    cap, labels, classes = sensor_views(ref_run)
+    s = photos_scale(photos_run, ref_run) if scale is None else float(scale)
+    stems = {f.stem for f in cap.frames}
+    used = {  # the maps the stage hands on (frames.json), else its depth/ folder
+        f.stem: Path(f.depth)
+        for f in (
+            Capture.load(folder / "frames.json").frames
+            if (folder / "frames.json").is_file()
+            else ()
+        )
+        if f.depth is not None
+    }
+    for p in (folder / "depth").glob("*.npy"):
+        used.setdefault(p.stem, p)
+    maps = sorted((k, v) for k, v in used.items() if k in stems)
+    if not maps:
+        raise BlunfError(f"{folder / 'depth'}: no depth map of a view of {cap.root}")
+    total, by_source = _Tally(), {n: _Tally() for n in SOURCES.values()}
+    by_class = {n: _Tally() for n in CLASSES}
+    per_view = {}
+    has_sources = (folder / "sources").is_dir()
+    for stem, path in maps:
+        got = _metres(path, s)  # [h, w]
+        ref = at_centres(sensor_depth(cap, stem, erode_px), got.shape)
+        code = _sources(folder, stem, path, got)
+        everything = np.ones(got.shape, bool)
+        total.add(everything, got, ref)
+        view = _Tally()
+        view.add(everything, got, ref)
+        per_view[stem] = view.result()
+        for c, name in SOURCES.items():
+            by_source[name].add(everything, np.where(code == c, got, 0.0), ref)
+        if stem in labels:
+            lab = at_centres(read_label(labels[stem]), got.shape)
+            for cid, name in classes.items():
+                if name in by_class:
+                    by_class[name].add(lab == cid, got, ref)
+    out = total.result()
+    out["sources"] = {n: t.result() for n, t in by_source.items()}
+    out["classes"] = {n: t.result() for n, t in by_class.items()}
+    out.update(
+        views=len(maps),
+        sources_from="sources/"
+        if has_sources
+        else "the stereo maps (depth/) and the maps handed on",
+        scale=s,
+        erode_px=int(erode_px),
+        sources_given=has_sources,
+        depth_folder=str(folder),
+    )
+    return {**out, "per_view": per_view}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m pipeline.bench.depth", description=__doc__)
+    ap.add_argument("photos_run", type=Path)
+    ap.add_argument("ref_run", type=Path)
+    ap.add_argument("--erode", type=int, default=0, help="pixels dropped round sensor edges")
+    ap.add_argument("--scale", type=float, help="photos-only lengths to metres (default: fit)")
+    a = ap.parse_args(argv)
+    try:
+        res = depth_metrics(a.photos_run, a.ref_run, a.erode, a.scale)
+    except BlunfError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    res.pop("per_view")
+    print(json.dumps(res, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
