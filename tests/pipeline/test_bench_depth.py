@@ -1,0 +1,111 @@
+"""Depth metrics of a photos-only run against the sensor's (pipeline/bench/depth.py), on the
+exact room of tests/stages/exact_room.py: every figure is worked out from the exact depth."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.bench.depth import depth_metrics, sensor_depth
+from stages.common.capture import Capture
+from stages.common.io import write_label_png
+from tests.stages.exact_room import room_capture
+
+S = 2.0  # the photos-only run's lengths are half the metres
+
+
+def _stage(run: Path, stage: str) -> Path:
+    d = run / stage / "k"
+    d.mkdir(parents=True)
+    return d
+
+
+def _runs(tmp: Path, with_sources: bool) -> tuple[Path, Path, dict]:
+    """(photos run, reference run, what was planted): the reference holds the exact room;
+    the photos-only run half-size maps of it in half-metres with planted holes and errors."""
+    frames = room_capture(tmp / "room")
+    cap = Capture.load(frames)
+    ref, photos = tmp / "ref", tmp / "photos"
+    for st in ("ingest", "align"):
+        cap.save(_stage(ref, st) / "frames.json")
+    sem = _stage(ref, "semantics")
+    labelled = []
+    for f in cap.frames:
+        d = sensor_depth(cap, f.stem)  # [48, 64] metres
+        lab = np.full(d.shape, 3, np.uint8)  # object
+        lab[24:, :] = 0  # "floor": the lower half; "wall": the top rows
+        lab[:8, :] = 1
+        write_label_png(sem / f"{f.stem}.png", lab)
+        labelled.append(replace(f, label=sem / f"{f.stem}.png"))
+    classes = {0: "floor", 1: "wall", 3: "object"}
+    replace(cap.with_frames(tuple(labelled)), classes=classes).save(sem / "frames.json")
+    # the photos-only run: poses at half scale, maps at half size and in half-metres
+    moved = []
+    for f in cap.frames:
+        p = np.asarray(f.pose, np.float64).copy()
+        p[:3, 3] /= S
+        moved.append(replace(f, pose=p))
+    _stage(photos, "align")
+    cap.with_frames(tuple(moved)).save(photos / "align" / "k" / "frames.json")
+    dep = _stage(photos, "depth")
+    (dep / "depth").mkdir()
+    (dep / "sources").mkdir()
+    want = {"pixels": 0, "read": 0, "near": 0, "rel": [], "by": {1: [0, 0], 2: [0, 0], 3: [0, 0]}}
+    for f in cap.frames:
+        exact = sensor_depth(cap, f.stem)[1::2, 1::2]  # [24, 32] at the half-size centres
+        got = exact.copy()
+        got[:, :8] = 0  # a hole: the left quarter
+        got[12:, 8:16] += 0.10  # off by 10 cm
+        got[12:, 16:20] += 0.02  # off by 2 cm
+        code = np.where(got > 0, 1, 0).astype(np.uint8)
+        code[:, 16:24] = np.where(got[:, 16:24] > 0, 2, 0)  # planes
+        code[:, 24:] = np.where(got[:, 24:] > 0, 3, 0)  # field
+        np.save(dep / "depth" / f"{f.stem}.npy", (got / S).astype(np.float32))
+        if with_sources:
+            write_label_png(dep / "sources" / f"{f.stem}.png", code)
+        ok = (got > 0) & (exact > 0)
+        err = np.abs(got - exact)[ok]
+        want["pixels"] += got.size
+        want["read"] += int((got > 0).sum())
+        want["near"] += int((err < 0.05).sum())
+        want["rel"].append(err / exact[ok])
+        for c in (1, 2, 3):
+            sel = ok & (code == c)
+            want["by"][c][0] += int((np.abs(got - exact)[sel] < 0.05).sum())
+            want["by"][c][1] += int(sel.sum())
+    report = {"stages": [{"name": "depth", "key": "k"}]}
+    (photos / "report.json").write_text(json.dumps(report))
+    return photos, ref, want
+
+
+@pytest.mark.parametrize("with_sources", [True, False])
+def test_depth_metrics_against_exact_depth(tmp_path, with_sources):
+    photos, ref, want = _runs(tmp_path, with_sources)
+    m = depth_metrics(photos, ref)
+    assert m["scale"] == pytest.approx(S, rel=1e-9)  # from the poses: metres again
+    assert m["views"] == 8
+    assert m["coverage"] == pytest.approx(100.0 * want["read"] / want["pixels"], abs=0.01)
+    assert m["coverage"] < 76.0  # the left quarter is a hole
+    assert m["within_5cm"] == pytest.approx(100.0 * want["near"] / m["compared"], abs=0.01)
+    rel = np.concatenate(want["rel"])
+    assert m["absrel"] == pytest.approx(rel.mean(), abs=1e-4)
+    if with_sources:
+        for c, name in ((1, "stereo"), (2, "planes"), (3, "field")):
+            near, n = want["by"][c]
+            assert m["sources"][name]["within_5cm"] == pytest.approx(100.0 * near / n, abs=0.01)
+        assert m["sources"]["field"]["within_5cm"] == 100.0  # untouched columns
+        assert m["sources"]["stereo"]["within_5cm"] < 60.0  # the 10 cm error lies there
+    else:  # no sources/: every reading is stereo's
+        assert m["sources"]["stereo"]["coverage"] == m["coverage"]
+        assert m["sources"]["planes"]["coverage"] == 0.0
+    # the classes: rows 0-3 of the half-size maps are wall, 12- floor, the rest object; the
+    # hole is a quarter of every class's pixels
+    for name in ("floor", "wall", "object"):
+        assert m["classes"][name]["coverage"] == pytest.approx(75.0, abs=3.0)
+    assert m["classes"]["wall"]["within_5cm"] == 100.0  # the errors lie in rows 12-
+    # floor rows: columns 8-15 of the 24 read are 10 cm off, 16-19 2 cm (within)
+    assert m["classes"]["floor"]["within_5cm"] == pytest.approx(100.0 * 16 / 24, abs=0.01)
