@@ -16,7 +16,9 @@ photos-only plan (pipeline.bench.real.score):
 
     python -m pipeline.bench.oracle CAPTURE --real DIR --out OUT [--rungs O1,O2,O3,O4]
 DIR is a finished `python -m pipeline.bench.real CAPTURE --out DIR`; writes OUT/oracle.json
-(per rung: the plan's metrics, the share of pixels with depth) and keeps OUT/<rung>/ (the
+(per rung: the plan's metrics against the reference and against O1's plan, which takes
+the same path through the pipeline, poses given, and the share of the sensor's pixels
+given depth) and keeps OUT/<rung>/ (the
 capture) and OUT/<rung>-run/.
 """
 
@@ -168,6 +170,10 @@ def ladder(src: Path, real: Path, out: Path, rungs: tuple[str, ...], ref_args: l
             "seconds": time.perf_counter() - t,
         }
         write_json(out / "oracle.json", res)
+    if "O1" in rungs:  # the rungs against O1 too: the same path (given poses), less depth
+        for r in rungs:
+            res["rungs"][r]["plan_vs_O1"] = score(out / "O1-run", out / f"{r}-run")["plan"]
+        write_json(out / "oracle.json", res)
     return res
 
 
@@ -192,8 +198,9 @@ def main(argv: list[str] | None = None) -> int:
         per = " ".join(
             f"{c} {p['per_class'].get(c, float('nan')):.1f}" for c in ("floor", "wall", "object")
         )
+        o1 = v.get("plan_vs_O1", {}).get("fwiou", float("nan"))
         print(
-            f"{r}: fwIoU {p['fwiou']:.1f} | IoU {per} | "
+            f"{r}: fwIoU {p['fwiou']:.1f} (against O1 {o1:.1f}) | IoU {per} | "
             f"depth on {v['depth_kept']:.1f} % of the sensor's pixels"
         )
     return 0
