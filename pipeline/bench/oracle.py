@@ -73,7 +73,10 @@ def plane_mask(depth: np.ndarray, frame: Frame, pose: np.ndarray) -> np.ndarray:
     sensor points (see the module doc). `pose`: camera-to-world in the aligned room."""
     k = frame.intrinsics
     h, w = depth.shape
-    u, v = np.meshgrid((np.arange(w) + 0.5) * k.width / w, (np.arange(h) + 0.5) * k.height / h)
+    # pixel centres in the intrinsics' pixels (integer = a pixel's centre)
+    u, v = np.meshgrid(
+        (np.arange(w) + 0.5) * k.width / w - 0.5, (np.arange(h) + 0.5) * k.height / h - 0.5
+    )
     cam = np.stack([(u - k.cx) / k.fx * depth, (v - k.cy) / k.fy * depth, depth], -1)  # [H,W,3]
     world = cam @ pose[:3, :3].T + pose[:3, 3]  # [H, W, 3]
     valid = depth > 0
@@ -102,6 +105,8 @@ def plane_mask(depth: np.ndarray, frame: Frame, pose: np.ndarray) -> np.ndarray:
         for b in np.flatnonzero(peaks):
             c = lo + (b + 0.5) * BIN
             near = np.abs(x - c) <= PLANE_DIST
+            if not near.any():
+                continue
             c = float(np.median(x[near]))  # refined offset
             out |= cand & (np.abs(world[..., a] - c) <= PLANE_DIST)
     return out
