@@ -1,20 +1,28 @@
 """A real capture from photos alone against the same capture with its sensor depth.
 
-For one capture with depth (7-Scenes, Replica/vMAP, the project's layout):
-  reference    the plan `blunf run` gives from a copy with the sensor depth (and the
-               poses and gravity when the capture has them) but no per-pixel labels, so
-               that both plans take their classes from the geometry the same way;
-  photos-only  the plan from a copy holding the colour images and intrinsics only (no
-               depth, poses, labels or gravity): poses from SfM, depth from stereo.
-The photos-only plan is scored against the reference per class, on the reference's cells
+For one capture with depth (7-Scenes, Replica/vMAP, the project's layout), three runs of
+`blunf run`, each from a copy without per-pixel labels (so that every plan takes its classes
+from the geometry the same way):
+  photos-only  the colour images and intrinsics only (no depth, poses, labels or gravity):
+               poses from SfM (scale from the priors), depth from the depth step;
+  sfm-ref      the reference: the colour images, the sensor depth and the intrinsics (no
+               poses or gravity): SfM finds the poses from the colour images, its scale
+               comes from the sensor depth (poses.scale_from auto), and that depth gives the
+               plan, so the poses it is read at are the photos-only run's but for the scale;
+  ref          the old reference: the sensor depth at the dataset's poses (and gravity).
+The photos-only plan is scored against each reference per class, on the reference's cells
 within its projected points' bounds (`observed`; "padded" keeps the whole grid), through
-the similarity between the two runs' camera centres (stages.evaluate: the frame estimated
-poses are scored in), so a wrong metric scale is not counted twice; the poses are scored likewise
-(registration, ATE, and the scale of that similarity: 1 = the photos-only scale is right).
+the similarity between the two runs' whole poses (stages.common.gt_frame), so a wrong metric
+scale is not counted twice; the poses are scored likewise (registration, rotation, ATE and
+that similarity's scale: 1 = the photos-only scale is right). The two references against
+each other give the pose disagreement that no depth method can remove (7-Scenes: depth
+camera against colour camera, KinectFusion against SfM). The photos-only depth maps are
+scored against the sensor's (pipeline.bench.depth: coverage, within 5 cm, AbsRel).
 
     python -m pipeline.bench.real CAPTURE --out DIR [--set k=v ...] [--ref-set k=v ...]
                                   [--frames N] [--config configs/phone.yaml]
-writes DIR/real.json (figures, seconds) and keeps DIR/ref, DIR/photos and the two copies.
+writes DIR/real.json (figures, seconds), DIR/depth.json (per view) and keeps DIR/sfm-ref,
+DIR/ref, DIR/photos and the three copies.
 A run folder already finished under DIR is reused (the pipeline's caches): a second call
 with other photos-only settings reruns only what they change. The NeRF trains for a
 wall-clock budget (nerf.train.time_budget): on a loaded machine it takes few steps and the
