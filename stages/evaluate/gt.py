@@ -10,7 +10,7 @@ import numpy as np
 
 from stages.common.blueprint import Blueprint
 from stages.common.capture import Capture
-from stages.common.gt_frame import plan_frame, pose_pairs
+from stages.common.gt_frame import FRAME_ALIGNED, plan_frame, pose_pairs, pose_similarity
 from stages.common.io import read_json, write_json
 from stages.common.plan_metrics import evaluate_plan
 from stages.evaluate.config import EvaluateConfig
@@ -35,7 +35,8 @@ class EvaluateInputs:
 class EvaluateOutputs:
     STATS: ClassVar[str | None] = None  # metrics.json feeds report.metrics
     metrics: Path  # metrics.json: {"blueprint": {method: {...}}, "poses": {...}}; held-out
-    #                scores under blueprint.<method>.heldout_pacc
+    #                scores under blueprint.<method>.heldout_pacc; "alignment": the scoring
+    #                frame's conditioning when the plans were read through a similarity
 
     @classmethod
     def at(cls, out: Path) -> EvaluateOutputs:
@@ -63,6 +64,11 @@ def run(cfg: EvaluateConfig, inputs: EvaluateInputs, out: Path) -> EvaluateOutpu
     if gt_plan is not None and gt_plan.is_file() and cfg.plan:
         gt = Blueprint.load(gt_plan)
         pred_to_gt, frame = plan_frame(inputs.poses_estimated, est, gtp, gt.grid)
+        if frame == FRAME_ALIGNED:  # how well the shared poses fix that frame
+            common = [k for k in gtp if k in est]
+            metrics["alignment"] = pose_similarity(
+                [est[k] for k in common], [gtp[k] for k in common]
+            )[1]
         metrics["blueprint"] = {
             m: {**evaluate_plan(Blueprint.load(p), gt, pred_to_gt), "frame": frame}
             for m, p in zip(inputs.methods, inputs.blueprints, strict=True)

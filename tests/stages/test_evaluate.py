@@ -165,6 +165,8 @@ def test_stage_aligns_plans_built_from_estimated_poses(tmp_path):
     assert bp["fwiou"] == pytest.approx(evaluate_plan(PRED, GT)["fwiou"], abs=1e-9)
     assert metrics["poses"]["ate_rmse_m"] == pytest.approx(0.0, abs=1e-9)
     assert metrics["poses"]["align_scale"] == pytest.approx(1.07)
+    assert metrics["alignment"]["poses"] == len(est)  # the frame's conditioning, reported
+    assert metrics["alignment"]["conditioning"] > 0.3
 
 
 def test_stage_with_given_poses_compares_in_the_gt_frame(tmp_path):
