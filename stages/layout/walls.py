@@ -60,7 +60,7 @@ def build_plan(bp: Blueprint, cfg: LayoutConfig, mesh: Path | None = None) -> di
         fid = [k for k, v in bp.classes.items() if v == "floor"]
         floor = bp.grid.centers()[np.isin(bp.labels, fid)]
         ceil = ceiling(scene, floor[:: max(1, len(floor) // 50)])
-        plan["objects"] = objects(bp, cfg, lambda xys: heights(scene, xys, ceil))
+        plan["objects"] = objects(bp, cfg, lambda xys: object_heights(scene, xys, ceil))
         plan["ceiling_m"] = None if ceil is None else round(ceil, 4)
     else:
         plan = architecture(bp, cfg)
@@ -71,6 +71,25 @@ def build_plan(bp: Blueprint, cfg: LayoutConfig, mesh: Path | None = None) -> di
         plan["objects"], plan["rooms"], 2 * bp.grid.cell
     )
     return plan
+
+
+def object_heights(
+    scene: o3d.t.geometry.RaycastingScene, xys: list[np.ndarray], ceil: float | None
+) -> list[tuple[float | None, float | None]]:
+    """(height, top) over each object's floor points [N, 2]: its highest point (the 98th
+    percentile of the first surfaces met by rays cast down from under the ceiling:
+    openings.heights) and its top, the median of them (the surface things are set on: a
+    counter's top under the kettle, a chair's seat inside its back), metres above the floor."""
+    z0 = ceil - 0.02 if ceil is not None else 5.0
+    out: list[tuple[float | None, float | None]] = []
+    for xy, high in zip(xys, heights(scene, xys, ceil), strict=True):
+        rays = np.concatenate(
+            [xy, np.full((len(xy), 1), z0), np.tile([0, 0, -1.0], (len(xy), 1))], 1
+        ).astype(np.float32)
+        t = scene.cast_rays(o3d.core.Tensor.from_numpy(rays))["t_hit"].numpy()
+        t = t[np.isfinite(t)]
+        out.append((high, round(float(np.median(z0 - t)), 4) if len(t) else None))
+    return out
 
 
 def seen_floor(bp: Blueprint, scene: o3d.t.geometry.RaycastingScene) -> Blueprint:

@@ -45,6 +45,13 @@ class SemanticsConfig:
     object_max_gap: float = 0.3  # metres: a cluster whose lowest point is higher above the
     #                              floor does not stand on it (wall cabinet, lamp, fused noise)
     #                              and is labelled unknown (255)
+    # an object cluster is split into pieces where its top steps (pieces.py): plan cells of
+    # piece_cell metres whose tops differ by at most piece_step are one piece, and a piece no
+    # disk of piece_min_width fits in (a chair back, a kettle, a bevel) joins its neighbour.
+    # 0 = off: a cluster is one instance
+    piece_step: float = 0.1  # metres
+    piece_cell: float = 0.05  # metres
+    piece_min_width: float = 0.25  # metres
     # rays that pass through every surface and through no wall and cross the floor plane
     # inside the room (the hole-filled footprint of the floor and walls, on cells of
     # floor_fill_cell metres) are labelled floor at that crossing (floorfill.py): the floor
@@ -132,6 +139,8 @@ class SemanticsConfig:
             "floor_fill_reach",
             "point_wall_dist",
             "point_wall_min_height",
+            "piece_cell",
+            "piece_min_width",
         ):
             if not getattr(self, name) > 0:
                 raise BlunfError(f"semantics.{name}: must be > 0, got {getattr(self, name)}")
@@ -152,6 +161,7 @@ class SemanticsConfig:
             "object_max_gap",
             "point_wall_max_beyond",
             "point_wall_min_area",
+            "piece_step",
         ):
             if not getattr(self, name) >= 0:
                 raise BlunfError(f"semantics.{name}: must be >= 0, got {getattr(self, name)}")

@@ -18,7 +18,9 @@ id (0 = none), from its centre, unit normal and area:
    cluster_eps / 2. A cluster is an object instance when it covers `object_min_area` and its
    lowest point is within `object_max_gap` of the floor; smaller clusters, DBSCAN noise and
    clusters hanging higher (wall cabinets, lamps, fused noise) are labelled UNKNOWN: a plan
-   holds what stands on the floor, and no class is invented for them.
+   holds what stands on the floor, and no class is invented for them. Each cluster is split
+   into pieces where its top height steps by more than `piece_step` (pieces.py): a counter
+   run, the island beside it, a wardrobe, a chair's seat by a table are instances of their own.
 
 Mesh normals of the TSDF surface point to free space (checked on the fused rooms: every
 floor triangle faces up), which tells a floor from the underside of a table top.
@@ -36,6 +38,7 @@ import open3d as o3d
 from stages.common.capture import UNKNOWN
 from stages.common.rows import unique_rows
 from stages.semantics.config import CEILING, FLOOR, OBJECT, WALL, SemanticsConfig
+from stages.semantics.pieces import split_by_top
 
 log = logging.getLogger(__name__)
 
@@ -299,6 +302,17 @@ def _objects(
             seg.noise_clusters += 1
         elif c[members, 2].min() - base > cfg.object_max_gap:
             seg.floating_clusters += 1
+        elif cfg.piece_step > 0:
+            piece = split_by_top(
+                c[members],
+                cfg.piece_cell,
+                cfg.piece_step,
+                cfg.piece_min_width,
+                base + cfg.object_max_gap,
+            )
+            for k in range(int(piece.max()) + 1):
+                part = members[piece == k]
+                found.append((float(area[part].sum()), int(part.min()), part))
         else:
             found.append((a, int(members.min()), members))
     found.sort(key=lambda x: (-x[0], x[1]))  # by area, then position in the mesh: deterministic
