@@ -3,10 +3,10 @@
 plan.json: {"units": "m", "angle_deg": the room's direction, "rooms": [{name, polygon
 (counter-clockwise interior outline), area}], "walls": [{start, end (interior face, room on
 the left), length, thickness, room}], "openings": [{kind door|passage, wall, start, end,
-width}], "objects": [{instance, class, name, polygon, center, width, depth, angle_deg,
-height (its highest point) and top (its upper surface: a counter's top, a chair's seat), metres
-above the floor, None without a mesh, shape rect|polygon}], "objects_outside": how many object footprints lay outside every room
-(left out of the drawing; the BluNF plan keeps them)}.
+width}], "objects": [{instance, class, name, polygon, center, width, depth, angle_deg, height
+(its highest point) and top (its upper surface: a counter's top, a chair's seat), metres above
+the floor, None without a mesh, shape rect|polygon}], "objects_outside": how many object
+footprints lay outside every room (left out of the drawing; the BluNF plan keeps them)}.
 """
 
 from __future__ import annotations
