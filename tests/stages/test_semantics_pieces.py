@@ -32,9 +32,9 @@ def _moved(parts: list[trimesh.Trimesh], dx: float, dy: float, turn: bool = Fals
 
 def _furniture() -> tuple[dict[str, list[trimesh.Trimesh]], float, float, float]:
     """Touching furniture on a 4.5 x 4 m floor: counters round the north-west corner (an L
-    of two runs, 0.9 m, a microwave on one), a 2 m wardrobe against the north run's east end, a
-    table against its front and a chair pushed against the table (its legs touch no other). Returns the parts by name,
-    the table's top, the chair's seat and back tops."""
+    of two runs, 0.9 m, a microwave on one), a 2 m wardrobe against the north run's east
+    end, a table against its front and a chair pushed against the table (its legs touch no
+    other). Returns the parts by name, the table's top, the chair's seat and back tops."""
     rng = np.random.default_rng(0)
     table, (thx, thy), t_top = build_table(rng)
     chair, (chx, chy), c_top = build_chair(rng)
@@ -54,9 +54,10 @@ def _mesh(items: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Vertices, triangles (subdivided to EDGE) and the item index of each triangle, with
     the floor and the north and west walls the furniture stands against (index -1)."""
     floor = box_mesh(-0.5, 4.0, 0.5, 4.5, -0.02, 0.0)
+    quad = [[0, 1, 2], [0, 2, 3]]
     walls = [  # one face each, facing the room (as fused)
-        trimesh.Trimesh([(4, 4, 0), (0, 4, 0), (0, 4, 2.5), (4, 4, 2.5)], [[0, 1, 2], [0, 2, 3]]),
-        trimesh.Trimesh([(0, 4, 0), (0, 0.5, 0), (0, 0.5, 2.5), (0, 4, 2.5)], [[0, 1, 2], [0, 2, 3]]),
+        trimesh.Trimesh([(4, 4, 0), (0, 4, 0), (0, 4, 2.5), (4, 4, 2.5)], quad),
+        trimesh.Trimesh([(0, 4, 0), (0, 0.5, 0), (0, 0.5, 2.5), (0, 4, 2.5)], quad),
     ]
     parts = [(p, -1) for p in [floor, *walls]]
     parts += [(p, i) for i, ps in enumerate(items.values()) for p in ps]
@@ -95,7 +96,7 @@ def test_touching_furniture_is_one_piece_per_item_where_tops_step():
         got[name] = int(np.argmax(share))
         # nearly all of each item in one instance: the row of 5 cm cells where two items
         # meet goes with the taller one (the table's last row: 6 % of its faces)
-        assert share.max() > 0.9, (name, dict(zip(ids.tolist(), share[ids].round(3))))
+        assert share.max() > 0.9, (name, dict(zip(ids, share[ids].round(3), strict=True)))
     # the microwave (0.35 m wide: a disk of 0.25 m fits) stands on the north run, not on the
     # floor: part of it, no piece of its own
     assert got["microwave"] == got["north run"]
