@@ -18,9 +18,11 @@ id (0 = none), from its centre, unit normal and area:
    cluster_eps / 2. A cluster is an object instance when it covers `object_min_area` and its
    lowest point is within `object_max_gap` of the floor; smaller clusters, DBSCAN noise and
    clusters hanging higher (wall cabinets, lamps, fused noise) are labelled UNKNOWN: a plan
-   holds what stands on the floor, and no class is invented for them. Each cluster is split
-   into pieces where its top height steps by more than `piece_step` (pieces.py): a counter
-   run, the island beside it, a wardrobe, a chair's seat by a table are instances of their own.
+   holds what stands on the floor, and no class is invented for them; except a table top
+   whose legs no view fused (a cluster mostly facing up, at table height: `_table_top`).
+   Each cluster is split into pieces where its top height steps by more than `piece_step`
+   (pieces.py): a counter run, the island beside it, a wardrobe, a chair's seat by a table
+   are instances of their own.
 
 Mesh normals of the TSDF surface point to free space (checked on the fused rooms: every
 floor triangle faces up), which tells a floor from the underside of a table top.
@@ -126,7 +128,7 @@ def segment(
                 seg.planes.append(w)
                 log.debug("semantics: wall from points %s", w)
     _absorb(seg, c, cfg)
-    _objects(seg, c, area, ok, cfg)
+    _objects(seg, c, n, area, ok, cfg)
     return seg
 
 
@@ -271,8 +273,27 @@ def in_extent(plane: dict, p: np.ndarray, pad: float) -> np.ndarray:
     return np.asarray(((q >= lo - pad) & (q <= hi + pad)).all(axis=-1))
 
 
+def _table_top(
+    c: np.ndarray, n: np.ndarray, area: np.ndarray, base: float, cfg: SemanticsConfig
+) -> bool:
+    """Whether a cluster that does not reach the floor is a table whose legs or pedestal no
+    view fused: its faces up (horizontal, facing up) cover at least table_min_top m² and a third
+    its area, at a median height of at most table_max_top above the floor. A wall cabinet
+    shows its front and underside; a lamp, fused noise little that faces up."""
+    up = n[:, 2] > np.cos(np.radians(cfg.max_tilt_deg))  # [N]
+    a_up = float(area[up].sum())
+    if cfg.table_max_top <= 0 or a_up < cfg.table_min_top or a_up < float(area.sum()) / 3:
+        return False
+    return bool(np.median(c[up, 2]) - base <= cfg.table_max_top)
+
+
 def _objects(
-    seg: Segmentation, c: np.ndarray, area: np.ndarray, ok: np.ndarray, cfg: SemanticsConfig
+    seg: Segmentation,
+    c: np.ndarray,
+    n: np.ndarray,
+    area: np.ndarray,
+    ok: np.ndarray,
+    cfg: SemanticsConfig,
 ) -> None:
     """DBSCAN the unlabelled triangles; clusters standing on the floor become instances."""
     rest = np.flatnonzero((seg.cls == UNKNOWN) & ok)
@@ -300,7 +321,9 @@ def _objects(
         a = float(area[members].sum())
         if a < cfg.object_min_area:
             seg.noise_clusters += 1
-        elif c[members, 2].min() - base > cfg.object_max_gap:
+        elif c[members, 2].min() - base > cfg.object_max_gap and not _table_top(
+            c[members], n[members], area[members], base, cfg
+        ):
             seg.floating_clusters += 1
         elif cfg.piece_step > 0:
             piece = split_by_top(
