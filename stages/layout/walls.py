@@ -60,7 +60,9 @@ def build_plan(bp: Blueprint, cfg: LayoutConfig, mesh: Path | None = None) -> di
         fid = [k for k, v in bp.classes.items() if v == "floor"]
         floor = bp.grid.centers()[np.isin(bp.labels, fid)]
         ceil = ceiling(scene, floor[:: max(1, len(floor) // 50)])
-        plan["objects"] = objects(bp, cfg, lambda xys: object_heights(scene, xys, ceil))
+        plan["objects"] = objects(
+            bp, cfg, lambda xys: object_heights(scene, xys, ceil), lambda xy: solid(scene, xy, ceil)
+        )
         plan["ceiling_m"] = None if ceil is None else round(ceil, 4)
     else:
         plan = architecture(bp, cfg)
@@ -90,6 +92,20 @@ def object_heights(
         t = t[np.isfinite(t)]
         out.append((high, round(float(np.median(z0 - t)), 4) if len(t) else None))
     return out
+
+
+SOLID_Z = 0.08  # metres: a surface higher than this over the floor is something standing
+
+
+def solid(scene: o3d.t.geometry.RaycastingScene, xy: np.ndarray, ceil: float | None
+          ) -> np.ndarray:  # fmt: skip
+    """bool [N]: whether the first surface met by a ray cast down at each point [N, 2] from
+    under the ceiling (from 5 m without one) lies higher than SOLID_Z (not the floor, not a
+    hole in the surface)."""
+    z0 = ceil - 0.02 if ceil is not None else 5.0
+    rays = np.concatenate([xy, np.full((len(xy), 1), z0), np.tile([0, 0, -1.0], (len(xy), 1))], 1)
+    t = scene.cast_rays(o3d.core.Tensor.from_numpy(rays.astype(np.float32)))["t_hit"].numpy()
+    return np.isfinite(t) & (z0 - t > SOLID_Z)
 
 
 def seen_floor(bp: Blueprint, scene: o3d.t.geometry.RaycastingScene) -> Blueprint:
