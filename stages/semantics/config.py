@@ -36,6 +36,9 @@ class SemanticsConfig:
     #                             36.2 -> 44.9, wall IoU 21.3 -> 32.9; README)
     wall_min_length: float = 1.0  # ... and at least this along the floor (5-95 %, metres)
     wall_min_area: float = 0.6  # ... and cover at least this many m²
+    wall_behind: float = 0.6  # metres: a wall plane with another facing the same way behind
+    #                           it, this close, along half its length, is no wall (blinds,
+    #                           cubicle panels, tall cabinets before the wall); 0 = off
     max_planes: int = 24  # at most this many planes are fitted per kind (floor, ceiling, wall)
     cluster_eps: float = 0.08  # metres: DBSCAN radius joining object surfaces (run on voxels
     #                            of cluster_eps / 2, one point per occupied voxel)
@@ -171,6 +174,7 @@ class SemanticsConfig:
             "piece_step",
             "table_max_top",
             "table_min_top",
+            "wall_behind",
         ):
             if not getattr(self, name) >= 0:
                 raise BlunfError(f"semantics.{name}: must be >= 0, got {getattr(self, name)}")

@@ -9,8 +9,10 @@ id (0 = none), from its centre, unit normal and area:
    `plane_dist`, normal within `max_tilt_deg`) cover `plane_min_area`.
 2. Walls: RANSAC planes over the remaining vertical triangles; a plane is a wall when its
    inliers span `wall_min_height` in z, `wall_min_length` along the floor and cover
-   `wall_min_area` (a cabinet front is too low, a chair back too small). Planes that fail
-   stay in the object pool.
+   `wall_min_area` (a cabinet front is too low, a chair back too small), and no other such
+   plane stands behind it within `wall_behind` (blinds before a window wall, cubicle panels,
+   tall cabinets against a wall: the wall is the outermost surface). Planes that fail stay
+   in the object pool.
 3. Unlabelled triangles within `plane_dist` of an accepted plane, inside its extent, join it
    whatever their normal: the rounded seams of the TSDF surface where a wall meets the
    floor would otherwise form thin "objects" along every wall.
@@ -116,12 +118,20 @@ def segment(
         if area[inl].sum() >= cfg.plane_min_area:
             _accept(seg, plane, inl, "ceiling", CEILING, c, area)
     pool = vert & (seg.cls == UNKNOWN)
+    found = []
     for plane, inl in _planes(c, n, area, pool, cfg, rng, horizontal=False):
         if _is_wall(plane, c[inl], area[inl], cfg):
-            _accept(seg, plane, inl, "wall", WALL, c, area)
+            found.append((plane, inl))
         else:
             seg.rejected.append(_describe(plane, inl, "vertical", c, area))
             log.debug("semantics: not a wall %s", seg.rejected[-1])
+    outer = _outermost(found, c, n, cfg.wall_behind)
+    for (plane, inl), ok in zip(found, outer, strict=True):
+        if ok:
+            _accept(seg, plane, inl, "wall", WALL, c, area)
+        else:  # in front of a wall: furniture or a hanging, left to the object clusters
+            seg.rejected.append({**_describe(plane, inl, "vertical", c, area), "front": True})
+            log.debug("semantics: in front of a wall %s", seg.rejected[-1])
     if more_walls is not None:
         for w in more_walls(c, n, area, seg.floor_z):
             if not any(_same_wall(w, p) for p in seg.planes if p["kind"] == "wall"):
@@ -206,6 +216,37 @@ def _is_wall(plane: np.ndarray, c: np.ndarray, area: np.ndarray, cfg: SemanticsC
         and length >= cfg.wall_min_length
         and area.sum() >= cfg.wall_min_area
     )
+
+
+def _outermost(
+    found: list[tuple[np.ndarray, np.ndarray]], c: np.ndarray, n: np.ndarray, behind: float
+) -> list[bool]:
+    """For each wall plane (plane [4], inlier indices): whether it is the outermost surface
+    there, i.e. no other wall plane facing the same way lies behind it (away from the room,
+    the side its triangles do not face) by 2 cm to `behind` metres along at least half its
+    length (5-95 % of its inliers). Blinds before a window wall, cubicle panels or a row of
+    tall cabinets before the wall they stand against are no wall. behind 0: all are."""
+    if behind <= 0 or len(found) < 2:
+        return [True] * len(found)
+    facing = []  # [unit normal facing the room, d]
+    for plane, inl in found:
+        sign = 1.0 if (n[inl] @ plane[:3]).sum() >= 0 else -1.0
+        facing.append(sign * plane)
+    out = []
+    for i, (_, inl) in enumerate(found):
+        u = _axes(facing[i])
+        lo, hi = np.percentile(c[inl] @ u, SPAN_PCT)
+        ok = True
+        for j, (_, other) in enumerate(found):
+            if j == i or facing[i][:3] @ facing[j][:3] < np.cos(np.radians(15.0)):
+                continue
+            off = float(np.median(c[other] @ facing[i][:3] + facing[i][3]))  # < 0: behind
+            a, b = np.percentile(c[other] @ u, SPAN_PCT)
+            if -behind <= off <= -0.02 and min(hi, b) - max(lo, a) >= 0.5 * (hi - lo):
+                ok = False
+                break
+        out.append(ok)
+    return out
 
 
 def _accept(
