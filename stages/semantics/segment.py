@@ -126,8 +126,8 @@ def segment(
             seg.rejected.append(_describe(plane, inl, "vertical", c, area))
             log.debug("semantics: not a wall %s", seg.rejected[-1])
     outer = _outermost(found, c, n, cfg.wall_behind)
-    for (plane, inl), ok in zip(found, outer, strict=True):
-        if ok:
+    for (plane, inl), is_outer in zip(found, outer, strict=True):
+        if is_outer:
             _accept(seg, plane, inl, "wall", WALL, c, area)
         else:  # in front of a wall: furniture or a hanging, left to the object clusters
             seg.rejected.append({**_describe(plane, inl, "vertical", c, area), "front": True})
