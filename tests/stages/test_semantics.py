@@ -418,8 +418,11 @@ def test_floor_wall_object_plan_is_scored_against_a_furnished_gt_plan():
 
 def test_a_wall_is_the_outermost_surface_not_the_blinds_before_it():
     # a 4 m wall at y = 3 seen above and below blinds hanging 0.3 m before it (0.2 to 2.2 m
-    # up, 3.5 m long): both pass the wall bounds; the wall is the one behind
+    # up, 3.5 m long): both pass the wall bounds; the wall is the one behind. A box stands in
+    # the room (an object whatever the walls)
+    b = trimesh.creation.box(bounds=[(1.0, 0.5, 0.0), (1.6, 1.0, 0.7)])
     parts = [
+        (np.asarray(b.vertices), np.asarray(b.faces)),
         _quad([(0, 0, 0), (X, 0, 0), (X, Y, 0), (0, Y, 0)], (0, 0, 1)),
         _quad([(0, Y, 0), (X, Y, 0), (X, Y, Z), (0, Y, Z)], (0, -1, 0)),
         _quad([(0.25, Y - 0.3, 0.2), (3.75, Y - 0.3, 0.2), (3.75, Y - 0.3, 2.2),
@@ -439,6 +442,8 @@ def test_a_wall_is_the_outermost_surface_not_the_blinds_before_it():
         seg = segment(verts, tris, SemanticsConfig(wall_behind=behind))
         walls[behind] = sorted(-p["d"] * np.sign(p["normal"][1]) for p in seg.planes
                                if p["kind"] == "wall")  # fmt: skip
+        box = (c[:, 2] > 0.05) & (c[:, 1] < 1.01)
+        assert (seg.cls[box] == OBJECT).all() and seg.instance.max() >= 1
         if behind:
             assert not (seg.cls[blinds] == WALL).any()
     assert walls[0.6] == pytest.approx([Y], abs=0.01)
