@@ -12,7 +12,8 @@ id (0 = none), from its centre, unit normal and area:
    `wall_min_area` (a cabinet front is too low, a chair back too small), and no other such
    plane stands behind it within `wall_behind` (blinds before a window wall, cubicle panels,
    tall cabinets against a wall: the wall is the outermost surface). Planes that fail stay
-   in the object pool.
+   in the object pool, except one before a wall that hangs clear of the floor (blinds, a
+   curtain: unknown).
 3. Unlabelled triangles within `plane_dist` of an accepted plane, inside its extent, join it
    whatever their normal: the rounded seams of the TSDF surface where a wall meets the
    floor would otherwise form thin "objects" along every wall.
@@ -47,6 +48,7 @@ from stages.semantics.pieces import split_by_top
 log = logging.getLogger(__name__)
 
 SPAN_PCT = (5.0, 95.0)  # robust extent of a plane's inliers (percentiles)
+HANGS = 0.1  # metres: a surface before a wall whose lowest inliers (5 %) lie higher hangs
 
 
 @dataclass
@@ -126,19 +128,25 @@ def segment(
             seg.rejected.append(_describe(plane, inl, "vertical", c, area))
             log.debug("semantics: not a wall %s", seg.rejected[-1])
     outer = _outermost(found, c, n, cfg.wall_behind)
+    hung = np.zeros(t, bool)  # surfaces hanging before a wall: in no object
     for (plane, inl), is_outer in zip(found, outer, strict=True):
         if is_outer:
             _accept(seg, plane, inl, "wall", WALL, c, area)
-        else:  # in front of a wall: furniture or a hanging, left to the object clusters
-            seg.rejected.append({**_describe(plane, inl, "vertical", c, area), "front": True})
-            log.debug("semantics: in front of a wall %s", seg.rejected[-1])
+            continue
+        # in front of a wall: furniture standing on the floor is left to the object
+        # clusters; what hangs clear of it (blinds, a curtain, a board) stays unknown and
+        # the plan shows the floor the views saw under it
+        seg.rejected.append({**_describe(plane, inl, "vertical", c, area), "front": True})
+        log.debug("semantics: in front of a wall %s", seg.rejected[-1])
+        if np.percentile(c[inl, 2], SPAN_PCT[0]) - seg.floor_z > HANGS:
+            hung[inl] = True
     if more_walls is not None:
         for w in more_walls(c, n, area, seg.floor_z):
             if not any(_same_wall(w, p) for p in seg.planes if p["kind"] == "wall"):
                 seg.planes.append(w)
                 log.debug("semantics: wall from points %s", w)
     _absorb(seg, c, cfg)
-    _objects(seg, c, n, area, ok, cfg)
+    _objects(seg, c, n, area, ok & ~hung, cfg)
     return seg
 
 
