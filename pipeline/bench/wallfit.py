@@ -2,7 +2,8 @@
 
 For every wall of plan.json (its interior face, room on the left) the fused mesh's vertical
 triangles facing the room are read along the face in bins of BIN metres over its inner 90 %,
-from REACH in front of the face to REACH behind it, between Z_RANGE. Per bin:
+from REACH in front of the face to REACH behind it, between Z_RANGE (by their centres: a
+fused surface's triangles are small). Per bin:
   outermost  the offset of the farthest such surface (metres, + beyond the face): the
              surface that bounds the room there (a wall behind a counter, not the counter's
              front); slabs of SLAB metres holding at least MIN_AREA m² of triangles count;
