@@ -205,3 +205,17 @@ def plan_summary(bp: Blueprint, min_area_m2: float = 0.0) -> dict:
         "min_area_m2": float(min_area_m2),
         "components": comps,
     }
+
+
+def with_heights(summary: dict, objects: list[dict]) -> dict:
+    """`plan_summary` with each object component's `height` (its highest point) and `top` (its
+    upper surface), metres above the floor, from the layout's plan.json objects of the same
+    instance (None where no object of that instance was drawn: no mesh, or too small)."""
+    by_inst = {int(o["instance"]): o for o in objects if o.get("instance")}
+    comps = []
+    for c in summary["components"]:
+        o = by_inst.get(int(c["instance"])) if c["instance"] else None
+        if c["instance"]:
+            c = {**c, "height": o and o.get("height"), "top": o and o.get("top")}
+        comps.append(c)
+    return {**summary, "components": comps}

@@ -11,7 +11,7 @@ from shapely.errors import GEOSException
 
 from stages.common.blueprint import Blueprint
 from stages.common.capture import Capture
-from stages.common.components import plan_summary, polygons
+from stages.common.components import plan_summary, polygons, with_heights
 from stages.common.io import read_json, write_json
 from stages.common.nerfstudio import write_transforms
 from stages.common.plan_picture import plan_png
@@ -60,6 +60,8 @@ def run(cfg: ExportConfig, inputs: ExportInputs, out: Path) -> ExportOutputs:
     write_geojson(bp, out / "blueprint.geojson", polys=polys)
     write_dxf(bp, out / "blueprint.dxf", polys=polys)
     summary = plan_summary(bp, min_area_m2=cfg.min_area)
+    if inputs.layout and Path(inputs.layout).is_file():  # object heights from the plan
+        summary = with_heights(summary, read_json(inputs.layout).get("objects", []))
     write_json(out / "components.json", summary)
     write_json(
         out / "export.json",

@@ -3,9 +3,10 @@
 plan.json: {"units": "m", "angle_deg": the room's direction, "rooms": [{name, polygon
 (counter-clockwise interior outline), area}], "walls": [{start, end (interior face, room on
 the left), length, thickness, room}], "openings": [{kind door|passage, wall, start, end,
-width}], "objects": [{instance, class, name, polygon, center, width, depth, angle_deg, height,
-shape rect|polygon}], "objects_outside": how many object footprints lay outside every room
-(left out of the drawing; the BluNF plan keeps them)}.
+width}], "objects": [{instance, class, name, polygon, center, width, depth, angle_deg, height
+(its highest point) and top (its upper surface: a counter's top, a chair's seat), metres above
+the floor, None without a mesh, shape rect|polygon}], "objects_outside": how many object
+footprints lay outside every room (left out of the drawing; the BluNF plan keeps them)}.
 """
 
 from __future__ import annotations
@@ -177,9 +178,17 @@ def _openings(
     return out
 
 
-def objects(bp: Blueprint, cfg: LayoutConfig, top: Callable | None = None) -> list[dict]:
+def objects(
+    bp: Blueprint, cfg: LayoutConfig, top: Callable | None = None, solid: Callable | None = None
+) -> list[dict]:
     """Each object's footprint: oriented rectangle (or outline polygon when not box-like),
-    width x depth; `top` gives the height over floor points (openings.heights; None: no mesh)."""
+    width x depth; `top` gives (height, top) over floor points (walls.object_heights; None: no
+    mesh, both None). The objects are the plan's instances: the semantics stage splits a
+    cluster into pieces where its top steps (a counter run, the island, a chair's seat).
+    `solid` ([N, 2] xy -> [N] bool: a surface stands above the floor there; walls.solid) keeps
+    an object's footprint to the cells it stands on: the plan's field paints unseen floor
+    beside furniture with the nearest object (the 7-Scenes kitchen's island drew 3.5 x 2.0 m
+    where its surfaces span 2.9 x 1.25: now 2.8 x 1.4)."""
     names = {k: v for k, v in bp.classes.items() if v not in STRUCTURE}
     obj = np.isin(bp.labels, list(names))
     if bp.instances is not None:
@@ -194,6 +203,8 @@ def objects(bp: Blueprint, cfg: LayoutConfig, top: Callable | None = None) -> li
     counts: dict[str, int] = {}
     for inst in np.unique(ids[ids > 0]):
         m = ids == inst
+        if solid is not None and m.any():
+            m[m] = solid(centres[m])
         if m.sum() * cell**2 < cfg.min_object_area:
             continue
         cls = int(np.bincount(bp.labels[m]).argmax())
@@ -214,7 +225,9 @@ def objects(bp: Blueprint, cfg: LayoutConfig, top: Callable | None = None) -> li
         box_like = m.sum() * cell**2 >= (1 - cfg.box_slack) * rect.area
         shape = rect if box_like else _outline(m, bp, hull)
         inner = ndi.binary_erosion(m)
-        height = top([centres[inner if inner.sum() >= 4 else m]])[0] if top is not None else None
+        height, up = (
+            top([centres[inner if inner.sum() >= 4 else m]])[0] if top is not None else (None, None)
+        )
         name = bp.classes.get(cls, str(cls))
         counts[name] = counts.get(name, 0) + 1
         out.append(
@@ -229,6 +242,7 @@ def objects(bp: Blueprint, cfg: LayoutConfig, top: Callable | None = None) -> li
                 "depth": round(depth, 4),
                 "angle_deg": round(ang, 3),
                 "height": height,
+                "top": up,
             }
         )
     return out

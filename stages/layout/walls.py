@@ -23,6 +23,8 @@ from stages.layout.config import LayoutConfig, LayoutInputs, LayoutOutputs
 from stages.layout.draw import write_dxf, write_svg
 from stages.layout.extract import Line, intersect
 from stages.layout.openings import (
+    FACE_HEIGHTS,
+    FACE_SUPPORT,
     ceiling,
     face_offsets,
     heights,
@@ -54,10 +56,13 @@ def build_plan(bp: Blueprint, cfg: LayoutConfig, mesh: Path | None = None) -> di
         plan = architecture(seen_floor(bp, scene), cfg)
         plan = moved_to_faces(plan, face_offsets(scene, plan["walls"]), cfg, bp.grid.cell)
         plan["openings"] = _distinct(mesh_openings(plan["walls"], verts, tris, cfg))
+        plan["walls"] = seen_thickness(scene, plan["walls"], cfg)
         fid = [k for k, v in bp.classes.items() if v == "floor"]
         floor = bp.grid.centers()[np.isin(bp.labels, fid)]
         ceil = ceiling(scene, floor[:: max(1, len(floor) // 50)])
-        plan["objects"] = objects(bp, cfg, lambda xys: heights(scene, xys, ceil))
+        plan["objects"] = objects(
+            bp, cfg, lambda xys: object_heights(scene, xys, ceil), lambda xy: solid(scene, xy, ceil)
+        )
         plan["ceiling_m"] = None if ceil is None else round(ceil, 4)
     else:
         plan = architecture(bp, cfg)
@@ -68,6 +73,39 @@ def build_plan(bp: Blueprint, cfg: LayoutConfig, mesh: Path | None = None) -> di
         plan["objects"], plan["rooms"], 2 * bp.grid.cell
     )
     return plan
+
+
+def object_heights(
+    scene: o3d.t.geometry.RaycastingScene, xys: list[np.ndarray], ceil: float | None
+) -> list[tuple[float | None, float | None]]:
+    """(height, top) over each object's floor points [N, 2]: its highest point (the 98th
+    percentile of the first surfaces met by rays cast down from under the ceiling:
+    openings.heights) and its top, the median of them (the surface things are set on: a
+    counter's top under the kettle, a chair's seat inside its back), metres above the floor."""
+    z0 = ceil - 0.02 if ceil is not None else 5.0
+    out: list[tuple[float | None, float | None]] = []
+    for xy, high in zip(xys, heights(scene, xys, ceil), strict=True):
+        rays = np.concatenate(
+            [xy, np.full((len(xy), 1), z0), np.tile([0, 0, -1.0], (len(xy), 1))], 1
+        ).astype(np.float32)
+        t = scene.cast_rays(o3d.core.Tensor.from_numpy(rays))["t_hit"].numpy()
+        t = t[np.isfinite(t)]
+        out.append((high, round(float(np.median(z0 - t)), 4) if len(t) else None))
+    return out
+
+
+SOLID_Z = 0.08  # metres: a surface higher than this over the floor is something standing
+
+
+def solid(scene: o3d.t.geometry.RaycastingScene, xy: np.ndarray, ceil: float | None
+          ) -> np.ndarray:  # fmt: skip
+    """bool [N]: whether the first surface met by a ray cast down at each point [N, 2] from
+    under the ceiling (from 5 m without one) lies higher than SOLID_Z (not the floor, not a
+    hole in the surface)."""
+    z0 = ceil - 0.02 if ceil is not None else 5.0
+    rays = np.concatenate([xy, np.full((len(xy), 1), z0), np.tile([0, 0, -1.0], (len(xy), 1))], 1)
+    t = scene.cast_rays(o3d.core.Tensor.from_numpy(rays.astype(np.float32)))["t_hit"].numpy()
+    return np.isfinite(t) & (z0 - t > SOLID_Z)
 
 
 def seen_floor(bp: Blueprint, scene: o3d.t.geometry.RaycastingScene) -> Blueprint:
@@ -148,6 +186,48 @@ def moved_to_faces(plan: dict, offsets: np.ndarray, cfg: LayoutConfig, cell: flo
             )
         rooms.append({**room, "polygon": np.round(new, 4).tolist(), "area": round(moved.area, 4)})
     return {**plan, "rooms": rooms, "walls": walls}
+
+
+BACK_BIN = 0.05  # metres: ray spacing along a wall where its back face is looked for
+
+
+def seen_thickness(
+    scene: o3d.t.geometry.RaycastingScene, walls: list[dict], cfg: LayoutConfig
+) -> list[dict]:
+    """The walls with their thickness read off the mesh: the median distance from the face to
+    the wall's back face (a surface facing away from the room, seen from beyond it: the next
+    room's side of a partition) where at least FACE_SUPPORT of the rays cast back towards the
+    face from `max_thickness` behind it, at FACE_HEIGHTS over its inner 80 %, meet one;
+    `default_thickness` elsewhere. A one-sided wall shows no thickness: the plan's band behind
+    its face is what the views did not see (the grid's padding, cabinets merged into it:
+    the 7-Scenes kitchen's north wall drew 0.40 m), not the wall."""
+    out = []
+    for w in walls:
+        a, b = np.asarray(w["start"], np.float64), np.asarray(w["end"], np.float64)
+        length = float(np.linalg.norm(b - a))
+        thick = cfg.default_thickness
+        if length >= 4 * BACK_BIN:
+            d = (b - a) / length
+            n = np.array([d[1], -d[0]])  # outwards
+            s = np.arange(0.1 * length, 0.9 * length, BACK_BIN)
+            back = cfg.max_thickness + 0.02
+            xy = a + s[:, None] * d + n * back
+            rays = np.concatenate(
+                [
+                    np.concatenate(
+                        [xy, np.full((len(s), 1), h), np.tile([*-n, 0.0], (len(s), 1))], 1
+                    )
+                    for h in FACE_HEIGHTS
+                ]
+            ).astype(np.float32)
+            hit = scene.cast_rays(o3d.core.Tensor.from_numpy(rays))
+            t = back - hit["t_hit"].numpy()  # depth of the hit behind the face
+            away = (hit["primitive_normals"].numpy()[:, :2] @ n) > 0.7
+            ok = np.isfinite(t) & away & (t > 0.02) & (t <= cfg.max_thickness)
+            if ok.mean() >= FACE_SUPPORT:
+                thick = float(np.median(t[ok]))
+        out.append({**w, "thickness": round(thick, 4)})
+    return out
 
 
 def _distinct(openings: list[dict], tol: float = 0.3) -> list[dict]:

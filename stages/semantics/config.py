@@ -36,6 +36,12 @@ class SemanticsConfig:
     #                             36.2 -> 44.9, wall IoU 21.3 -> 32.9; README)
     wall_min_length: float = 1.0  # ... and at least this along the floor (5-95 %, metres)
     wall_min_area: float = 0.6  # ... and cover at least this many m²
+    wall_behind: float = 0.6  # metres: a wall plane with another facing the same way behind
+    #                           it, this close, along half its length, is no wall (blinds,
+    #                           cubicle panels, tall cabinets before the wall); 0 = off.
+    #                           Replica office0 (sensor depth): its blinds, 0.31 m before the
+    #                           window wall, were a wall (fwIoU against its own classes,
+    #                           padded, 84.4 -> 84.5 with what hangs left unknown)
     max_planes: int = 24  # at most this many planes are fitted per kind (floor, ceiling, wall)
     cluster_eps: float = 0.08  # metres: DBSCAN radius joining object surfaces (run on voxels
     #                            of cluster_eps / 2, one point per occupied voxel)
@@ -45,6 +51,25 @@ class SemanticsConfig:
     object_max_gap: float = 0.3  # metres: a cluster whose lowest point is higher above the
     #                              floor does not stand on it (wall cabinet, lamp, fused noise)
     #                              and is labelled unknown (255)
+    # a cluster above object_max_gap that faces up over at least table_min_top m² and a third
+    # its area, at a median height of at most table_max_top, is an object all the same: a
+    # table whose legs or pedestal no view fused. Replica office0 (sensor depth, its 81
+    # frames): two such tables (1.37 and 0.43 m²) were unknown and their plan cells floor.
+    # 0 = off
+    table_max_top: float = 1.1  # metres above the floor
+    table_min_top: float = 0.15  # m²
+    # an object cluster is split into pieces where its top steps (pieces.py): plan cells of
+    # piece_cell metres whose tops differ by at most piece_step are one piece, and a piece no
+    # disk of piece_min_width fits in (a chair back, a kettle, a bevel) joins its neighbour.
+    # 7-Scenes kitchen (sensor depth, 100 frames): 3 clusters of over 0.1 m² (8.2, 4.1, 2.4
+    # m²) -> 5 pieces (4.3, 4.1, 3.9, 2.1, 2.0), the island (top 0.72 m) its own, the counters
+    # one piece per run. The procedural demo room
+    # from its photos (11 pieces of furniture): 7 objects without pieces, 9 with, 17 with a
+    # width of 0.25 m (sofa and chair backs, which stereo thickens, stood alone); fwIoU the
+    # same (84.7). 0 = off: a cluster is one instance
+    piece_step: float = 0.1  # metres
+    piece_cell: float = 0.05  # metres
+    piece_min_width: float = 0.4  # metres
     # rays that pass through every surface and through no wall and cross the floor plane
     # inside the room (the hole-filled footprint of the floor and walls, on cells of
     # floor_fill_cell metres) are labelled floor at that crossing (floorfill.py): the floor
@@ -132,6 +157,8 @@ class SemanticsConfig:
             "floor_fill_reach",
             "point_wall_dist",
             "point_wall_min_height",
+            "piece_cell",
+            "piece_min_width",
         ):
             if not getattr(self, name) > 0:
                 raise BlunfError(f"semantics.{name}: must be > 0, got {getattr(self, name)}")
@@ -152,6 +179,10 @@ class SemanticsConfig:
             "object_max_gap",
             "point_wall_max_beyond",
             "point_wall_min_area",
+            "piece_step",
+            "table_max_top",
+            "table_min_top",
+            "wall_behind",
         ):
             if not getattr(self, name) >= 0:
                 raise BlunfError(f"semantics.{name}: must be >= 0, got {getattr(self, name)}")

@@ -9,8 +9,11 @@ id (0 = none), from its centre, unit normal and area:
    `plane_dist`, normal within `max_tilt_deg`) cover `plane_min_area`.
 2. Walls: RANSAC planes over the remaining vertical triangles; a plane is a wall when its
    inliers span `wall_min_height` in z, `wall_min_length` along the floor and cover
-   `wall_min_area` (a cabinet front is too low, a chair back too small). Planes that fail
-   stay in the object pool.
+   `wall_min_area` (a cabinet front is too low, a chair back too small), and no other such
+   plane stands behind it within `wall_behind` (blinds before a window wall, cubicle panels,
+   tall cabinets against a wall: the wall is the outermost surface). Planes that fail stay
+   in the object pool, except one before a wall that hangs clear of the floor (blinds, a
+   curtain: unknown).
 3. Unlabelled triangles within `plane_dist` of an accepted plane, inside its extent, join it
    whatever their normal: the rounded seams of the TSDF surface where a wall meets the
    floor would otherwise form thin "objects" along every wall.
@@ -18,7 +21,11 @@ id (0 = none), from its centre, unit normal and area:
    cluster_eps / 2. A cluster is an object instance when it covers `object_min_area` and its
    lowest point is within `object_max_gap` of the floor; smaller clusters, DBSCAN noise and
    clusters hanging higher (wall cabinets, lamps, fused noise) are labelled UNKNOWN: a plan
-   holds what stands on the floor, and no class is invented for them.
+   holds what stands on the floor, and no class is invented for them; except a table top
+   whose legs no view fused (a cluster mostly facing up, at table height: `_table_top`).
+   Each cluster is split into pieces where its top height steps by more than `piece_step`
+   (pieces.py): a counter run, the island beside it, a wardrobe, a chair's seat by a table
+   are instances of their own.
 
 Mesh normals of the TSDF surface point to free space (checked on the fused rooms: every
 floor triangle faces up), which tells a floor from the underside of a table top.
@@ -36,10 +43,12 @@ import open3d as o3d
 from stages.common.capture import UNKNOWN
 from stages.common.rows import unique_rows
 from stages.semantics.config import CEILING, FLOOR, OBJECT, WALL, SemanticsConfig
+from stages.semantics.pieces import split_by_top
 
 log = logging.getLogger(__name__)
 
 SPAN_PCT = (5.0, 95.0)  # robust extent of a plane's inliers (percentiles)
+HANGS = 0.1  # metres: a surface before a wall whose lowest inliers (5 %) lie higher hangs
 
 
 @dataclass
@@ -111,19 +120,33 @@ def segment(
         if area[inl].sum() >= cfg.plane_min_area:
             _accept(seg, plane, inl, "ceiling", CEILING, c, area)
     pool = vert & (seg.cls == UNKNOWN)
+    found = []
     for plane, inl in _planes(c, n, area, pool, cfg, rng, horizontal=False):
         if _is_wall(plane, c[inl], area[inl], cfg):
-            _accept(seg, plane, inl, "wall", WALL, c, area)
+            found.append((plane, inl))
         else:
             seg.rejected.append(_describe(plane, inl, "vertical", c, area))
             log.debug("semantics: not a wall %s", seg.rejected[-1])
+    outer = _outermost(found, c, n, cfg.wall_behind)
+    hung = np.zeros(t, bool)  # surfaces hanging before a wall: in no object
+    for (plane, inl), is_outer in zip(found, outer, strict=True):
+        if is_outer:
+            _accept(seg, plane, inl, "wall", WALL, c, area)
+            continue
+        # in front of a wall: furniture standing on the floor is left to the object
+        # clusters; what hangs clear of it (blinds, a curtain, a board) stays unknown and
+        # the plan shows the floor the views saw under it
+        seg.rejected.append({**_describe(plane, inl, "vertical", c, area), "front": True})
+        log.debug("semantics: in front of a wall %s", seg.rejected[-1])
+        if np.percentile(c[inl, 2], SPAN_PCT[0]) - seg.floor_z > HANGS:
+            hung[inl] = True
     if more_walls is not None:
         for w in more_walls(c, n, area, seg.floor_z):
             if not any(_same_wall(w, p) for p in seg.planes if p["kind"] == "wall"):
                 seg.planes.append(w)
                 log.debug("semantics: wall from points %s", w)
     _absorb(seg, c, cfg)
-    _objects(seg, c, area, ok, cfg)
+    _objects(seg, c, n, area, ok & ~hung, cfg)
     return seg
 
 
@@ -203,6 +226,37 @@ def _is_wall(plane: np.ndarray, c: np.ndarray, area: np.ndarray, cfg: SemanticsC
     )
 
 
+def _outermost(
+    found: list[tuple[np.ndarray, np.ndarray]], c: np.ndarray, n: np.ndarray, behind: float
+) -> list[bool]:
+    """For each wall plane (plane [4], inlier indices): whether it is the outermost surface
+    there, i.e. no other wall plane facing the same way lies behind it (away from the room,
+    the side its triangles do not face) by 2 cm to `behind` metres along at least half its
+    length (5-95 % of its inliers). Blinds before a window wall, cubicle panels or a row of
+    tall cabinets before the wall they stand against are no wall. behind 0: all are."""
+    if behind <= 0 or len(found) < 2:
+        return [True] * len(found)
+    facing = []  # [unit normal facing the room, d]
+    for plane, inl in found:
+        sign = 1.0 if (n[inl] @ plane[:3]).sum() >= 0 else -1.0
+        facing.append(sign * plane)
+    out = []
+    for i, (_, inl) in enumerate(found):
+        u = _axes(facing[i])
+        lo, hi = np.percentile(c[inl] @ u, SPAN_PCT)
+        ok = True
+        for j, (_, other) in enumerate(found):
+            if j == i or facing[i][:3] @ facing[j][:3] < np.cos(np.radians(15.0)):
+                continue
+            off = float(np.median(c[other] @ facing[i][:3] + facing[i][3]))  # < 0: behind
+            a, b = np.percentile(c[other] @ u, SPAN_PCT)
+            if -behind <= off <= -0.02 and min(hi, b) - max(lo, a) >= 0.5 * (hi - lo):
+                ok = False
+                break
+        out.append(ok)
+    return out
+
+
 def _accept(
     seg: Segmentation,
     plane: np.ndarray,
@@ -268,8 +322,27 @@ def in_extent(plane: dict, p: np.ndarray, pad: float) -> np.ndarray:
     return np.asarray(((q >= lo - pad) & (q <= hi + pad)).all(axis=-1))
 
 
+def _table_top(
+    c: np.ndarray, n: np.ndarray, area: np.ndarray, base: float, cfg: SemanticsConfig
+) -> bool:
+    """Whether a cluster that does not reach the floor is a table whose legs or pedestal no
+    view fused: its faces up (horizontal, facing up) cover at least table_min_top m² and a third
+    its area, at a median height of at most table_max_top above the floor. A wall cabinet
+    shows its front and underside; a lamp, fused noise little that faces up."""
+    up = n[:, 2] > np.cos(np.radians(cfg.max_tilt_deg))  # [N]
+    a_up = float(area[up].sum())
+    if cfg.table_max_top <= 0 or a_up < cfg.table_min_top or a_up < float(area.sum()) / 3:
+        return False
+    return bool(np.median(c[up, 2]) - base <= cfg.table_max_top)
+
+
 def _objects(
-    seg: Segmentation, c: np.ndarray, area: np.ndarray, ok: np.ndarray, cfg: SemanticsConfig
+    seg: Segmentation,
+    c: np.ndarray,
+    n: np.ndarray,
+    area: np.ndarray,
+    ok: np.ndarray,
+    cfg: SemanticsConfig,
 ) -> None:
     """DBSCAN the unlabelled triangles; clusters standing on the floor become instances."""
     rest = np.flatnonzero((seg.cls == UNKNOWN) & ok)
@@ -297,8 +370,21 @@ def _objects(
         a = float(area[members].sum())
         if a < cfg.object_min_area:
             seg.noise_clusters += 1
-        elif c[members, 2].min() - base > cfg.object_max_gap:
+        elif c[members, 2].min() - base > cfg.object_max_gap and not _table_top(
+            c[members], n[members], area[members], base, cfg
+        ):
             seg.floating_clusters += 1
+        elif cfg.piece_step > 0:
+            piece = split_by_top(
+                c[members],
+                cfg.piece_cell,
+                cfg.piece_step,
+                cfg.piece_min_width,
+                base + cfg.object_max_gap,
+            )
+            for k in range(int(piece.max()) + 1):
+                part = members[piece == k]
+                found.append((float(area[part].sum()), int(part.min()), part))
         else:
             found.append((a, int(members.min()), members))
     found.sort(key=lambda x: (-x[0], x[1]))  # by area, then position in the mesh: deterministic

@@ -189,10 +189,12 @@ def test_floor_behind_a_tall_cabinet_before_a_wall_no_view_fused_is_the_room(tmp
 def test_walls_are_drawn_on_the_mesh_faces_not_on_the_plan_cells(tmp_path):
     # a 4 x 3 m room whose mesh has its faces where they are; the plan's walls start 4 cm
     # inside the east and north faces and 2 cm outside the west one (the field's boundary
-    # wanders by a few cells), a sofa 30 cm off the north wall
+    # wanders by a few cells), a sofa 30 cm off the north wall; the east wall's back face,
+    # 0.12 m behind its face, seen from the next room
     t = 0.12
     m = _room_mesh((0.0, 3.0, 0.0, 3.0))  # all the floor seen
     m.wall((1.0, 2.4), (2.5, 2.4), 0.0, 0.8)  # the sofa's front, below most of the rays
+    m.wall((4 + t, 3.0), (4 + t, 0.0))  # facing east, away from the room
     verts, tris = m.arrays()
     _write_ply(tmp_path / "mesh.ply", verts, tris)
     bp = _plan(
@@ -208,7 +210,11 @@ def test_walls_are_drawn_on_the_mesh_faces_not_on_the_plan_cells(tmp_path):
     east = [
         w for w in plan["walls"] if abs(w["start"][0] - w["end"][0]) < 1e-6 and w["start"][0] > 2
     ]
-    assert east[0]["thickness"] == pytest.approx(t, abs=0.01)  # the band behind, 0.16 m, less 4 cm
+    # the east wall's thickness is read between its two faces; the others show one face only:
+    # the default, not the plan's band behind them (0.12 m, 0.16 m behind the north face)
+    assert east[0]["thickness"] == pytest.approx(t, abs=0.01)
+    rest = [w["thickness"] for w in plan["walls"] if w is not east[0]]
+    assert rest == [LayoutConfig().default_thickness] * 3
 
 
 def test_a_closed_space_of_objects_is_no_room():
@@ -251,3 +257,22 @@ def test_passages_of_a_sensor_depth_room_are_found_with_their_widths(tmp_path):
     assert s["doors_found"] == s["doors_total"] == 0, s
     assert s["corner_f1"] == s["angle_f1"] == 1.0, s
     assert [o["kind"] for o in plan["openings"]] == ["passage", "passage"]
+
+
+def test_an_objects_footprint_is_where_its_surfaces_stand(tmp_path):
+    # a 1.2 x 0.6 m island, 0.9 m high, in the 4 x 3 m room; the plan paints object over
+    # 2.0 x 1.4 m round it (the field fills floor no view saw with the nearest object)
+    m = _room_mesh((0.0, 3.0, 0.0, 3.0))
+    x0, y0, x1, y1, h = 1.4, 1.2, 2.6, 1.8, 0.9
+    m.quad((x0, y0, h), (x1, y0, h), (x1, y1, h), (x0, y1, h))  # its top, facing up
+    m.wall((x0, y0), (x1, y0), 0.0, h)  # its south front (the other sides alike)
+    verts, tris = m.arrays()
+    _write_ply(tmp_path / "mesh.ply", verts, tris)
+    bp = _plan(
+        [(box(-0.12, -0.12, 4.12, 3.12), 1), (box(0, 0, 4, 3), 0), (box(1.0, 0.8, 3.0, 2.2), 2)],
+        {0: "floor", 1: "wall", 2: "object"},
+    )
+    (obj,) = build_plan(bp, LayoutConfig(face_offset=0.0), tmp_path / "mesh.ply")["objects"]
+    assert (obj["width"], obj["depth"]) == pytest.approx((x1 - x0, y1 - y0), abs=0.03)
+    assert obj["center"] == pytest.approx([2.0, 1.5], abs=0.02)
+    assert obj["height"] == pytest.approx(h, abs=0.01) and obj["top"] == pytest.approx(h, abs=0.01)
