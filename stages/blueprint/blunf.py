@@ -71,8 +71,8 @@ def run(cfg: BlueprintConfig, inputs: BlueprintInputs, out: Path) -> BlueprintOu
     labels, shrunk = shrink_objects(labels, classes, shrink)
     seen = room = None
     if inputs.observed is not None:  # outside the room's extent the plan says nothing
-        seen, room = read_observed(inputs.observed, grid.shape)
-        labels[~room] = UNKNOWN
+        seen, room, labelled = read_observed(inputs.observed, grid.shape)
+        labels[~labelled] = UNKNOWN
     inst = instance_raster(labels, grid, xyz[:, :2], label, read_instances(inputs.points))
     outs = BlueprintOutputs(blueprint=Path(out) / "blueprint.npz", stats=Path(out) / "train.json")
     bp = Blueprint(labels, grid, classes, inst, seen, room)

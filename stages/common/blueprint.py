@@ -82,16 +82,22 @@ class Blueprint:
     inside: np.ndarray | None = None
 
     def shares(self) -> dict[str, float] | None:
-        """Percent of the plan's cells seen, inferred (inside, unseen) and outside; None when
-        the plan does not know what was seen."""
+        """Percent of the plan's cells seen (labelled, observed), inferred (labelled, not
+        observed: BluNF filled them), unknown (inside the room, too far from what was seen to
+        guess) and outside; None when the plan does not know what was seen."""
         if self.seen is None or self.inside is None:
             return None
         n = max(1, self.labels.size)
-        seen, inside = self.seen > 0, self.inside > 0
+        seen, inside, lab = self.seen > 0, self.inside > 0, self.labels != UNKNOWN
+
+        def pct(m: np.ndarray) -> float:
+            return round(100.0 * float(m.sum()) / n, 3)
+
         return {
-            "seen_pct": round(100.0 * float((seen & inside).sum()) / n, 3),
-            "inferred_pct": round(100.0 * float((~seen & inside).sum()) / n, 3),
-            "outside_pct": round(100.0 * float((~inside).sum()) / n, 3),
+            "seen_pct": pct(lab & seen),
+            "inferred_pct": pct(lab & ~seen),
+            "unknown_pct": pct(~lab & inside),
+            "outside_pct": pct(~lab & ~inside),
         }
 
     def sample(self, xy: np.ndarray) -> np.ndarray:
@@ -147,13 +153,13 @@ class Blueprint:
         return Blueprint(labels, grid, classes, instances, seen, inside)
 
 
-def read_observed(path: Path, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """(seen, inside) bool [H, W] from the project stage's observed.npz (near, inside)."""
+def read_observed(path: Path, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(seen, inside, labelled) bool [H, W] from the project stage's observed.npz."""
     try:
         z = np.load(path, allow_pickle=False)
-        seen, inside = z["near"] > 0, z["inside"] > 0
+        out = (z["near"] > 0, z["inside"] > 0, z["labelled"] > 0)
     except (OSError, KeyError, ValueError) as e:
         raise BlunfError(f"{path}: not an observed.npz ({e})") from None
-    if seen.shape != tuple(shape) or inside.shape != tuple(shape):
-        raise BlunfError(f"{path}: observed cells {seen.shape} do not match the grid {shape}")
-    return seen, inside
+    if any(a.shape != tuple(shape) for a in out):
+        raise BlunfError(f"{path}: observed cells {out[0].shape} do not match the grid {shape}")
+    return out

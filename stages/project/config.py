@@ -37,6 +37,9 @@ class ProjectConfig:
     ray_every: int = 64  # every n-th point casts a free-space ray from its camera (0 = none):
     #                      the cells it crosses were looked through, so they are in the room
     inside_close: float = 0.25  # metres: the room's extent closes gaps up to twice this wide
+    fill_radius: float = 0.3  # metres: within the room's extent the plan is labelled up to
+    #                            this far from a point (BluNF fills the gaps between them);
+    #                            farther cells stay unknown (255) rather than guessed
     # views with index % k == k // 2 are held out of the plan (scored by evaluate's
     # heldout_pacc) when the frames carry labels; 0 = none (1 is refused: nothing left)
     holdout_every: int = 8
@@ -70,8 +73,8 @@ class ProjectOutputs:
 
     @property
     def observed(self) -> Path:
-        """observed.npz beside the points: near, free, inside uint8 [H, W] on the plan grid
-        (observed.py)."""
+        """observed.npz beside the points: near, free, inside, labelled uint8 [H, W] on the plan
+        grid (observed.py)."""
         return self.points.parent / "observed.npz"
 
     @property

@@ -1,10 +1,13 @@
 """What the views observed on the plan grid: cells near a projected point, and cells the rays
 crossed on their way to the surfaces they met (free space).
 
-A cell is *near* when a projected point lies within `radius` metres of its centre. A cell is
-*free* when the plan projection of some camera ray (camera centre to the point it met) passes
-over it: a view looked through the space above it. Neither reads the grid's extent: a cell no
-point came near and no ray crossed was not observed.
+A cell is *near* (seen) when a projected point lies within `radius` metres of its centre. A
+cell is *free* when the plan projection of some camera ray (camera centre to the point it
+met) passes over it: a view looked through the space above it. Neither reads the grid's
+extent. The room's extent (*inside*) is what the views observed or looked through, closed
+over small gaps, its holes filled; within it the plan is *labelled* up to `fill_radius` of a
+point (BluNF fills the gaps between observations) and left unknown farther off: free space
+above a floor no view saw (the camera's own footprint) is in the room but not guessed.
 """
 
 from __future__ import annotations
@@ -17,17 +20,16 @@ from stages.common.blueprint import Grid
 RAY_STEP = 0.5  # cells between samples along a ray's plan projection
 
 
-def near_points(grid: Grid, xy: np.ndarray, radius: float) -> np.ndarray:
-    """Cells with a point of xy [N, 2] (world metres) within `radius` metres. bool [H, W]."""
+def point_distance(grid: Grid, xy: np.ndarray) -> np.ndarray:
+    """Metres from each cell's centre to the nearest point of xy [N, 2] (world metres), read
+    to the nearest point's cell centre and made an upper bound (a point lies up to half a
+    cell's diagonal off its cell's centre). float64 [H, W], inf without points."""
     row, col, inside = grid.cell_of(xy)
     occ = np.zeros(grid.shape, bool)
     occ[row[inside], col[inside]] = True
     if not occ.any():
-        return occ
-    # distance from a cell's centre to the nearest occupied cell's centre; a point may lie up
-    # to half a cell's diagonal off its cell's centre: near cells have a point within radius
-    dist = ndimage.distance_transform_edt(~occ) * grid.cell
-    return dist <= radius - 0.5 * np.sqrt(2.0) * grid.cell
+        return np.full(grid.shape, np.inf)
+    return (ndimage.distance_transform_edt(~occ) + 0.5 * np.sqrt(2.0)) * grid.cell
 
 
 def ray_cells(grid: Grid, start: np.ndarray, end: np.ndarray) -> np.ndarray:
@@ -55,8 +57,8 @@ def observed(
     view: np.ndarray,
     radius: float,
     ray_every: int,
-) -> tuple[np.ndarray, np.ndarray]:
-    """(near, free) bool [H, W] on `grid`.
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(near, free, distance): bool [H, W], bool [H, W] and point_distance on `grid`.
 
     Args:
         grid: the plan grid.
@@ -66,11 +68,12 @@ def observed(
         radius: metres: a cell is near when a point lies this close.
         ray_every: every ray_every-th point gives a free-space ray (0 = none).
     """
-    near = near_points(grid, xy, radius)
+    dist = point_distance(grid, xy)
+    near = dist <= radius
     if ray_every <= 0 or len(xy) == 0:
-        return near, np.zeros(grid.shape, bool)
+        return near, np.zeros(grid.shape, bool), dist
     pick = np.arange(0, len(xy), ray_every)
-    return near, ray_cells(grid, cams[view[pick]], xy[pick])
+    return near, ray_cells(grid, cams[view[pick]], xy[pick]), dist
 
 
 def room_inside(near: np.ndarray, free: np.ndarray, close_cells: int) -> np.ndarray:
