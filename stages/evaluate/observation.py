@@ -7,9 +7,9 @@ ground truth needed).
 - `invented_pct`: percent of the labelled cells (not 255) with no projected point within
   INVENTED_RADIUS metres of their centre.
 - `seen_wall_support_pct`: percent of the length of the walls drawn as seen (plan.json
-  `"seen"` true or absent) with a seen vertical surface within SUPPORT_RADIUS metres: a
-  projected point in a VERTICAL_CELL-wide column of points spanning at least VERTICAL_SPAN
-  metres in height.
+  `"seen"` true or absent; their openings cut out) with a seen vertical surface within
+  SUPPORT_RADIUS metres: a projected point in a VERTICAL_CELL-wide column of points spanning
+  at least VERTICAL_SPAN metres in height.
 """
 
 from __future__ import annotations
@@ -66,22 +66,30 @@ def vertical_points(xyz: np.ndarray) -> np.ndarray:
     return up[(hi - lo)[col] >= VERTICAL_SPAN, :2]
 
 
-def wall_support(walls: list[dict], xyz: np.ndarray) -> dict:
-    """Length of the seen and inferred walls (m) and the percent of the seen walls' length
-    with a vertical surface's point within SUPPORT_RADIUS of the face."""
-    seen = [w for w in walls if w.get("seen", True)]
+def wall_support(walls: list[dict], xyz: np.ndarray, openings: list[dict] = ()) -> dict:
+    """Length of the seen and inferred walls (m) and the percent of the seen walls' drawn
+    length (their openings cut out) with a vertical surface's point within SUPPORT_RADIUS of
+    the face."""
     tree = _tree(vertical_points(xyz))
     total = supported = 0.0
-    for w in seen:
+    for wi, w in enumerate(walls):
+        if not w.get("seen", True):
+            continue
         a, b = np.asarray(w["start"], np.float64), np.asarray(w["end"], np.float64)
         length = float(np.linalg.norm(b - a))
         n = max(1, int(np.ceil(length / STEP)))
-        t = (np.arange(n) + 0.5) / n
-        pts = a + t[:, None] * (b - a)  # [n, 2]
-        total += length
-        if tree is not None:
-            d, _ = tree.query(pts, distance_upper_bound=SUPPORT_RADIUS)
-            supported += length * float((d <= SUPPORT_RADIUS).mean())
+        t = (np.arange(n) + 0.5) / n * length  # [n] metres along the face
+        drawn = np.ones(n, bool)
+        d = (b - a) / max(length, 1e-9)
+        for o in openings:  # a doorway is no drawn wall
+            if o.get("wall") == wi:
+                t0, t1 = sorted((np.asarray(o[k], np.float64) - a) @ d for k in ("start", "end"))
+                drawn &= (t < t0) | (t > t1)
+        pts = a + t[drawn, None] * d  # [m, 2]
+        total += length * float(drawn.mean())
+        if tree is not None and len(pts):
+            dist, _ = tree.query(pts, distance_upper_bound=SUPPORT_RADIUS)
+            supported += length * float((dist <= SUPPORT_RADIUS).sum()) / n
     inferred = sum(float(w["length"]) for w in walls if not w.get("seen", True))
     return {
         "seen_wall_m": round(total, 3),
@@ -98,5 +106,6 @@ def observation(blueprint: Path, points: Path, layout: Path | None) -> dict:
     out["labelled_pct"] = round(100.0 * float((bp.labels != UNKNOWN).mean()), 3)
     out["invented_pct"] = round(invented_pct(bp, xyz[:, :2]), 3)
     if layout is not None and Path(layout).is_file():
-        out.update(wall_support(read_json(layout).get("walls", []), xyz))
+        plan = read_json(layout)
+        out.update(wall_support(plan.get("walls", []), xyz, plan.get("openings", [])))
     return out

@@ -140,3 +140,8 @@ def test_seen_wall_support_by_hand():
     s = wall_support(walls, xyz)
     assert s["seen_wall_m"] == 2.0 and s["inferred_wall_m"] == 1.0
     assert abs(s["seen_wall_support_pct"] - 53.8) <= 0.3, s
+    # a doorway over the unsupported half (y 1.2 to 2.0) is no drawn wall: 1.2 m drawn, of
+    # which 1.0766 m supported
+    door = [{"wall": 0, "start": [0.05, 1.2], "end": [0.05, 2.0]}]
+    s = wall_support(walls, xyz, door)
+    assert abs(s["seen_wall_m"] - 1.2) < 0.01 and abs(s["seen_wall_support_pct"] - 89.7) <= 0.5
