@@ -17,7 +17,9 @@ from scipy import ndimage
 
 from stages.common.blueprint import Grid
 
-RAY_STEP = 0.5  # cells between samples along a ray's plan projection
+# cells between samples along a ray's plan projection (kitchen: 0.5 took 3x the time for 3
+# cells more inside, of 37 076)
+RAY_STEP = 1.0
 
 
 def point_distance(grid: Grid, xy: np.ndarray) -> np.ndarray:
