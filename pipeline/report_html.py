@@ -82,7 +82,47 @@ def _plan(folder: Path, report: dict) -> str:
     if not png.is_file():
         return "<p class=note>No blueprint.png in this run.</p>"
     _check_png(png.read_bytes())
-    return _img(png.read_bytes(), "image/png", "the plan, with its legend and scale")
+    pic = _img(png.read_bytes(), "image/png", "the plan, with its legend and scale")
+    return pic + _known(folder, report)
+
+
+KNOWN = (  # the blueprint's shares of its cells (Blueprint.shares), as the report names them
+    ("seen_pct", "seen", "a projected point within reach"),
+    ("inferred_pct", "inferred", "inside the room, filled between observations"),
+    ("unknown_pct", "unknown", "inside the room, too far from any observation to guess"),
+    ("outside_pct", "outside", "beyond what the views observed or looked through"),
+)
+
+
+def _known(folder: Path, report: dict) -> str:
+    """What the plan knows: its cells seen, inferred, unknown and outside (percent)."""
+    shares = _facts(report, "blueprint").get("observed")
+    if not isinstance(shares, dict):
+        return ""
+    rows = "".join(
+        f"<tr class=known><td>{name}</td><td class=n>{shares[k]:.1f} %</td>"
+        f"<td>{html.escape(what)}</td></tr>"
+        for k, name, what in KNOWN
+        if isinstance(shares.get(k), (int, float))
+    )
+    walls = [w for w in _plan_walls(folder) if isinstance(w, dict)]
+    inferred = sum(float(w.get("length", 0)) for w in walls if w.get("seen") is False)
+    total = sum(float(w.get("length", 0)) for w in walls)
+    note = (
+        f"<p class=note>Walls: {total - inferred:.2f} m seen, {inferred:.2f} m inferred "
+        "(dashed: the outline closes over space no view saw as a wall).</p>"
+        if walls
+        else ""
+    )
+    return f"<h3>What the plan knows</h3><table>{rows}</table>{note}"
+
+
+def _plan_walls(folder: Path) -> list:
+    """plan.json's walls, when the run holds a readable plan.json."""
+    try:
+        return json.loads((folder / "plan.json").read_text()).get("walls", [])
+    except (OSError, ValueError, AttributeError):
+        return []
 
 
 def _drawing(folder: Path, report: dict) -> str:

@@ -88,7 +88,7 @@ def _recipe(r: Runner, pub: Publication, capture: Path, cfg: Config, spec: EditS
     gt = gt_files(cap)
     plans = {}
     for step in plan.all("blueprint"):
-        ins: object = BlueprintInputs(points=pts.points, grid=pts.grid)
+        ins: object = BlueprintInputs(points=pts.points, grid=pts.grid, observed=pts.observed)
         if step.impl == "nerf_top":
             ins = NerfTopInputs(
                 nerf.model,
@@ -143,6 +143,7 @@ def _recipe(r: Runner, pub: Publication, capture: Path, cfg: Config, spec: EditS
             poses_estimated=plan.runs("poses"),
             heldout=pts.heldout if plan.heldout else None,
             layout=lay.plan_json,
+            points=pts.points,
         ),
     )
     if ev is not None:

@@ -22,7 +22,7 @@ from torch import Tensor, nn
 
 from stages.blueprint.config import BlueprintConfig, BlueprintInputs, BlueprintOutputs, BlunfConfig
 from stages.blueprint.instances import instance_raster
-from stages.common.blueprint import Blueprint, Grid
+from stages.common.blueprint import Blueprint, Grid, read_observed
 from stages.common.capture import UNKNOWN
 from stages.common.encoding import (
     HashGrid2D,
@@ -69,9 +69,14 @@ def run(cfg: BlueprintConfig, inputs: BlueprintInputs, out: Path) -> BlueprintOu
     labels = labels.astype(np.uint8)
     shrink = round(c.shrink / grid.cell)  # cells
     labels, shrunk = shrink_objects(labels, classes, shrink)
+    seen = room = None
+    if inputs.observed is not None:  # outside the room's extent the plan says nothing
+        seen, room, labelled = read_observed(inputs.observed, grid.shape)
+        labels[~labelled] = UNKNOWN
     inst = instance_raster(labels, grid, xyz[:, :2], label, read_instances(inputs.points))
     outs = BlueprintOutputs(blueprint=Path(out) / "blueprint.npz", stats=Path(out) / "train.json")
-    Blueprint(labels, grid, classes, inst).save(outs.blueprint)
+    bp = Blueprint(labels, grid, classes, inst, seen, room)
+    bp.save(outs.blueprint)
     torch.save(
         {
             "state_dict": model.state_dict(),
@@ -89,6 +94,7 @@ def run(cfg: BlueprintConfig, inputs: BlueprintInputs, out: Path) -> BlueprintOu
             "points": int(inside.sum()),
             "points_outside_grid": int((~inside).sum()),
             "shrink_cells": shrink,
+            "observed": bp.shares(),
             "shrunk_cells": shrunk,
             "classes": [classes.get(int(k), str(k)) for k in class_ids],
             "grid_shape": list(grid.shape),

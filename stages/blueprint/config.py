@@ -133,6 +133,9 @@ STATS_FILES = {"blunf": "train.json", "mvr": "mvr.json", "nerf_top": "nerf_top.j
 class BlueprintInputs:
     points: Path  # points.npz of the project stage
     grid: Path  # grid.json of the project stage
+    # observed.npz of the project stage (near, inside on the grid): BluNF labels the room's
+    # extent only and the plan carries seen / inside; None: every cell of the grid is labelled
+    observed: Path | None = None
 
 
 @dataclass(frozen=True)

@@ -18,12 +18,34 @@ DIM_OFF = 0.35  # metres: a dimension line's distance outside the wall's outer f
 GRID_M = 1e-4  # metres: the precision grid of the wall overlay
 
 
-def wall_shapes(plan: dict) -> Polygon:
+def area_text(room: dict) -> str:
+    """A room's area as drawn: "12.30 m2", "12.30 m2, continues" when an inferred wall closes
+    it (the room goes on beyond what the views saw)."""
+    return f"{room['area']:.2f} m2" + (", continues" if room.get("continues") else "")
+
+
+def dashes(a: np.ndarray, b: np.ndarray, on: float, off: float) -> list[np.ndarray]:
+    """The dashes [2, 2] of a dashed line a -> b (any units): `on` long, `off` apart."""
+    length = float(np.linalg.norm(b - a))
+    if length <= 0:
+        return []
+    d = (b - a) / length
+    out, t = [], 0.0
+    while t < length:
+        out.append(np.array([a + d * t, a + d * min(length, t + on)]))
+        t += on + off
+    return out
+
+
+def wall_shapes(plan: dict, seen: bool | None = None) -> Polygon:
     """The walls as one (multi)polygon: each wall a band from its face outwards by its
-    thickness, lengthened at both ends by its neighbours' thickness, openings cut out."""
+    thickness, lengthened at both ends by its neighbours' thickness, openings cut out.
+    seen True / False: only the seen / the inferred walls (`"seen"` absent: seen)."""
     bands, cuts = [], []
     walls = plan["walls"]
     for w in walls:
+        if seen is not None and bool(w.get("seen", True)) != seen:
+            continue
         a, b, t = np.asarray(w["start"]), np.asarray(w["end"]), float(w["thickness"])
         d = (b - a) / np.linalg.norm(b - a)
         n = np.array([d[1], -d[0]])
@@ -88,7 +110,7 @@ def overlay(rgb: np.ndarray, grid: Grid, plan: dict, long_px: int = 1400) -> Ima
         big = ImageFont.load_default(size=int(size * 1.4))
     except (OSError, ImportError, TypeError):  # Pillow without FreeType: its bitmap font
         font = big = ImageFont.load_default()
-    walls = wall_shapes(plan)
+    walls = wall_shapes(plan, seen=True)
     mask = Image.new("L", img.size, 0)
     md = ImageDraw.Draw(mask)
     for poly in getattr(walls, "geoms", [walls]):
@@ -99,6 +121,11 @@ def overlay(rgb: np.ndarray, grid: Grid, plan: dict, long_px: int = 1400) -> Ima
             md.polygon(px(np.asarray(ring.coords)), fill=0)
     img.paste((0, 0, 0), mask=mask)
     draw = ImageDraw.Draw(img)
+    for wl in plan.get("walls", []):  # inferred walls: their face dashed
+        if not wl.get("seen", True):
+            a, b = px(np.array([wl["start"], wl["end"]]))
+            for seg in dashes(np.array(a), np.array(b), 4.0 * k, 3.0 * k):
+                draw.line([tuple(p) for p in seg], fill=(0, 0, 0), width=max(2, k))
     for o in plan.get("objects", []):
         ring = px(np.asarray(o["polygon"]))
         draw.line([*ring, ring[0]], fill=(20, 40, 120), width=max(1, k // 2))
@@ -117,7 +144,5 @@ def overlay(rgb: np.ndarray, grid: Grid, plan: dict, long_px: int = 1400) -> Ima
         draw.text(px(t)[0], f"{wl['length']:.2f} m", fill=(0, 0, 0), anchor="mm", font=font)
     for r in plan.get("rooms", []):
         c = np.asarray(Polygon(r["polygon"]).representative_point().coords)[0]
-        draw.text(
-            px(c)[0], f"{r['name']}  {r['area']:.2f} m2", fill=(0, 0, 0), anchor="mm", font=big
-        )
+        draw.text(px(c)[0], f"{r['name']}  {area_text(r)}", fill=(0, 0, 0), anchor="mm", font=big)
     return img

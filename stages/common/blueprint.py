@@ -68,12 +68,37 @@ class Blueprint:
 
     `instances` int32 [H, W], when the plan knows them: the object instance of every cell
     (0 = none), so that two objects of one class that touch stay two components.
+    `seen` and `inside` uint8 [H, W] (0/1), when the plan knows them: some view observed the
+    cell (a projected point lies near it), and the cell lies within the room's outline (what
+    the views observed or looked through, its holes filled). Labels are UNKNOWN outside it;
+    inside it and unseen they are inferred (BluNF fills the gaps between observations).
     """
 
     labels: np.ndarray
     grid: Grid
     classes: dict[int, str] = field(default_factory=dict)
     instances: np.ndarray | None = None
+    seen: np.ndarray | None = None
+    inside: np.ndarray | None = None
+
+    def shares(self) -> dict[str, float] | None:
+        """Percent of the plan's cells seen (labelled, observed), inferred (labelled, not
+        observed: BluNF filled them), unknown (inside the room, too far from what was seen to
+        guess) and outside; None when the plan does not know what was seen."""
+        if self.seen is None or self.inside is None:
+            return None
+        n = max(1, self.labels.size)
+        seen, inside, lab = self.seen > 0, self.inside > 0, self.labels != UNKNOWN
+
+        def pct(m: np.ndarray) -> float:
+            return round(100.0 * float(m.sum()) / n, 3)
+
+        return {
+            "seen_pct": pct(lab & seen),
+            "inferred_pct": pct(lab & ~seen),
+            "unknown_pct": pct(~lab & inside),
+            "outside_pct": pct(~lab & ~inside),
+        }
 
     def sample(self, xy: np.ndarray) -> np.ndarray:
         """Label at world points xy [N, 2] (nearest cell); UNKNOWN outside the raster."""
@@ -89,6 +114,10 @@ class Blueprint:
 
     def save(self, path: Path) -> None:
         extra = {} if self.instances is None else {"instances": self.instances.astype(np.int32)}
+        for name in ("seen", "inside"):
+            a = getattr(self, name)
+            if a is not None:
+                extra[name] = (np.asarray(a) > 0).astype(np.uint8)
         save_npz(
             path,
             labels=self.labels.astype(np.uint8),
@@ -110,10 +139,27 @@ class Blueprint:
             )
             classes = {int(k): v for k, v in json.loads(str(z["classes"])).items()}
             instances = z["instances"].astype(np.int32) if "instances" in z.files else None
+            seen = z["seen"].astype(np.uint8) if "seen" in z.files else None
+            inside = z["inside"].astype(np.uint8) if "inside" in z.files else None
         except (OSError, KeyError, ValueError) as e:
             raise BlunfError(f"{path}: not a blueprint .npz ({e})") from None
         if instances is not None and instances.shape != labels.shape:
             raise BlunfError(
                 f"{path}: instances {instances.shape} do not match labels {labels.shape}"
             )
-        return Blueprint(labels, grid, classes, instances)
+        for name, a in (("seen", seen), ("inside", inside)):
+            if a is not None and a.shape != labels.shape:
+                raise BlunfError(f"{path}: {name} {a.shape} does not match labels {labels.shape}")
+        return Blueprint(labels, grid, classes, instances, seen, inside)
+
+
+def read_observed(path: Path, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(seen, inside, labelled) bool [H, W] from the project stage's observed.npz."""
+    try:
+        z = np.load(path, allow_pickle=False)
+        out = (z["near"] > 0, z["inside"] > 0, z["labelled"] > 0)
+    except (OSError, KeyError, ValueError) as e:
+        raise BlunfError(f"{path}: not an observed.npz ({e})") from None
+    if any(a.shape != tuple(shape) for a in out):
+        raise BlunfError(f"{path}: observed cells {out[0].shape} do not match the grid {shape}")
+    return out

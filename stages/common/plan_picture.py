@@ -35,7 +35,7 @@ PALETTE = [
     (226, 88, 34),
     (43, 61, 38),
 ]
-UNKNOWN_COLOR = (64, 64, 64)  # unseen cells: dark grey
+UNKNOWN_COLOR = (240, 240, 240)  # unseen / outside cells: blank (a paper grey)
 BACKGROUND = (255, 255, 255)
 INK = (0, 0, 0)
 TARGET_PX = 480  # small plans are upscaled (nearest neighbour) to about this many pixels

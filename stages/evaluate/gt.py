@@ -16,6 +16,7 @@ from stages.common.plan_metrics import evaluate_plan
 from stages.evaluate.config import EvaluateConfig
 from stages.evaluate.heldout import heldout_pixels, score_pixels
 from stages.evaluate.layout import layout_to_frame, score_layout
+from stages.evaluate.observation import observation
 from stages.evaluate.poses import pose_metrics
 
 
@@ -29,6 +30,8 @@ class EvaluateInputs:
     poses_estimated: bool  # score poses only when a stage estimated them
     heldout: Path | None = None  # the project stage's heldout.json (None: no held-out score)
     layout: Path | None = None  # the layout stage's plan.json (scored against gt/layout.json)
+    points: Path | None = None  # the project stage's points.npz: metrics.observation of the
+    #                             first blueprint (observation.py); None: not scored
 
 
 @dataclass(frozen=True)
@@ -87,5 +90,7 @@ def run(cfg: EvaluateConfig, inputs: EvaluateInputs, out: Path) -> EvaluateOutpu
             for m, p in zip(inputs.methods, inputs.blueprints, strict=True):
                 scores = score_pixels(Blueprint.load(p), cap, xy, lab, len(stems))
                 metrics.setdefault("blueprint", {}).setdefault(m, {}).update(scores)
+    if inputs.points is not None and inputs.blueprints:
+        metrics["observation"] = observation(inputs.blueprints[0], inputs.points, inputs.layout)
     write_json(out / "metrics.json", metrics)
     return EvaluateOutputs.at(out)

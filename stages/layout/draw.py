@@ -13,11 +13,18 @@ import ezdxf
 import numpy as np
 from shapely.geometry import Polygon
 
-from stages.common.architect import DIM_OFF, PAD_M, dimension, wall_shapes
+from stages.common.architect import DIM_OFF, PAD_M, area_text, dimension, wall_shapes
 
 SVG_NS = "http://www.w3.org/2000/svg"
 LONG_PX = 1400.0  # the plan's longer side in the SVG (px)
-LAYERS = {"WALLS": 7, "OPENINGS": 3, "OBJECTS": 5, "DIMENSIONS": 1, "TEXT": 7}  # ACI colours
+LAYERS = {
+    "WALLS": 7,
+    "WALLS_INFERRED": 8,
+    "OPENINGS": 3,
+    "OBJECTS": 5,
+    "DIMENSIONS": 1,
+    "TEXT": 7,
+}  # ACI colours
 FONT = "font-family:sans-serif;fill:#111"
 
 
@@ -95,8 +102,8 @@ def door_swing(o: dict, w: dict) -> tuple[np.ndarray, np.ndarray, float, float]:
 
 
 def write_svg(plan: dict, path: Path, title: str = "") -> Page:
-    walls = wall_shapes(plan)
-    page = page_of(plan, walls)
+    walls = wall_shapes(plan, seen=True)
+    page = page_of(plan, wall_shapes(plan))
     root = ET.Element(
         "svg",
         {
@@ -114,7 +121,7 @@ def write_svg(plan: dict, path: Path, title: str = "") -> Page:
         ET.SubElement(root, "path", {"d": _path(poly, page), "fill": "#f4f1ea", "stroke": "none"})
         c = page.px(np.asarray(poly.representative_point().coords))[0]
         _text(root, c - [0, 12], r["name"], 22)
-        _text(root, c + [0, 14], f"{r['area']:.2f} m²", 18)
+        _text(root, c + [0, 14], area_text(r).replace("m2", "m²"), 18)
     for o in plan.get("objects", []):
         ring = Polygon(o["polygon"])
         ET.SubElement(
@@ -131,6 +138,19 @@ def write_svg(plan: dict, path: Path, title: str = "") -> Page:
     for poly in _polys(walls):
         ET.SubElement(
             root, "path", {"d": _path(poly, page), "fill": "#000000", "fill-rule": "evenodd"}
+        )
+    for poly in _polys(wall_shapes(plan, seen=False)):  # inferred: outlined, dashed
+        ET.SubElement(
+            root,
+            "path",
+            {
+                "d": _path(poly, page),
+                "fill": "none",
+                "stroke": "#000000",
+                "stroke-width": "2",
+                "stroke-dasharray": "8,6",
+                "class": "wall-inferred",
+            },
         )
     for o in plan.get("openings", []):
         w = plan["walls"][o["wall"]]
@@ -176,13 +196,20 @@ def write_svg(plan: dict, path: Path, title: str = "") -> Page:
 
 
 def write_dxf(plan: dict, path: Path) -> None:
-    """DXF R2010 in metres, one layer per kind: WALLS, OPENINGS, OBJECTS, DIMENSIONS, TEXT."""
+    """DXF R2010 in metres, one layer per kind: WALLS, WALLS_INFERRED (dashed outlines of the
+    walls no view saw), OPENINGS, OBJECTS, DIMENSIONS, TEXT."""
     doc = ezdxf.new("R2010", setup=True)
     doc.units = ezdxf.units.M
     for name, color in LAYERS.items():
-        doc.layers.add(name, color=color)
+        attribs = {"linetype": "DASHED"} if name == "WALLS_INFERRED" else {}
+        doc.layers.add(name, color=color, **attribs)
     msp = doc.modelspace()
-    for poly in _polys(wall_shapes(plan)):
+    for poly in _polys(wall_shapes(plan, seen=False)):
+        for ring in [poly.exterior, *poly.interiors]:
+            msp.add_lwpolyline(
+                list(ring.coords)[:-1], close=True, dxfattribs={"layer": "WALLS_INFERRED"}
+            )
+    for poly in _polys(wall_shapes(plan, seen=True)):
         for ring in [poly.exterior, *poly.interiors]:
             msp.add_lwpolyline(list(ring.coords)[:-1], close=True, dxfattribs={"layer": "WALLS"})
         hatch = msp.add_hatch(color=7, dxfattribs={"layer": "WALLS"})
@@ -215,6 +242,6 @@ def write_dxf(plan: dict, path: Path) -> None:
     for r in plan["rooms"]:
         c = Polygon(r["polygon"]).representative_point()
         msp.add_text(
-            f"{r['name']} {r['area']:.2f} m2", height=0.15, dxfattribs={"layer": "TEXT"}
+            f"{r['name']} {area_text(r)}", height=0.15, dxfattribs={"layer": "TEXT"}
         ).set_placement((c.x, c.y))
     doc.saveas(path)

@@ -1,12 +1,14 @@
 """The plan as vectors: rooms, walls, openings (extract.py) and object footprints, in metres.
 
 plan.json: {"units": "m", "angle_deg": the room's direction, "rooms": [{name, polygon
-(counter-clockwise interior outline), area}], "walls": [{start, end (interior face, room on
-the left), length, thickness, room}], "openings": [{kind door|passage, wall, start, end,
-width}], "objects": [{instance, class, name, polygon, center, width, depth, angle_deg, height
-(its highest point) and top (its upper surface: a counter's top, a chair's seat), metres above
-the floor, None without a mesh, shape rect|polygon}], "objects_outside": how many object
-footprints lay outside every room (left out of the drawing; the BluNF plan keeps them)}.
+(counter-clockwise interior outline), area, continues (an inferred wall closes it: the room
+goes on beyond)}], "walls": [{start, end (interior face, room on the left), length,
+thickness, room, seen (false: inferred, the outline closes over space no view saw as a wall
+surface)}], "openings": [{kind door|passage, wall, start, end, width}], "objects": [{instance,
+class, name, polygon, center, width, depth, angle_deg, height (its highest point) and top (its
+upper surface: a counter's top, a chair's seat), metres above the floor, None without a mesh,
+shape rect|polygon}], "objects_outside": how many object footprints lay outside every room
+(left out of the drawing; the BluNF plan keeps them)}.
 """
 
 from __future__ import annotations
@@ -34,10 +36,37 @@ from stages.layout.extract import (
 )
 
 STRUCTURE = ("floor", "wall", "ceiling")
+SEEN_NEAR = 0.1  # metres: a face is seen where a seen wall cell lies this close to its band
+SEEN_SHARE = 0.5  # a wall is seen (not inferred) when this share of its face is
 
 
 def _r(x: np.ndarray | float) -> list | float:
     return np.round(np.asarray(x, np.float64), 4).tolist()
+
+
+def _seen_walls(bp: Blueprint, wid: int) -> Blueprint:
+    """A plan of 1 where a wall cell was seen, 0 elsewhere (to be turned into the frame)."""
+    assert bp.seen is not None
+    return Blueprint(((bp.labels == wid) & (bp.seen > 0)).astype(np.uint8), bp.grid)
+
+
+def _seen_share(
+    fr: Frame, seen_wall: np.ndarray, a: np.ndarray, b: np.ndarray, thickness: float
+) -> float:
+    """The share of the face a->b (frame xy) with a seen wall cell behind it, within its
+    thickness plus SEEN_NEAR metres along its outward normal (or SEEN_NEAR in front of it)."""
+    cell = fr.grid.cell
+    length = float(np.linalg.norm(b - a))
+    d = (b - a) / max(length, 1e-9)
+    n = np.array([d[1], -d[0]])  # outside a counter-clockwise outline
+    ts = np.arange(0.5 * cell, length, cell)
+    if len(ts) == 0:
+        return 0.0
+    steps = np.arange(-SEEN_NEAR, thickness + SEEN_NEAR + cell / 2, cell / 2)
+    pts = a + ts[:, None, None] * d + steps[None, :, None] * n  # [T, S, 2]
+    row, col, inside = fr.grid.cell_of(pts.reshape(-1, 2))
+    hit = (seen_wall[row, col] & inside).reshape(len(ts), len(steps))
+    return float(hit.any(axis=1).mean())
 
 
 def _thickness(
@@ -70,6 +99,8 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
     out["angle_deg"] = round(math.degrees(angle), 3)
     cell = fr.grid.cell
     wall = fr.labels == wid
+    # the wall cells some view saw (all of them when the plan does not say what was seen)
+    seen_wall = wall if bp.seen is None else frame_of(_seen_walls(bp, wid), angle).labels == 1
     run = max(1, int(round(cfg.min_run / cell)))
     across = int(round(cfg.max_thickness / cell))
     closed = close_lines(wall, int(round(cfg.max_opening / cell)), run, across)
@@ -126,6 +157,7 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
             t = _thickness(fr, closed, a, b, cfg)
             faces.append((ri, a, b))
             w = fr.to_world(np.array([a, b]))
+            seen = _seen_share(fr, seen_wall, a, b, t) >= SEEN_SHARE
             out["walls"].append(
                 {
                     "start": _r(w[0]),
@@ -133,8 +165,11 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
                     "length": round(float(np.linalg.norm(b - a)), 4),
                     "thickness": round(t, 4),
                     "room": ri,
+                    "seen": bool(seen),
                 }
             )
+        # an outline closed over space no view saw as a surface: the room goes on beyond it
+        out["rooms"][-1]["continues"] = not all(w["seen"] for w in out["walls"] if w["room"] == ri)
     if fid is not None and faces:
         out["openings"] = _openings(
             fr, closed & ~wall & (fr.labels == fid), faces, out["walls"], cfg

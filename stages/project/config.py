@@ -31,6 +31,15 @@ class ProjectConfig:
     top_band: float = 0.1  # top view: a class is seen when it reaches this close to the top (m)
     top_min_points: int = 2  # top view: the top is the n-th highest point; sparser cells kept
     occlusion_shifts: int = 2  # top view: n x n grids offset by 1/n cell; dropped only if in all
+    seen_radius: float = 0.25  # metres: a plan cell is seen when a projected point lies this
+    #                            close (observed.py); the blueprint labels only cells seen or
+    #                            within the room's extent (inside)
+    ray_every: int = 64  # every n-th point casts a free-space ray from its camera (0 = none):
+    #                      the cells it crosses were looked through, so they are in the room
+    inside_close: float = 0.25  # metres: the room's extent closes gaps up to twice this wide
+    fill_radius: float = 0.3  # metres: within the room's extent the plan is labelled up to
+    #                            this far from a point (BluNF fills the gaps between them);
+    #                            farther cells stay unknown (255) rather than guessed
     # views with index % k == k // 2 are held out of the plan (scored by evaluate's
     # heldout_pacc) when the frames carry labels; 0 = none (1 is refused: nothing left)
     holdout_every: int = 8
@@ -61,6 +70,12 @@ class ProjectOutputs:
     def heldout(self) -> Path:
         """heldout.json beside the points: {"every": k, "views": [index], "stems": [stem]}."""
         return self.points.parent / "heldout.json"
+
+    @property
+    def observed(self) -> Path:
+        """observed.npz beside the points: near, free, inside, labelled uint8 [H, W] on the plan
+        grid (observed.py)."""
+        return self.points.parent / "observed.npz"
 
     @property
     def classes(self) -> Path:

@@ -28,9 +28,10 @@ from stages.common.blueprint import Grid
 from stages.common.camera import Intrinsics, pixel_grid, unproject
 from stages.common.capture import UNKNOWN, Capture, Frame, heldout_views
 from stages.common.errors import BlunfError
-from stages.common.io import image_size, read_depth, read_label, write_json
+from stages.common.io import image_size, read_depth, read_label, save_npz, write_json
 from stages.common.points import str_keys, write_grid, write_points
 from stages.project.config import ProjectConfig, ProjectInputs, ProjectOutputs
+from stages.project.observed import observed, room_inside
 from stages.project.topview import top_view_keep
 
 log = logging.getLogger(__name__)
@@ -103,6 +104,22 @@ def run(cfg: ProjectConfig, inputs: ProjectInputs, out: Path) -> ProjectOutputs:
             f"{cfg.cell} m (> project.max_cells = {cfg.max_cells}); check poses and depth units"
         )
     outs = ProjectOutputs.at(out)
+    cams = np.array([np.asarray(f.pose, np.float64)[:3, 3] for f in cap.frames])[:, :2]
+    world_xy = xyz[:, :2].astype(np.float64) + origin[:2]  # [N, 2]
+    near, free, dist = observed(grid, world_xy, cams, view, cfg.seen_radius, cfg.ray_every)
+    inside = room_inside(near, free, round(cfg.inside_close / grid.cell))
+    labelled = inside & (dist <= max(cfg.fill_radius, cfg.seen_radius))
+    save_npz(
+        outs.observed,
+        near=near.astype(np.uint8),
+        free=free.astype(np.uint8),
+        inside=inside.astype(np.uint8),
+        labelled=labelled.astype(np.uint8),
+    )
+    counts["cells_near"] = int(near.sum())
+    counts["cells_free"] = int((free & ~near).sum())
+    counts["cells_inside"] = int(inside.sum())
+    counts["cells_labelled"] = int(labelled.sum())
     write_points(outs.points, xyz, origin, label, view, instance, classes)
     write_grid(outs.grid, grid, lo, hi)
     write_json(outs.classes, {"classes": str_keys(classes), "labelling": labelling})
@@ -306,6 +323,16 @@ def _check(cfg: ProjectConfig) -> None:
         raise BlunfError(f"project.bounds_pct must be in [0, 50), got {cfg.bounds_pct}")
     if cfg.pad < 0:
         raise BlunfError(f"project.pad must be >= 0 metres, got {cfg.pad}")
+    if (
+        not (cfg.seen_radius > 0 and cfg.fill_radius > 0)
+        or cfg.inside_close < 0
+        or cfg.ray_every < 0
+    ):
+        raise BlunfError(
+            f"project.seen_radius ({cfg.seen_radius}) and fill_radius ({cfg.fill_radius}) must "
+            f"be > 0 metres, project.inside_close "
+            f"({cfg.inside_close}) >= 0 and project.ray_every ({cfg.ray_every}) >= 0"
+        )
     if cfg.labelling not in LABELLINGS:
         raise BlunfError(f"project.labelling must be one of {LABELLINGS}, got {cfg.labelling!r}")
     if cfg.occlusion not in OCCLUSIONS:

@@ -40,7 +40,7 @@ class _Page(HTMLParser):
             self._h2, self.section = True, ""
         if tag == "img":
             self.images.setdefault(self.section, []).append(a.get("src") or "")
-        if tag == "tr" and a.get("class") in ("stage", "metric"):
+        if tag == "tr" and a.get("class") in ("stage", "metric", "known"):
             self._row = True
             self.rows.append([a["class"]])
 
@@ -152,6 +152,13 @@ def test_report_html_is_self_contained_and_complete(runs):
     assert len(p.images["Input photos"]) == 8  # every view of the small room
     assert p.images["Architectural drawing"][0].startswith("data:image/svg+xml;base64,")
     assert "Edits" not in p.images and "<h2>Edits</h2>" not in text  # no edits: no section
+    # what the plan knows: the blueprint's shares of seen / inferred / unknown / outside cells
+    known = {r[1]: r[2] for r in p.rows if r[0] == "known"}
+    shares = Blueprint.load(out / "blueprint.npz").shares()
+    assert set(known) == {"seen", "inferred", "unknown", "outside"}, p.rows
+    for name, v in known.items():
+        assert float(v.rstrip(" %")) == pytest.approx(shares[f"{name}_pct"], abs=0.051)
+    assert "m inferred" in text  # the walls' note
 
 
 def test_missing_or_broken_pictures_leave_the_rest(runs, tmp_path):

