@@ -53,7 +53,7 @@ def test_edits_and_nerf_top(tiny_room, tmp_path):
     args += ("--set", "edit.gif_frames=4")
     r = _run(tiny_room, out, *args)
     st = _status(r)
-    assert st["depth:nerf"] == "skipped"  # the room gives depth
+    assert st["depth:stereo"] == "skipped"  # the room gives depth
     for name in ("nerf:grid", "blueprint:nerf_top", "edit:nerf"):
         assert st[name] == "ran", name
     nerf = next(s for s in r["stages"] if s["name"] == "nerf")
