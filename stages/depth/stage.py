@@ -105,6 +105,9 @@ def _run(cfg: DepthConfig, inputs: DepthInputs, out: Path, sweep: bool) -> Depth
             filled, facts["field"] = field_fill(
                 cfg, cap, out / "field", found, int(facts.get("scale", 1))
             )
+            # how the field's training ended: "steps" by default; "time" when the opt-in
+            # depth.field.train.time_budget fired (the depth then depends on the load)
+            facts["field_stop_reason"] = facts["field"]["stop_reason"]
             sources = _field_sources(filled, depths, sources)
             depths = filled
             parts["field"] = _part(sources, time.process_time() - c0)

@@ -4,12 +4,15 @@ every field of every stage config reaches that stage's cache key (STYLE.md 4).""
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import pytest
 
 from pipeline.cache import stage_key
 from pipeline.config import default_config, load_config, stage_view
 from stages.common.errors import BlunfError
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_set_overrides_nested_and_coerces():
@@ -228,3 +231,17 @@ def test_nested_nerf_settings_and_renamed_keys(tmp_path):
         load_config(p)
     with pytest.raises(BlunfError, match="unknown key depth.stereo.plane "):
         load_config(None, ["depth.stereo.plane=3"])
+
+
+def test_default_configs_stop_on_steps_not_seconds():
+    # same photos, same plan: every field a config trains (the nerf stage's, the depth
+    # stage's field fill) stops on a step count; a time budget is an opt-in guard
+    for path in [None, *sorted((ROOT / "configs").glob("*.yaml"))]:
+        cfg = load_config(path)
+        for train in (cfg["nerf"].train, cfg["depth"].field.train):
+            assert train.max_steps > 0 and train.time_budget == 0, (path, train)
+        assert cfg["poses"].deterministic and cfg["poses"].seed == 0, path
+    with pytest.raises(BlunfError, match=r"never stops"):
+        load_config(None, ["depth.field.train.max_steps=0", "depth.field.train.eval_every=0"])
+    with pytest.raises(BlunfError, match=r"time_budget"):
+        load_config(None, ["nerf.train.time_budget=.nan"])

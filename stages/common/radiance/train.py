@@ -68,6 +68,13 @@ def train(
             break
         if tc.time_budget > 0 and train_s >= tc.time_budget and step >= tc.min_steps:
             stop = "time"
+            log.warning(
+                "nerf: the time budget (train.time_budget %.0f s) stopped training at step "
+                "%d of %s: the result depends on the machine's load",
+                tc.time_budget,
+                step,
+                tc.max_steps or "no step limit",
+            )
             break
         t0, c0 = time.perf_counter(), time.process_time()
         idx = _batch(tc, rays, gen)
