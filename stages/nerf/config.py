@@ -75,8 +75,8 @@ class NerfOutputs:
     STATS: ClassVar[str | None] = "nerf.json"  # its stats file: the report's facts
     model: Path  # model.pt: load with stages.common.radiance.field.load_field
     stats: Path  # nerf.json: steps, seconds, stop_reason, psnr_heldout, depth_absrel, curve
-    frames: Path  # frames.json: the input capture with depth -> the rendered depth maps
-    depth: Path  # depth/<stem>.npy: rendered z-depth, float32 metres, 0 where opacity is low
+    frames: Path  # frames.json: the input capture (its depth is the depth the field trained on)
+    depth: Path  # depth/: empty (depth for fusion from the photos is the depth stage's)
 
     @classmethod
     def at(cls, out: Path) -> NerfOutputs:
