@@ -89,10 +89,13 @@ def _run(cfg: DepthConfig, inputs: DepthInputs, out: Path, sweep: bool) -> Depth
             # At hand: images (full size, float32 0..1), Ks (full size), poses (camera-to-
             # world, the aligned world), sparse (the SfM track depth maps, full size), depths
             # (the sweep's checked depths at its resolution, 1/facts["scale"]). It returns
-            # depths and sources (uint8, STEREO / PLANES / NONE, the same shapes) and its facts:
-            #   depths, sources, facts["planes"] = planes.fill(images, Ks, poses, sparse,
-            #                                                  depths, cfg.planes, cfg.threads)
-            # What comes out of this place is what the field fill and fusion get.
+            # depths and sources (uint8, STEREO / PLANES / NONE of stages.depth.config, the
+            # same shapes) and its facts ("planes" is the sweep's plane count: "plane_fill"):
+            #   depths, sources, facts["plane_fill"] = planes.fill(
+            #       images, Ks, poses, sparse, depths, cfg.planes, cfg.threads
+            #   )
+            # and ran=True below. What comes out of this place is what the field fill (its
+            # training depth and the readings it keeps) and fusion get.
             c0 = time.process_time()
             parts["planes"] = _part(sources, time.process_time() - c0, ran=False)
 
