@@ -40,6 +40,7 @@ def stage_configs() -> dict[str, type]:
     """Stage name -> its config dataclass, in pipeline order (the one place that lists them)."""
     from stages.align.config import AlignConfig
     from stages.blueprint.config import BlueprintConfig
+    from stages.depth.config import DepthConfig
     from stages.edit.config import EditConfig
     from stages.evaluate.config import EvaluateConfig
     from stages.export.config import ExportConfig
@@ -55,6 +56,7 @@ def stage_configs() -> dict[str, type]:
         "ingest": IngestConfig,
         "poses": PosesConfig,
         "align": AlignConfig,
+        "depth": DepthConfig,
         "fusion": FusionConfig,
         "semantics": SemanticsConfig,
         "nerf": NerfConfig,
@@ -140,8 +142,14 @@ def _check_section(obj: Any, value: Any, where: str, prefix: str) -> dict:
     hints = typing.get_type_hints(type(obj))
     names = {f.name for f in fields(obj)}
     renamed: dict[str, str] = getattr(type(obj), "RENAMED", {})  # old flat key -> new path
+    moved: dict[str, str] = getattr(type(obj), "MOVED", {})  # key -> its place in another stage
     out = {}
     for k, v in value.items():
+        if k in moved and k not in names:
+            sub = next(iter(v), None) if isinstance(v, dict) and v else None
+            old = f"{k}.{sub}" if sub is not None else k
+            new = moved.get(old, f"{moved[k]}.{sub}" if sub is not None else moved[k])
+            raise BlunfError(f"{where}: {prefix}.{old}: moved to {new}")
         if k in renamed and (k not in names or not isinstance(v, dict)):
             raise BlunfError(f"{where}: {prefix}.{k}: renamed to {prefix}.{renamed[k]}")
         if k not in names:

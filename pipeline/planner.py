@@ -20,8 +20,8 @@ class Step:
     impl: str
     run: bool
     reason: str = ""
-    # (stage, impl) that does the work when another stage's code does it (depth: the nerf
-    # stage); None = `stage` with `impl`
+    # (stage, impl) that does the work when another stage's code does it; None = `stage`
+    # with `impl`
     work: tuple[str, str] | None = None
 
 
@@ -69,34 +69,31 @@ def _derive_labels(cfg: Config) -> bool:
 
 
 def _depth_step(cfg: Config, missing: str, tracks: bool) -> Step:
-    """The photos-only depth step: plane-sweep stereo (the nerf stage's `stereo`
-    implementation), which trains a field to fill stereo's holes only when the sweep covers
-    too little of the views (`nerf.stereo.field_fill` auto; off: never), unless the config
-    asks for the field always (field_fill true: the `grid` implementation) or turns stereo
-    off, or there are no SfM tracks to bound the sweep (poses given: the field then learns
-    depth from the photos alone). A field for edits or the NeRF top view is the nerf step's,
+    """The photos-only depth step, the depth stage: plane-sweep stereo (its `stereo`
+    implementation), the plane fill, then a field trained to fill the holes only when the
+    readings cover too little of the views (`depth.field.fill` auto; off: never; true:
+    always); the field alone (its `field` implementation) when the config turns stereo off
+    or there are no SfM tracks to bound the sweep (poses given: the field then learns depth
+    from the photos alone). A field for edits or the NeRF top view is the nerf step's,
     trained later on the fused depth: it never needs this step's field."""
-    st = cfg["nerf"].stereo
+    st, fc = cfg["depth"].stereo, cfg["depth"].field
     head = f"no depth (e.g. frame {missing!r}): "
-    if st.enabled and st.field_fill is not True and tracks:
+    if st.enabled and tracks and cfg["depth"].impl != "field":
         why = "plane-sweep stereo among the photos, " + (
-            "no field trained (nerf.stereo.field_fill off)"
-            if st.field_fill is False
+            "no field trained (depth.field.fill off)"
+            if fc.fill is False
+            else "a field trained to fill its holes (depth.field.fill)"
+            if fc.fill is True
             else "a field trained to fill its holes only if it covers under "
-            f"{100 * st.field_fill_below:.0f} % of the pixels (nerf.stereo.field_fill auto)"
+            f"{100 * fc.below:.0f} % of the pixels (depth.field.fill auto)"
         )
-        return Step("depth", "nerf", True, head + why, work=("nerf", "stereo"))
-    why = (
-        "the NeRF, trained on the photos"
-        + (
-            " and the SfM tracks"
-            if tracks
-            else " (poses given: no SfM tracks to supervise its depth)"
-        )
-        + (" and stereo (nerf.stereo.field_fill)" if st.enabled and tracks else "")
-        + ", renders it for fusion"
+        return Step("depth", "stereo", True, head + why)
+    why = "a field trained on the photos" + (
+        " and the SfM tracks (depth.stereo off, or depth.impl field)"
+        if tracks
+        else " (poses given: no SfM tracks to supervise its depth)"
     )
-    return Step("depth", "nerf", True, head + why, work=("nerf", cfg["nerf"].impl))
+    return Step("depth", "field", True, head + why + ", its render for fusion")
 
 
 def make_plan(cap: Capture, cfg: Config, edits: Path | None = None) -> Plan:
@@ -130,7 +127,7 @@ def make_plan(cap: Capture, cfg: Config, edits: Path | None = None) -> Plan:
     s.append(Step("align", cfg["align"].impl, True))
 
     if cap.has_depth:
-        s.append(Step("depth", "nerf", False, "capture gives depth"))
+        s.append(Step("depth", cfg["depth"].impl, False, "capture gives depth"))
     else:
         missing = next((f.stem for f in cap.frames if f.depth is None), "?")
         some = next((f.stem for f in cap.frames if f.depth is not None), None)

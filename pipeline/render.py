@@ -76,7 +76,7 @@ def run_files(run: Path) -> RunFiles:
     for what, p in (("frames.json", frames), ("mesh.ply", mesh), ("blueprint.npz", bp)):
         if p is None or not p.is_file():
             raise BlunfError(f"{run}: the run has no {what} (was it finished or cleaned?)")
-    model = stage_file("nerf", "model.pt") or stage_file("depth", "model.pt")
+    model = stage_file("nerf", "model.pt") or stage_file("depth", "field/model.pt")
     assert frames is not None and mesh is not None
     return RunFiles(run, capture, bp, mesh, frames, model, edit_cfg)
 

@@ -16,6 +16,7 @@ from stages.blueprint import BlueprintInputs, NerfTopInputs
 from stages.common.capture import Capture
 from stages.common.errors import BlunfError
 from stages.common.io import check_exists, read_json
+from stages.depth import DepthInputs
 from stages.edit import EditInputs, EditOutputs, EditSpec, load_spec
 from stages.evaluate import EvaluateInputs
 from stages.export.files import ExportInputs
@@ -74,7 +75,7 @@ def _recipe(r: Runner, pub: Publication, capture: Path, cfg: Config, spec: EditS
     frames = posed.frames if posed else frames
     # SfM's world has an arbitrary turn about z: the first camera fixes the plan's frame then
     frames = r.step(plan.get("align"), AlignInputs(frames, free_yaw=posed is not None)).frames
-    depth = r.step(plan.get("depth"), NerfInputs(frames=frames))  # photos only: stereo (+ NeRF)
+    depth = r.step(plan.get("depth"), DepthInputs(frames=frames))  # photos only: stereo, fills
     fused = r.step(plan.get("fusion"), FusionInputs(frames=depth.frames if depth else frames))
     # the point walls' readings: the SfM tracks (the aligned frames) and what fusion read
     seen = (frames, depth.frames) if depth and cfg["semantics"].point_walls else ()
@@ -82,8 +83,8 @@ def _recipe(r: Runner, pub: Publication, capture: Path, cfg: Config, spec: EditS
     labelled = sem.frames if sem else fused.frames  # the frames the plan is projected from
     # on the fused (dense, clean) depth and the labels: for the NeRF baseline and edits
     nerf = r.step(plan.get("nerf"), NerfInputs(frames=labelled))
-    if nerf is None and isinstance(depth, NerfOutputs):  # the depth step's field, if it trained
-        nerf = depth
+    if nerf is None and depth is not None and (depth.field / "model.pt").is_file():
+        nerf = NerfOutputs.at(depth.field)  # the depth step's field fill, when it trained
     pts = r.step(plan.get("project"), ProjectInputs(frames=labelled, holdout=plan.heldout))
     gt = gt_files(cap)
     plans = {}

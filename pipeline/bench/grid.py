@@ -224,16 +224,17 @@ def phone_sets() -> tuple[str, ...]:
 
 
 def phone(capture: str, frames: int = 0) -> Variant:
-    """The whole photos-only path (configs/phone.yaml; a fixed 300 NeRF steps so the figure
-    does not depend on the machine's load) from SfM on; error = 100 - BluNF fwIoU."""
+    """The whole photos-only path (configs/phone.yaml; the depth stage's field fill stops at a
+    fixed 300 steps so the figure does not depend on the machine's load) from SfM on; error =
+    100 - BluNF fwIoU."""
     return Variant(
         f"phone-{capture}" + (f"-f{frames}" if frames else ""),
         "phone",
         capture,
-        (*phone_sets(), "nerf.train.time_budget=0", "nerf.train.max_steps=300"),
+        (*phone_sets(), "depth.field.train.time_budget=0", "depth.field.train.max_steps=300"),
         frames,
         fresh_from="poses",
-        timed=("poses", "fusion", "semantics", "nerf", "project", "blueprint"),
+        timed=("poses", "depth", "fusion", "semantics", "project", "blueprint"),
     )
 
 

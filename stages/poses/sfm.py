@@ -213,7 +213,7 @@ def _extract(
     """SIFT features into the database, from SIFT's first `octave` (first_octave); one fixed
     camera per distinct intrinsics."""
     eo = pycolmap.FeatureExtractionOptions()
-    eo.num_threads = threads
+    eo.num_threads = 1 if cfg.deterministic else threads  # see PosesConfig.deterministic
     eo.use_gpu = False
     eo.max_image_size = cfg.max_image_size
     eo.sift.max_num_features = cfg.max_features
@@ -279,12 +279,17 @@ def _match(cfg: PosesConfig, db: Path, n: int, threads: int) -> tuple[str, str]:
     mo = pycolmap.FeatureMatchingOptions()
     mo.num_threads = threads
     mo.use_gpu = False
+    vo = pycolmap.TwoViewGeometryOptions()
+    if cfg.deterministic:  # each pair's RANSAC from the seed, whichever thread runs it
+        vo.ransac.random_seed = cfg.seed
     kind = cfg.matching
     if kind == "auto":
         kind = "exhaustive" if n <= cfg.exhaustive_max_images else "sequential"
     log.info("sfm: %s matching", kind)
     if kind == "exhaustive":
-        pycolmap.match_exhaustive(db, matching_options=mo, device=pycolmap.Device.cpu)
+        pycolmap.match_exhaustive(
+            db, matching_options=mo, verification_options=vo, device=pycolmap.Device.cpu
+        )
         return kind, f"all {n * (n - 1) // 2} pairs"
     po = pycolmap.SequentialPairingOptions()
     po.overlap = cfg.sequential_overlap
@@ -292,7 +297,11 @@ def _match(cfg: PosesConfig, db: Path, n: int, threads: int) -> tuple[str, str]:
     po.loop_detection = False
     po.num_threads = threads
     pycolmap.match_sequential(
-        db, matching_options=mo, pairing_options=po, device=pycolmap.Device.cpu
+        db,
+        matching_options=mo,
+        pairing_options=po,
+        verification_options=vo,
+        device=pycolmap.Device.cpu,
     )
     return kind, f"overlap {cfg.sequential_overlap} (+ quadratic), no loop detection"
 
@@ -305,10 +314,13 @@ def _map(
     models.mkdir(parents=True)
     log.info("sfm: %s mapping", cfg.mapper)
     fixed = not refine
+    if cfg.deterministic:  # a multi-threaded bundle adjustment sums in a varying order
+        threads = 1
     if cfg.mapper == "incremental":
         o = pycolmap.IncrementalPipelineOptions()
         o.num_threads = threads
         o.random_seed = cfg.seed
+        o.mapper.random_seed = o.triangulation.random_seed = cfg.seed
         o.min_model_size = MIN_REGISTERED
         o.ba_global_max_refinements = cfg.ba_global_max_refinements
         o.ba_local_max_refinements = cfg.ba_local_max_refinements

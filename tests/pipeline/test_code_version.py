@@ -15,6 +15,7 @@ STAGES = (
     "ingest",
     "poses",
     "align",
+    "depth",
     "fusion",
     "semantics",
     "nerf",
@@ -89,3 +90,20 @@ def test_a_smuggled_import_makes_the_stage_depend_on_what_it_imports(tree, code)
     after = _versions(tree)
     assert after["blueprint"] != before["blueprint"]
     assert after["project"] == before["project"]  # upstream stays cached
+
+
+def test_the_depth_stage_is_keyed_by_its_parts_and_the_shared_field(tree):
+    # the sweep, the check and the field fill rekey the depth stage alone; the field's
+    # training (stages/common/radiance) rekeys both stages that train one
+    before = _versions(tree)
+    for part in ("sweep.py", "consistency.py", "field.py", "render.py", "stage.py"):
+        assert tree / "stages" / "depth" / part in stage_sources("depth", tree)
+    _touch(tree / "stages" / "depth" / "sweep.py")
+    after = _versions(tree)
+    assert {s for s in STAGES if after[s] != before[s]} == {"depth"}
+    train = tree / "stages" / "common" / "radiance" / "train.py"
+    assert train in stage_sources("depth", tree) and train in stage_sources("nerf", tree)
+    _touch(train)
+    again = _versions(tree)
+    changed = {s for s in STAGES if again[s] != after[s]}
+    assert {"depth", "nerf"} <= changed and changed.isdisjoint({"poses", "fusion", "project"})

@@ -4,12 +4,15 @@ every field of every stage config reaches that stage's cache key (STYLE.md 4).""
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import pytest
 
 from pipeline.cache import stage_key
 from pipeline.config import default_config, load_config, stage_view
 from stages.common.errors import BlunfError
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_set_overrides_nested_and_coerces():
@@ -181,24 +184,24 @@ def test_no_methods_fails_before_the_run_folder_is_made(tmp_path, capsys):
 
 
 def test_nested_nerf_settings_and_renamed_keys(tmp_path):
-    # nerf's settings are nested: --set and YAML reach them by their path; the flat keys of
-    # earlier versions fail with one line naming the new key (also where an old key is now
-    # the name of a section: nerf.stereo was a bool, nerf.field a string)
-    cfg = load_config(None, ["nerf.stereo.planes=32", "nerf.train.max_steps=7"])
-    assert cfg["nerf"].stereo.planes == 32 and cfg["nerf"].train.max_steps == 7
-    assert cfg["nerf"].stereo.views == default_config()["nerf"].stereo.views
-    assert cfg.to_dict()["nerf"]["stereo"]["planes"] == 32
+    # nerf's and depth's settings are nested: --set and YAML reach them by their path; the
+    # flat keys of earlier versions fail with one line naming the new key (also where an old
+    # key is now the name of a section: nerf.field was a string)
+    cfg = load_config(None, ["depth.stereo.planes=32", "nerf.train.max_steps=7"])
+    assert cfg["depth"].stereo.planes == 32 and cfg["nerf"].train.max_steps == 7
+    assert cfg["depth"].stereo.views == default_config()["depth"].stereo.views
+    assert cfg.to_dict()["depth"]["stereo"]["planes"] == 32
     p = tmp_path / "nested.yaml"
-    p.write_text("nerf:\n  stereo:\n    planes: 32\n  field:\n    kind: pe\n")
+    p.write_text("depth:\n  stereo:\n    planes: 32\nnerf:\n  field:\n    kind: pe\n")
     cfg = load_config(p)
-    assert cfg["nerf"].stereo.planes == 32 and cfg["nerf"].field.kind == "pe"
-    # the cache key sees a nested value
-    a = stage_view(default_config()["nerf"], "grid")
-    assert stage_view(cfg["nerf"], "grid") != a and a["stereo"]["planes"] == 64
+    assert cfg["depth"].stereo.planes == 32 and cfg["nerf"].field.kind == "pe"
+    # the cache key sees a nested value, in both of the depth stage's implementations
+    for impl in ("stereo", "field"):
+        a = stage_view(default_config()["depth"], impl)
+        assert stage_view(cfg["depth"], impl) != a and a["stereo"]["planes"] == 64
+    assert stage_view(cfg["nerf"], "grid") != stage_view(default_config()["nerf"], "grid")
     for old, new in [
-        ("nerf.stereo_planes=32", "nerf.stereo.planes"),
         ("nerf.max_steps=10", "nerf.train.max_steps"),
-        ("nerf.stereo=false", "nerf.stereo.enabled"),
         ("nerf.field=pe", "nerf.field.kind"),
         ("nerf.occ_res=64", "nerf.occupancy.res"),
     ]:
@@ -206,10 +209,39 @@ def test_nested_nerf_settings_and_renamed_keys(tmp_path):
         with pytest.raises(BlunfError, match=rf"{key}: renamed to {new}$") as e:
             load_config(None, [old])
         assert "\n" not in str(e.value)
-    p.write_text("nerf:\n  stereo_planes: 32\n")
-    with pytest.raises(
-        BlunfError, match=r"nested.yaml: nerf.stereo_planes: renamed to nerf.stereo.planes"
-    ):
+    # the photos-only depth's settings moved from the nerf stage to the depth stage
+    for old, new in [
+        ("nerf.stereo.planes=32", "depth.stereo.planes"),
+        ("nerf.stereo_planes=32", "depth.stereo.planes"),
+        ("nerf.stereo=false", "depth.stereo"),
+        ("nerf.stereo.field_fill=false", "depth.field.fill"),
+        ("nerf.stereo.field_fill_below=0.3", "depth.field.below"),
+        ("nerf.stereo.fill_samples_across=128", "depth.field.sampling.samples_across"),
+        ("nerf.stereo.check=0", "depth.field.check"),
+        ("nerf.depth_check.enabled=true", "depth.check.enabled"),
+        ("nerf.depth_check_tol=0.1", "depth.check.tol"),
+        ("nerf.depth_render_scale=1", "depth.field.render_scale"),
+    ]:
+        key = old.partition("=")[0]
+        with pytest.raises(BlunfError, match=rf"{key}: moved to {new}$") as e:
+            load_config(None, [old])
+        assert "\n" not in str(e.value)
+    p.write_text("nerf:\n  stereo:\n    planes: 32\n")
+    with pytest.raises(BlunfError, match=r"nested.yaml: nerf.stereo.planes: moved to depth.st"):
         load_config(p)
-    with pytest.raises(BlunfError, match="unknown key nerf.stereo.plane "):
-        load_config(None, ["nerf.stereo.plane=3"])
+    with pytest.raises(BlunfError, match="unknown key depth.stereo.plane "):
+        load_config(None, ["depth.stereo.plane=3"])
+
+
+def test_default_configs_stop_on_steps_not_seconds():
+    # same photos, same plan: every field a config trains (the nerf stage's, the depth
+    # stage's field fill) stops on a step count; a time budget is an opt-in guard
+    for path in [None, *sorted((ROOT / "configs").glob("*.yaml"))]:
+        cfg = load_config(path)
+        for train in (cfg["nerf"].train, cfg["depth"].field.train):
+            assert train.max_steps > 0 and train.time_budget == 0, (path, train)
+        assert cfg["poses"].deterministic and cfg["poses"].seed == 0, path
+    with pytest.raises(BlunfError, match=r"never stops"):
+        load_config(None, ["depth.field.train.max_steps=0", "depth.field.train.eval_every=0"])
+    with pytest.raises(BlunfError, match=r"time_budget"):
+        load_config(None, ["nerf.train.time_budget=.nan"])

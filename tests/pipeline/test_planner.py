@@ -42,7 +42,7 @@ def _capture(
 def test_capture_with_depth_skips_nerf_depth():
     plan = make_plan(_capture(), default_config())
     step = plan.get("depth")
-    assert (step.impl, step.run, step.reason) == ("nerf", False, "capture gives depth")
+    assert (step.impl, step.run, step.reason) == ("stereo", False, "capture gives depth")
     # nor is the NeRF trained for anything else: the default methods are blunf and mvr
     nerf = plan.get("nerf")
     assert not nerf.run and nerf.reason == "no edits and no NeRF baseline asked"
@@ -52,7 +52,7 @@ def test_capture_with_depth_skips_nerf_depth():
 def test_capture_without_depth_plans_nerf_depth():
     plan = make_plan(_capture(depth=False, poses=False), default_config())
     step = plan.get("depth")
-    assert (step.impl, step.run) == ("nerf", True)
+    assert (step.stage, step.impl, step.run, step.work) == ("depth", "stereo", True, None)
     assert "no depth" in step.reason and "'0000'" in step.reason  # names a frame without depth
     assert plan.runs("poses") and plan.get("poses").impl == "sfm"
     # the depth step is the photos-only path: fusion still runs on its output
@@ -60,44 +60,45 @@ def test_capture_without_depth_plans_nerf_depth():
 
 
 def test_photos_only_depth_is_stereo_alone_unless_a_field_is_asked_for(tmp_path):
-    # the field's fill off, no edits, no NeRF top view: the depth step sweeps stereo and
+    # the field's fill off, no edits, no NeRF top view: the depth stage sweeps stereo and
     # trains no field, and the nerf step is skipped with its reason
     phone = _capture(depth=False, poses=False, labels=False)
-    alone = ["nerf.stereo.field_fill=false"]
+    alone = ["depth.field.fill=false"]
     plan = make_plan(phone, load_config(sets=alone))
     step, nerf = plan.get("depth"), plan.get("nerf")
-    assert step.run and step.work == ("nerf", "stereo")
+    assert step.run and (step.impl, step.work) == ("stereo", None)
     assert "plane-sweep stereo" in step.reason and "no field trained" in step.reason
     assert not nerf.run and nerf.reason == "no edits and no NeRF baseline asked"
     # an edit spec trains the nerf step's field (on the fused depth), not a second one for
     # depth
     plan = make_plan(phone, load_config(sets=alone), tmp_path / "spec.yaml")
-    assert plan.get("depth").work == ("nerf", "stereo") and plan.get("nerf").run
-    # the default: stereo first, the field only if stereo covers too little (decided by the
-    # stereo implementation once it has swept: nerf/sweep.py)
+    assert plan.get("depth").impl == "stereo" and plan.get("nerf").run
+    # the default: stereo first, the field only if the readings cover too little (decided
+    # by the depth stage once it has swept: stages/depth/stage.py)
     plan = make_plan(phone, default_config())
     step = plan.get("depth")
-    assert step.work == ("nerf", "stereo") and "field_fill auto" in step.reason
+    assert step.impl == "stereo" and "depth.field.fill auto" in step.reason
     assert "under 50 %" in step.reason
-    # field_fill true: the field always, trained by the grid implementation
-    plan = make_plan(phone, load_config(sets=["nerf.stereo.field_fill=true"]))
+    # fill true: the field always, after the sweep
+    plan = make_plan(phone, load_config(sets=["depth.field.fill=true"]))
     step = plan.get("depth")
-    assert step.work == ("nerf", "grid") and "nerf.stereo.field_fill" in step.reason
+    assert step.impl == "stereo" and "(depth.field.fill)" in step.reason
     # not a boolean nor auto: one line naming the key
-    with pytest.raises(BlunfError, match="nerf.stereo.field_fill"):
-        load_config(sets=["nerf.stereo.field_fill=sometimes"])
-    with pytest.raises(BlunfError, match="field_fill_below"):
-        load_config(sets=["nerf.stereo.field_fill_below=1.5"])
-    # stereo off: only the field can give depth
-    plan = make_plan(phone, load_config(sets=["nerf.stereo.enabled=false"]))
-    assert plan.get("depth").work == ("nerf", "grid")
+    with pytest.raises(BlunfError, match="depth.field.fill"):
+        load_config(sets=["depth.field.fill=sometimes"])
+    with pytest.raises(BlunfError, match=r"depth\.field\.below"):
+        load_config(sets=["depth.field.below=1.5"])
+    # stereo off, or the field asked for by name: only the field gives depth
+    for sets in (["depth.stereo.enabled=false"], ["depth.impl=field"]):
+        step = make_plan(phone, load_config(sets=sets)).get("depth")
+        assert step.impl == "field" and "SfM tracks" in step.reason
 
 
 def test_photos_with_given_poses_train_the_field_for_depth():
     # poses given, no depth: no SfM tracks bound a sweep, so the field learns depth
     plan = make_plan(_capture(depth=False, poses=True, labels=False), default_config())
     step = plan.get("depth")
-    assert step.work == ("nerf", "grid") and "no SfM tracks" in step.reason
+    assert step.impl == "field" and "no SfM tracks" in step.reason
 
 
 def test_part_of_the_depth_missing_is_an_error():

@@ -33,7 +33,7 @@ def test_run_outputs_report_and_cache(tiny_room, tmp_path):
     first = _run(tiny_room, out)
     st = _status(first)
     # The room gives poses, depth and labels: those stages are skipped, with reasons.
-    assert st["poses:given"] == "skipped" and st["depth:nerf"] == "skipped"
+    assert st["poses:given"] == "skipped" and st["depth:stereo"] == "skipped"
     assert st["semantics:given"] == "skipped" and st["nerf:grid"] == "skipped"
     for name in (
         "ingest:auto",

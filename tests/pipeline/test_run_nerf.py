@@ -23,6 +23,12 @@ NERF = [
     "nerf.train.max_steps=200",
     "--set",
     "nerf.threads=1",
+    "--set",
+    "depth.field.train.time_budget=0",
+    "--set",
+    "depth.field.train.max_steps=200",
+    "--set",
+    "depth.threads=1",
 ]
 
 
@@ -47,7 +53,7 @@ def test_edits_and_nerf_top(tiny_room, tmp_path):
     args += ("--set", "edit.gif_frames=4")
     r = _run(tiny_room, out, *args)
     st = _status(r)
-    assert st["depth:nerf"] == "skipped"  # the room gives depth
+    assert st["depth:stereo"] == "skipped"  # the room gives depth
     for name in ("nerf:grid", "blueprint:nerf_top", "edit:nerf"):
         assert st[name] == "ran", name
     nerf = next(s for s in r["stages"] if s["name"] == "nerf")
@@ -109,16 +115,19 @@ def test_photos_only_capture_reaches_a_plan(tmp_path, field):
 
     cap = make_room(tmp_path / "phone", views=30, seed=0, size=(160, 120), photos_only=True)
     out = tmp_path / "run"
-    fill = ["--set", f"nerf.stereo.field_fill={str(field).lower()}"]
+    fill = ["--set", f"depth.field.fill={str(field).lower()}"]
     r = _run(cap, out, "--config", str(ROOT / "configs" / "phone.yaml"), *fill)
     st = _status(r)
     for name in ("poses:sfm", "fusion:tsdf", "semantics:geometry", "blueprint:blunf"):
         assert st[name] == "ran", name
-    # the depth step runs once; the nerf step (edits / nerf_top) is skipped with its reason
-    depth_nerf, later = [s for s in r["stages"] if s["name"] == "nerf"]
-    assert depth_nerf["status"] == "ran" and later["status"] == "skipped"
+    # the depth stage runs; the nerf step (edits / nerf_top) is skipped with its reason
+    (depth,) = [s for s in r["stages"] if s["name"] == "depth"]
+    (later,) = [s for s in r["stages"] if s["name"] == "nerf"]
+    assert depth["status"] == "ran" and later["status"] == "skipped"
     assert later["reason"] == "no edits and no NeRF baseline asked"
-    assert depth_nerf["reason"].startswith("no depth")
+    assert depth["reason"].startswith("no depth") and depth["impl"] == "stereo"
+    facts = depth["facts"]
+    assert facts["kept"] > 0.3 and facts["coverage"]["sweep"] > 0.3 and facts["cpu_seconds"] > 0
     assert set(r["plan"]["classes"]) == {"floor", "wall", "object"}
     m = r["metrics"]["blueprint"]["blunf"]
     # Measured 72.0 here with the field (30 views, 160x120, 200 NeRF steps; stereo depth on
@@ -130,17 +139,14 @@ def test_photos_only_capture_reaches_a_plan(tmp_path, field):
     # the bar leaves that margin and catches a broken path (garbage depth or a wrong frame:
     # < 30; the NeRF without stereo: ~60).
     if field:  # the field trains on the stereo depth and fills its holes where confirmed
-        assert depth_nerf["impl"] == "grid" and "SfM tracks" in depth_nerf["reason"]
-        assert depth_nerf["facts"]["depth_dense"] is False
-        assert depth_nerf["facts"]["stereo"]["kept"] > 0.3
-        assert 0 < depth_nerf["facts"]["stereo_check_kept"] < 1
-        assert "nerf" in r["metrics"]
+        assert "(depth.field.fill)" in depth["reason"]
+        assert 0 < facts["field"]["stereo_check_kept"] < 1
+        assert facts["coverage"]["field"] > facts["coverage"]["sweep"]
+        assert facts["by_source"]["field"] > 0
+        assert r["metrics"]["nerf"]["steps"] == 200  # the fill's field, reported as the NeRF
     else:  # stereo alone: no field trained, none reported
-        assert depth_nerf["impl"] == "stereo" and "no field trained" in depth_nerf["reason"]
-        assert depth_nerf["facts"]["kept"] > 0.3 and "nerf" not in r["metrics"]
-        assert [s["impl"] for s in r["stages"] if s["status"] == "ran" and s["name"] == "nerf"] == [
-            "stereo"
-        ]
+        assert "no field trained" in depth["reason"] and "field" not in facts
+        assert "nerf" not in r["metrics"] and facts["by_source"]["field"] == 0
     assert m["frame"] == "aligned to gt poses" and m["fwiou"] > 50, m
 
 
@@ -164,7 +170,7 @@ def test_photos_only_plan_is_within_5_of_the_plan_from_true_depth(tmp_path):
     cams = json.loads((with_depth / "cameras.json").read_text())
     cams["depth_scale"] = json.loads((full / "cameras.json").read_text())["depth_scale"]
     (with_depth / "cameras.json").write_text(json.dumps(cams))
-    steps = ["--set", "nerf.train.time_budget=0", "--set", "nerf.train.max_steps=250"]
+    steps = ["--set", "depth.field.train.time_budget=0", "--set", "depth.field.train.max_steps=250"]
     config = ["--config", str(ROOT / "configs" / "phone.yaml")]
     fwiou, layout = {}, {}
     for name, cap, extra in [("photos", phone, [*config, *steps]), ("depth", with_depth, [])]:

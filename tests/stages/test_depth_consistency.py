@@ -1,4 +1,4 @@
-"""Multi-view consistency check of rendered depth (stages/nerf/consistency.py), on the exact
+"""Multi-view consistency check of rendered depth (stages/depth/consistency.py), on the exact
 depth of the procedural room: true readings survive, floaters pasted into one view do not."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import pytest
 from stages.common.capture import read_layout
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth
-from stages.nerf.consistency import consistent_depth
+from stages.depth.consistency import consistent_depth
 
 ARGS = {"tol": 0.03, "min_agree": 1, "max_through": 0, "neighbours": 8}
 
@@ -89,7 +89,7 @@ def test_same_verdicts_at_any_scale_and_offset(views, scale, offset):
 
 def test_bad_settings_are_refused(views):
     depths, ks, poses = views
-    with pytest.raises(BlunfError, match="depth_check_tol"):
+    with pytest.raises(BlunfError, match=r"depth\.check\.tol"):
         consistent_depth(depths, ks, poses, **{**ARGS, "tol": 0.0})
-    with pytest.raises(BlunfError, match="depth_check_views"):
+    with pytest.raises(BlunfError, match=r"depth\.check\.views"):
         consistent_depth(depths, ks, poses, **{**ARGS, "neighbours": 0})

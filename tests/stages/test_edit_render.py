@@ -11,9 +11,9 @@ import torch
 from stages.common.camera import Intrinsics
 from stages.common.errors import BlunfError
 from stages.common.radiance.render import render_view
+from stages.common.radiance.scene import build_model
 from stages.edit.render import look_at, orbit_poses, render_view_edited
 from stages.nerf.config import NerfConfig
-from stages.nerf.scene import build_model
 from tests.conftest import tune
 
 torch.set_num_threads(1)

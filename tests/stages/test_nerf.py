@@ -18,16 +18,15 @@ import torch
 
 from stages.common.blueprint import Blueprint
 from stages.common.camera import Intrinsics
-from stages.common.capture import Capture, Frame, heldout_views, read_layout
+from stages.common.capture import Capture, Frame, read_layout
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth, read_image, read_json, read_label
+from stages.common.radiance.evaluate import depth_absrel
 from stages.common.radiance.field import load_field
 from stages.common.radiance.render import render_view, top_view_labels
+from stages.common.radiance.train import _progress
+from stages.common.radiance.views import Views, binned
 from stages.nerf import IMPLS, NerfConfig, NerfInputs, NerfOutputs
-from stages.nerf.depths import upsample_depth
-from stages.nerf.evaluate import depth_absrel
-from stages.nerf.train import _progress
-from stages.nerf.views import Views, binned
 from stages.synth import make_room
 from stages.synth.room import FLOOR
 from tests.conftest import tune
@@ -162,57 +161,6 @@ def test_dense_depth_renders_the_held_out_view(dense_run):
     assert (v["acc"] >= 0.5).mean() > 0.8
 
 
-# ---- sparse depth --------------------------------------------------------------------------
-
-
-def test_sparse_depth_renders_every_view(tmp_path):
-    # 5 views at 48 x 36 (view 4 held out), 1 % of the depth pixels kept: the depth is
-    # sparse (coverage 0.01 < dense_depth 0.5). Ten steps do not fit the room (the slow test
-    # checks accuracy): this checks what the stage writes for fusion.
-    room = make_room(tmp_path / "room", views=5, seed=3, size=(48, 36))
-    cap = _sparse_copy(read_layout(room), tmp_path / "sparse", keep=0.01)
-    (tmp_path / "out").mkdir()
-    cfg = tune(FAST, train__max_steps=10)
-    outs = IMPLS["grid"](cfg, NerfInputs(_frames(cap, tmp_path)), tmp_path / "out")
-    stats = read_json(outs.stats)
-    assert not stats["depth_dense"] and stats["depth_supervised"]
-    assert 0.005 < stats["depth_coverage"] < 0.02
-    assert stats["depth_absrel"] is None  # sparse input depth is no reference
-    got = Capture.load(outs.frames)
-    assert [f.stem for f in got.frames] == [f.stem for f in cap.frames]
-    assert got.depth_scale == 1.0
-    k = cfg.depth_render_scale  # depth for fusion is rendered at 1/k of the resolution
-    for f in got.frames:
-        # every view, held-out one included, points at its rendered depth inside out/; the
-        # views stereo swept at full resolution (their stereo readings in it)
-        assert f.depth == outs.depth / f"{f.stem}.npy" and f.depth.is_file()
-        raw = np.load(f.depth)
-        swept = (outs.depth.parent / "stereo" / f"{f.stem}.npy").is_file()
-        assert raw.dtype == np.float32 and raw.shape == ((36, 48) if swept else (36 // k, 48 // k))
-        assert np.isfinite(raw).all() and (raw >= 0).all()
-        # metres, inside the scene box (diagonal < 8 m for this 5 m x 5 m room)
-        assert raw.max() < 8.0
-        np.testing.assert_array_equal(read_depth(f.depth, got.depth_scale), raw)
-    assert not load_field(outs.model).surface_color  # sparse: colours are composited
-    # with the multi-view check: the same (seeded) renders, minus the unconfirmed readings
-    # (every pixel's depth kept, acc_threshold 0: ten steps leave the field nearly empty)
-    runs = {}
-    for check in (False, True):
-        folder = tmp_path / f"check_{check}"
-        folder.mkdir()
-        c = tune(cfg, depth_check__enabled=check, sampling__acc_threshold=0.0, stereo__check=0)
-        runs[check] = IMPLS["grid"](c, NerfInputs(_frames(cap, tmp_path)), folder)
-    kept = read_json(runs[True].stats)["depth_check_kept"]
-    assert read_json(runs[False].stats)["depth_check_kept"] is None and 0 <= kept < 1
-    n_raw = n_chk = 0
-    plain, checked_frames = (Capture.load(runs[k].frames).frames for k in (False, True))
-    for f, g in zip(plain, checked_frames, strict=True):
-        raw, checked = np.load(f.depth), np.load(g.depth)
-        assert np.all((checked == 0) | (checked == raw))
-        n_raw, n_chk = n_raw + np.count_nonzero(raw), n_chk + np.count_nonzero(checked)
-    assert n_raw > 0 and n_chk == pytest.approx(kept * n_raw, abs=1)
-
-
 # ---- settings ----------------------------------------------------------------------------
 
 
@@ -259,7 +207,7 @@ def test_progress_follows_the_nearest_limit():
     assert _progress(cfg.train, 400, 0.0) == 1.0
 
 
-# ---- slow: the default field, and the sparse path's accuracy -------------------------------
+# ---- slow: the default field --------------------------------------------------------------
 
 # The default field (2^17 x 8 hash entries up to 512 cells, 512 samples across) for 200 steps
 # on the 16-view room: ~1.5 CPU-min on one thread. Measured: held-out depth AbsRel 0.0018,
@@ -338,169 +286,6 @@ def test_top_view_labels_find_the_floor(trained):
     assert (lab[floor] == FLOOR).mean() > 0.4
 
 
-def test_the_fill_is_rendered_no_finer_than_stereo_ran(tmp_path):
-    # stereo swept at half resolution (nerf.stereo.scale 2; scale 0 picks it from the plan's
-    # cell): the field's fill is rendered at 1/2 too although depth_render_scale asks for
-    # full resolution, so a held-out view's depth (render alone) is 24 x 18, a swept view's
-    # (its stereo readings, upsampled) full size
-    room = make_room(tmp_path / "room", views=5, seed=3, size=(48, 36))
-    cap = _sparse_copy(read_layout(room), tmp_path / "sparse", keep=0.01)
-    shapes, scales = {}, {}
-    for scale in (1, 2):
-        (tmp_path / f"out{scale}").mkdir()
-        cfg = tune(FAST, train__max_steps=10, depth_render_scale=1, stereo__scale=scale)
-        outs = IMPLS["grid"](cfg, NerfInputs(_frames(cap, tmp_path)), tmp_path / f"out{scale}")
-        scales[scale] = read_json(outs.stats)["depth_render_scale"]
-        shapes[scale] = [np.load(f.depth).shape for f in Capture.load(outs.frames).frames]
-    assert scales == {1: 1, 2: 2}
-    assert shapes[1] == [(36, 48)] * 5
-    assert shapes[2][4] == (18, 24) and shapes[2][:4] == [(36, 48)] * 4  # view 4 held out
-
-
-@pytest.mark.slow
-def test_sparse_depth_accuracy(room8, tmp_path):
-    # 1 % of the depth pixels (uniformly at random; SfM tracks are where the texture is):
-    # the field fills in the rest. Rendered at full resolution to compare with the exact
-    # depth. Measured after 300 steps (two versions of the sparse path): AbsRel 0.04-0.08 on
-    # the training views, 0.11-0.12 on the held-out view 4, mean 0.06-0.065.
-    cap = read_layout(room8)
-    sparse = _sparse_copy(cap, tmp_path / "sparse", keep=0.01)
-    (tmp_path / "out").mkdir()
-    cfg = tune(
-        FAST,
-        train__max_steps=300,
-        train__batch_rays=256,
-        losses__surface_rays=1024,
-        losses__geo_rays=1024,
-        depth_render_scale=1,
-    )
-    outs = IMPLS["grid"](cfg, NerfInputs(_frames(sparse, tmp_path)), tmp_path / "out")
-    got = Capture.load(outs.frames)
-    rels = []
-    for f, g in zip(got.frames, cap.frames, strict=True):
-        d = read_depth(f.depth, got.depth_scale)
-        rels.append(depth_absrel(d, read_depth(g.depth)))
-    assert float(np.mean(rels)) < 0.12, rels
-    assert rels[4] < 0.25, rels
-
-
-def test_stereo_gives_the_sparse_path_dense_depth(tiny_room, tmp_path):
-    # photos + 1 % of the readings (SfM tracks): plane-sweep stereo among the training views
-    # fills in dense depth before training, so a short run already renders the room's depth;
-    # without it the same steps leave a field that has barely started. 16 views (two held
-    # out): room8's 7 training views overlap too little for readings two others confirm.
-    cap = read_layout(tiny_room)
-    sparse = _sparse_copy(cap, tmp_path / "sparse", keep=0.01)
-    cfg = tune(FAST, train__max_steps=DENSE_STEPS, depth_render_scale=1)
-    rels, stats = {}, {}
-    for stereo in (True, False):
-        folder = tmp_path / f"stereo_{stereo}"
-        folder.mkdir()
-        # the field's own render is scored: no stereo check of the rendered readings
-        c = tune(cfg, stereo__enabled=stereo, stereo__check=0)
-        outs = IMPLS["grid"](c, NerfInputs(_frames(sparse, tmp_path)), folder)
-        stats[stereo] = read_json(outs.stats)
-        got = Capture.load(outs.frames)
-        rels[stereo] = [
-            depth_absrel(read_depth(f.depth, got.depth_scale), read_depth(g.depth))
-            for f, g in zip(got.frames, cap.frames, strict=True)
-        ]
-    st = stats[True]["stereo"]
-    assert stats[False]["stereo"] is None
-    assert 0.1 < st["kept"] <= st["matched"] <= 1 and st["seconds"] > 0
-    # the capture's depth stays sparse (no held-out AbsRel against it), the rendered depth
-    # is written for fusion either way
-    assert not stats[True]["depth_dense"] and stats[True]["depth_absrel"] is None
-    # measured: mean AbsRel 0.155 with stereo, 0.253 without (80 steps of the small field;
-    # at 96x72 the sweep keeps 14 % of the pixels, too few for the dense-depth training that
-    # the 60-view 320x240 room gets at 81 %)
-    assert np.mean(rels[True]) < 0.8 * np.mean(rels[False]), rels
-    # fusion's depth: a swept view's stereo readings at full resolution, the render
-    # elsewhere; held-out views (never swept) the render alone
-    got = Capture.load(folder.parent / "stereo_True" / "frames.json")
-    held = [i for i in range(len(cap.frames)) if i % 8 == 4]
-    assert stats[True]["stereo_check_kept"] is None  # stereo_check 0
-    taken = 0
-    for i, f in enumerate(got.frames):
-        sw = folder.parent / "stereo_True" / "stereo" / f"{f.stem}.npy"
-        assert sw.is_file() != (i in held)
-        d = np.load(f.depth)
-        assert d.shape == (72, 96)  # full resolution (and depth_render_scale 1 here)
-        if sw.is_file():
-            s = np.load(sw)
-            assert np.array_equal(d[s > 0], s[s > 0])
-            taken += int((s > 0).sum())
-    assert taken > 0
-
-
-def test_stereo_implementation_trains_the_field_only_when_stereo_covers_too_little(
-    tiny_room, tmp_path
-):
-    # the photos-only default (nerf.stereo.field_fill auto): the stereo implementation sweeps
-    # every view, then trains the field to fill the holes only under field_fill_below. At
-    # 96x72 the sweep keeps ~14 % of the pixels: under 50 % the field trains, under 10 % not.
-    cap = read_layout(tiny_room)
-    sparse = _sparse_copy(cap, tmp_path / "sparse", keep=0.01)
-    cfg = tune(FAST, train__max_steps=DENSE_STEPS, depth_render_scale=1)
-    got = {}
-    for below in (0.5, 0.1):
-        folder = tmp_path / f"below_{below}"
-        folder.mkdir()
-        c = tune(cfg, stereo__field_fill="auto", stereo__field_fill_below=below)
-        outs = IMPLS["stereo"](c, NerfInputs(_frames(sparse, tmp_path)), folder)
-        got[below] = (read_json(outs.stats), Capture.load(outs.frames), folder)
-    st, frames, folder = got[0.5]
-    assert 0.1 < st["kept"] < 0.5
-    assert st["field_fill"].startswith("field trained") and "under" in st["field_fill"]
-    assert (folder / "field" / "model.pt").is_file() and st["field"]["steps"] == DENSE_STEPS
-    # fusion's depth: the field's render, which fills stereo's holes
-    filled = swept = 0
-    for f in frames.frames:
-        assert Path(f.depth).parent == folder / "field" / "depth"
-        filled += int((np.load(f.depth) > 0).sum())
-        swept += int((np.load(folder / "depth" / f"{f.stem}.npy") > 0).sum())
-    assert filled > 2 * swept, (filled, swept)
-    st, frames, folder = got[0.1]
-    assert st["field_fill"].startswith("no field trained") and "field" not in st
-    assert not (folder / "field").exists()
-    assert all(Path(f.depth).parent == folder / "depth" for f in frames.frames)
-
-
-def test_the_fill_field_trains_and_renders_at_the_sweeps_resolution(tiny_room, tmp_path):
-    # stereo swept at 1/2 (nerf.stereo.scale 2): the field that fills its holes trains on the
-    # views binned 2 x 2 and writes every view's depth at 1/2, its stereo readings as swept;
-    # a held-out view's depth (the render alone) is the room's at that resolution, which a
-    # wrong principal point or focal length of the binned views would miss (AbsRel 0.011 and
-    # 0.016 after 240 steps; 0.018 and 0.029 with the same steps at full resolution)
-    cap = read_layout(tiny_room)
-    sparse = _sparse_copy(cap, tmp_path / "sparse", keep=0.01)
-    cfg = tune(FAST, train__max_steps=3 * DENSE_STEPS, depth_render_scale=1, stereo__scale=2)
-    c = tune(cfg, stereo__field_fill=True, stereo__check=0, stereo__fill_samples_across=200)
-    outs = IMPLS["stereo"](c, NerfInputs(_frames(sparse, tmp_path)), tmp_path)
-    st = read_json(outs.stats)
-    assert st["scale"] == 2 and st["field"]["train_scale"] == 2
-    assert st["field"]["depth_render_scale"] == 2
-    # ... and marches at its own step (nerf.stereo.fill_samples_across), not the fields' one
-    diag = float(np.linalg.norm(np.subtract(*st["field"]["box"][::-1])))
-    assert st["field"]["step_m"] == pytest.approx(diag / c.stereo.fill_samples_across, rel=1e-3)
-    assert c.stereo.fill_samples_across != c.sampling.samples_across
-    got = Capture.load(outs.frames)
-    assert [f.intrinsics for f in got.frames] == [f.intrinsics for f in cap.frames]
-    held = heldout_views(len(cap.frames), c.train.holdout_every)
-    for i, (f, g) in enumerate(zip(got.frames, cap.frames, strict=True)):
-        d = np.load(f.depth)
-        assert d.shape == (36, 48)
-        swept = np.load(tmp_path / "depth" / f"{f.stem}.npy")
-        if i not in held:  # a training view: its stereo readings as they were swept
-            assert np.array_equal(d[swept > 0], swept[swept > 0])
-        else:
-            gt = read_depth(g.depth)[::2, ::2]  # a binned pixel's centre: between four
-            gt = np.minimum(gt, read_depth(g.depth)[1::2, 1::2])
-            ok = (d > 0) & (gt > 0)
-            assert ok.mean() > 0.5
-            assert np.median(np.abs(d[ok] - gt[ok]) / gt[ok]) < 0.05
-
-
 def test_binned_views_keep_the_cameras():
     k = Intrinsics(50.0, 40.0, 23.5, 17.5, 48, 36)
     f = Frame("a", Path("a.png"), k, pose=np.eye(4))
@@ -523,14 +308,3 @@ def test_binned_views_keep_the_cameras():
     )
     assert float(bv.depth[0][0]) == 1.5 and float(bv.depth[0][1:].abs().sum()) == 0.0
     assert int(bv.label[0].view(18, 24)[0, 0]) == int(label.view(36, 48)[1, 1])
-
-
-def test_upsample_depth_repeats_blocks_and_edges():
-    d = np.array([[1.0, 2.0], [3.0, 0.0]], np.float32)
-    got = upsample_depth(d, (5, 5))  # 2 x 2 blocks, the fifth row and column repeat the fourth
-    np.testing.assert_array_equal(got[:4, :4], np.kron(d, np.ones((2, 2), np.float32)))
-    np.testing.assert_array_equal(got[4], got[3])
-    np.testing.assert_array_equal(got[:, 4], got[:, 3])
-    assert got.dtype == np.float32
-    with pytest.raises(BlunfError, match="whole blocks"):
-        upsample_depth(d, (4, 6))

@@ -15,13 +15,12 @@ from torch import Tensor
 
 from stages.common.capture import read_layout
 from stages.common.radiance.field import EXP_CLAMP, RadianceField, load_field, save_field
+from stages.common.radiance.losses import depth_pixels, edge_loss, geometry_loss, surface_loss
 from stages.common.radiance.occupancy import OccupancyGrid
 from stages.common.radiance.render import FieldRender, render_field
-from stages.nerf import NerfConfig
-from stages.nerf.losses import depth_pixels, edge_loss, geometry_loss, surface_loss
-from stages.nerf.scene import build_model, scene_box
-from stages.nerf.train import _batch, train
-from stages.nerf.views import (
+from stages.common.radiance.scene import build_model, scene_box
+from stages.common.radiance.train import _batch, train
+from stages.common.radiance.views import (
     Rays,
     depth_points,
     gather_rays,
@@ -30,6 +29,7 @@ from stages.nerf.views import (
     seed_points,
     split,
 )
+from stages.nerf import NerfConfig
 from stages.synth import make_room
 from tests.conftest import tune
 from tests.stages.test_nerf import FAST

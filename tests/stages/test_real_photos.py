@@ -40,7 +40,7 @@ WALLS = ["semantics.wall_min_height=0.7", "semantics.wall_min_area=0.5"]
 # unchanged, 90 % of the reference's floor cells unknown (now 40-46 %; 7-8 % of its object
 # cells became floor). Before the align stage found the floor under the counter tops (sparse
 # SfM points: 2 % of them on the floor) it gave 10.2 / 3.2 / 0.0 / 13.2; with the stereo
-# readings alone (nerf.stereo.field_fill=false) 0.1: stereo covers 26 % of its pixels, so
+# readings alone (depth.field.fill=false) 0.1: stereo covers 26 % of its pixels, so
 # the default (auto) trains the field. Wall stays at 0: no wall plane is found; the
 # reference's wall cells are unknown (55-64 %) or object (21-34 %) in the photos-only plan.
 # With the walls found in the readings (phone.yaml's semantics.point_walls), two runs (SfM on
@@ -83,7 +83,7 @@ def test_photos_only_plan_against_the_sensor_plan(tmp_path, name, capture, bars,
     src = shared_capture(capture)
     common = ["ingest.max_side=240", "run.methods=[mvr]"]
     photo = ["--config", "configs/phone.yaml"]
-    for s in [*common, *WALLS, "nerf.train.time_budget=0", "nerf.train.max_steps=50"]:
+    for s in [*common, *WALLS, "depth.field.train.time_budget=0", "depth.field.train.max_steps=50"]:
         photo += ["--set", s]
     ref = [x for s in common for x in ("--set", s)]
     res = measure(src, tmp_path, photo, ref, frames=20)

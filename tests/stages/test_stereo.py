@@ -1,4 +1,4 @@
-"""Plane-sweep stereo (stages/nerf/stereo.py) against the procedural room's exact depth: the
+"""Plane-sweep stereo (stages/depth/sweep.py) against the procedural room's exact depth: the
 photos-only path's dense depth. Sparse 'tracks' are 2 % of the true readings, as SfM gives."""
 
 from __future__ import annotations
@@ -9,9 +9,9 @@ import torch
 
 from stages.common.capture import read_layout
 from stages.common.errors import BlunfError
-from stages.common.io import read_depth, read_image
-from stages.nerf.config import StereoConfig
-from stages.nerf.stereo import (
+from stages.common.io import read_depth, read_image, read_label
+from stages.depth.config import StereoConfig
+from stages.depth.sweep import (
     _box,
     _window_inside,
     _window_stats,
@@ -152,7 +152,7 @@ def test_matching_cost_is_one_minus_the_windows_zncc():
     ],
 )
 def test_bad_settings_are_refused(kw):
-    with pytest.raises(BlunfError, match=r"nerf\.stereo\."):
+    with pytest.raises(BlunfError, match=r"depth\.stereo\."):
         StereoConfig(**kw)
 
 
@@ -169,7 +169,7 @@ def test_refinement_sharpens_the_coarse_planes(room):
 
 def test_auto_scale_follows_the_plan_cell():
     # one pixel at the median track depth spans at most `cell` metres at the chosen scale
-    from stages.nerf.stereo import stereo_scale
+    from stages.depth.sweep import stereo_scale
 
     ks = [np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])]
     z = np.full(10, 2.0)  # a pixel spans 4 mm at 2 m
@@ -193,19 +193,20 @@ def test_coarse_to_fine_at_half_resolution(room, swept):
 
 
 def test_coarse_needs_the_refinement():
-    with pytest.raises(BlunfError, match=r"nerf\.stereo\.coarse"):
+    with pytest.raises(BlunfError, match=r"depth\.stereo\.coarse"):
         StereoConfig(coarse=2, refine=0)
 
 
 def test_stereo_stage_writes_depth_for_fusion_without_a_field(tiny_room, tmp_path, room):
-    # the nerf stage's `stereo` implementation: every view swept, frames.json pointing at the
-    # checked maps (metres), no model written
+    # the depth stage's `stereo` implementation: every view swept, frames.json pointing at the
+    # checked maps (metres), sources/ saying stereo where there is depth, no field trained
     from dataclasses import replace
 
     from stages.common.capture import Capture
     from stages.common.io import read_json, write_depth_npy
-    from stages.nerf.config import NerfConfig, NerfInputs
-    from stages.nerf.sweep import run
+    from stages.depth import DepthConfig, DepthInputs
+    from stages.depth.config import FieldFillConfig
+    from stages.depth.stage import run_stereo
 
     _, _, _, tracks, gt = room
     cap = read_layout(tiny_room)
@@ -218,15 +219,26 @@ def test_stereo_stage_writes_depth_for_fusion_without_a_field(tiny_room, tmp_pat
         tmp_path / "frames.json"
     )
     (tmp_path / "out").mkdir()
-    # field_fill off: at 96x72 stereo covers ~15-20 %, and the default (auto) would train a field
-    cfg = NerfConfig(stereo=StereoConfig(field_fill=False))
-    outs = run(cfg, NerfInputs(tmp_path / "frames.json"), tmp_path / "out")
-    assert not (tmp_path / "out" / "model.pt").exists()
+    # fill off: at 96x72 stereo covers ~15-20 %, and the default (auto) would train a field
+    cfg = DepthConfig(field=FieldFillConfig(fill=False))
+    outs = run_stereo(cfg, DepthInputs(tmp_path / "frames.json"), tmp_path / "out")
+    assert not outs.field.exists()
     got = Capture.load(outs.frames)
     depths = [read_depth(f.depth) for f in got.frames]
     assert all(f.depth.parent == outs.depth for f in got.frames)
-    assert read_json(outs.stats)["kept"] > 0.15
+    facts = read_json(outs.stats)
+    assert facts["kept"] > 0.15
     assert np.median(_errors(depths, gt)) < 0.015
+    # sources: stereo exactly where there is depth, the same size as the depth maps
+    for f, d in zip(got.frames, depths, strict=True):
+        src = read_label(outs.sources / f"{f.stem}.png")
+        assert src.shape == d.shape and set(np.unique(src)) <= {0, 1}
+        assert np.array_equal(src == 1, d > 0)
+    # the report's facts: coverage after each part (the plane fill leaves it as it is)
+    cov = facts["coverage"]
+    assert cov["sweep"] == cov["planes"] == facts["by_source"]["stereo"]
+    assert abs(cov["sweep"] - facts["kept"]) < 0.02 and "field" not in cov
+    assert facts["parts"]["sweep"]["cpu_seconds"] > 0 and facts["cpu_seconds"] > 0
 
 
 def test_smallest_mean_is_the_mean_of_the_k_lowest():

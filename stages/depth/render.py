@@ -1,5 +1,5 @@
-"""Depth for fusion from a trained field (photos only): each view's render, the stereo
-readings where there are some, checked against the other views."""
+"""The field fill's depth: each view's render where the readings found before it (stereo,
+planes) have none, checked against the other views."""
 
 from __future__ import annotations
 
@@ -15,8 +15,8 @@ from stages.common.io import write_depth_npy
 from stages.common.progress import track
 from stages.common.radiance.field import RadianceField
 from stages.common.radiance.render import render_view
-from stages.nerf.config import NerfConfig
-from stages.nerf.consistency import consistent_depth
+from stages.depth.config import DepthCheckConfig, FieldFillConfig
+from stages.depth.consistency import consistent_depth
 
 log = logging.getLogger(__name__)
 
@@ -24,27 +24,29 @@ log = logging.getLogger(__name__)
 def write_depths(
     model: RadianceField,
     frames: list[Frame],
-    cfg: NerfConfig,
+    cfg: FieldFillConfig,
     folder: Path,
     prior: dict[int, np.ndarray] | None = None,
     stereo_check: int = 0,
-) -> tuple[list[Frame], dict]:
+    tol: float = 0.02,
+    dc: DepthCheckConfig | None = None,
+) -> tuple[list[Frame], dict, list[np.ndarray]]:
     """Render every frame's depth and write folder/<stem>.npy for fusion.
 
     View i's `prior` (its stereo readings, full resolution, 0 = none) is taken where it has
-    a reading, at full resolution, the render (upsampled) elsewhere. With stereo_check > 0
-    the rendered readings are kept only where at least that many other views' stereo
-    readings agree with them (within stereo.tol) and none sees through them: the field's
-    depth fills the stereo's holes where the photos confirm it (held-out views, which are
-    never swept, get the checked render alone). With depth_check.enabled every reading is then
-    checked against the other views' depth. Returns (the frames pointing at those files,
-    facts: fractions of the rendered readings kept by each check, None when it did not run).
+    a reading, at its resolution, the render (at 1 / cfg.render_scale, upsampled) elsewhere.
+    With stereo_check > 0 the rendered readings are kept only where at least that many
+    other views' prior readings agree with them (within `tol`, depth.stereo.tol) and none
+    sees through them: the field's depth fills the holes where the photos confirm it. With
+    `dc` enabled (depth.check) every reading is then checked against the other views' depth.
+    Returns (the frames pointing at those files, facts: fractions of the rendered readings
+    kept by each check, None when it did not run; the depth maps written).
     """
     prior = prior or {}
-    k = max(1, cfg.depth_render_scale)
+    k = max(1, cfg.render_scale)
     # a swept view's render is needed only where a block of its pixels lacks stereo
     need = {i: _block_any(p <= 0, k) for i, p in prior.items()}
-    views = track(enumerate(frames), "nerf depth", len(frames), "view")
+    views = track(enumerate(frames), "field fill", len(frames), "view")
     depths = [render_depth(model, f, cfg, need.get(i)) for i, f in views]
     facts: dict = {
         "depth_check_kept": None,
@@ -70,20 +72,19 @@ def write_depths(
             cands,
             [_k_at(f, d) for f, d in zip(frames, cands, strict=True)],
             [np.asarray(f.pose, np.float64) for f in frames],
-            cfg.stereo.tol,
+            tol,
             stereo_check,
             0,
-            cfg.depth_check.views,
+            dc.views if dc is not None else DepthCheckConfig().views,
             refs=refs,
         )
         facts["stereo_check_kept"] = round(kept, 4)
-        log.info("nerf: %.1f %% of the rendered depth readings confirmed by stereo", 100 * kept)
+        log.info("depth: %.1f %% of the rendered readings confirmed by the others", 100 * kept)
     depths = [
         np.where(prior[i] > 0, prior[i], c).astype(np.float32) if i in prior else c
         for i, c in enumerate(cands)
     ]
-    dc = cfg.depth_check
-    if dc.enabled:
+    if dc is not None and dc.enabled:
         depths, kept = consistent_depth(
             depths,
             [_k_at(f, d) for f, d in zip(frames, depths, strict=True)],
@@ -94,13 +95,13 @@ def write_depths(
             dc.views,
         )
         facts["depth_check_kept"] = round(kept, 4)
-        log.info("nerf: %.1f %% of the rendered depth readings confirmed by others", 100 * kept)
+        log.info("depth: %.1f %% of the readings confirmed by other views", 100 * kept)
     out = []
     for f, d in zip(frames, depths, strict=True):
         path = folder / f"{f.stem}.npy"
         write_depth_npy(path, d)
         out.append(replace(f, depth=path))
-    return out, facts
+    return out, facts, depths
 
 
 def _k_at(f: Frame, depth: np.ndarray) -> np.ndarray:
@@ -132,12 +133,12 @@ def _block_any(mask: np.ndarray, k: int) -> np.ndarray:
 
 
 def render_depth(
-    model: RadianceField, f: Frame, cfg: NerfConfig, pixels: np.ndarray | None = None
+    model: RadianceField, f: Frame, cfg: FieldFillConfig, pixels: np.ndarray | None = None
 ) -> np.ndarray:
-    """z-depth (metres, float32) of frame f at 1 / depth_render_scale of its resolution; 0
+    """z-depth (metres, float32) of frame f at 1 / render_scale of its resolution; 0
     where the opacity is below sampling.acc_threshold (fusion rescales the intrinsics to fit) and,
     given `pixels` (bool, at that resolution), where it is False (not rendered)."""
-    k = max(1, cfg.depth_render_scale)
+    k = max(1, cfg.render_scale)
     w, h = f.intrinsics.width, f.intrinsics.height
     intr = f.intrinsics.scaled(max(1, w // k), max(1, h // k))
     v = render_view(model, np.asarray(f.pose), intr, cfg.chunk, color=False, pixels=pixels)

@@ -50,11 +50,11 @@ def consistent_depth(
         (filtered depth maps, float32, same shapes; fraction of the readings kept).
     """
     if not 0 < tol < 1:
-        raise BlunfError(f"nerf.depth_check_tol must be in (0, 1), got {tol}")
+        raise BlunfError(f"depth.check.tol must be in (0, 1), got {tol}")
     if min_agree < 0 or max_through < 0 or neighbours < 1:
         raise BlunfError(
-            "nerf.depth_check_agree / depth_check_through must be >= 0 and "
-            f"depth_check_views >= 1, got {min_agree}, {max_through}, {neighbours}"
+            "depth.check.agree / depth.check.through must be >= 0 and "
+            f"depth.check.views >= 1, got {min_agree}, {max_through}, {neighbours}"
         )
     n = len(depths)
     r_depths, r_Ks, r_poses = refs if refs is not None else (depths, Ks, poses)

@@ -8,9 +8,9 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from stages.common.radiance.compositing import RenderOut
+from stages.common.radiance.config import LossConfig
 from stages.common.radiance.field import RadianceField
-from stages.nerf.config import LossConfig
-from stages.nerf.views import Rays
+from stages.common.radiance.views import Rays
 
 HUBER_DELTA = 0.1
 RGB_LOSSES = ("mse", "huber")

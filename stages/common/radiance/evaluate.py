@@ -9,7 +9,7 @@ import torch
 
 from stages.common.radiance.field import RadianceField
 from stages.common.radiance.render import render_field
-from stages.nerf.views import Rays
+from stages.common.radiance.views import Rays
 
 
 def psnr(mse: float) -> float:

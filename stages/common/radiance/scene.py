@@ -10,9 +10,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from stages.common.radiance.config import TrainingConfig
 from stages.common.radiance.field import RadianceField
 from stages.common.radiance.occupancy import OccupancyGrid
-from stages.nerf.config import NerfConfig
 
 log = logging.getLogger(__name__)
 
@@ -20,7 +20,9 @@ SEED_FACTOR = 10.0  # seeded cells start at this many times the occupancy thresh
 SPARSE_DILATE = 2  # sparse depth: cells kept round each SfM track point (at least)
 
 
-def scene_box(centers: np.ndarray, points: np.ndarray, cfg: NerfConfig) -> tuple[Tensor, Tensor]:
+def scene_box(
+    centers: np.ndarray, points: np.ndarray, cfg: TrainingConfig
+) -> tuple[Tensor, Tensor]:
     """(lo [3], hi [3]): cameras and robust depth-point bounds, padded by box.pad."""
     if len(points):
         p_lo, p_hi = np.percentile(points, 0.5, axis=0), np.percentile(points, 99.5, axis=0)
@@ -34,13 +36,13 @@ def scene_box(centers: np.ndarray, points: np.ndarray, cfg: NerfConfig) -> tuple
     return torch.tensor(lo, dtype=torch.float32), torch.tensor(hi, dtype=torch.float32)
 
 
-def occupancy_threshold(cfg: NerfConfig, step: float) -> float:
+def occupancy_threshold(cfg: TrainingConfig, step: float) -> float:
     """Density (1/m) at which one marching step has opacity occupancy.alpha."""
     return -math.log(1.0 - cfg.occupancy.alpha) / step
 
 
 def build_model(
-    cfg: NerfConfig,
+    cfg: TrainingConfig,
     lo: Tensor,
     hi: Tensor,
     class_ids: list[int],

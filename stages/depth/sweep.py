@@ -32,8 +32,8 @@ from stages.common.camera import pixel_grid, unproject
 from stages.common.errors import BlunfError
 from stages.common.progress import track
 from stages.common.threads import side_by_side
-from stages.nerf.config import StereoConfig
-from stages.nerf.consistency import consistent_depth, overlap_order
+from stages.depth.config import StereoConfig
+from stages.depth.consistency import consistent_depth, overlap_order
 
 log = logging.getLogger(__name__)
 
@@ -153,7 +153,7 @@ def _level(gray: Tensor, K: np.ndarray, k: int) -> tuple[Tensor, np.ndarray]:
         return gray, np.asarray(K, np.float64)
     h, w = gray.shape[0] // k, gray.shape[1] // k
     if h < 1 or w < 1:
-        raise BlunfError(f"nerf.stereo.scale: {k} leaves no pixel of a {tuple(gray.shape)} image")
+        raise BlunfError(f"depth.stereo.scale: {k} leaves no pixel of a {tuple(gray.shape)} image")
     g = F.avg_pool2d(gray[None, None, : h * k, : w * k], k)[0, 0].contiguous()
     return g, scaled_K(K, k)
 

@@ -12,25 +12,25 @@ from torch import Tensor
 
 from stages.common.errors import BlunfError
 from stages.common.progress import progress
+from stages.common.radiance.config import TrainConfig, TrainingConfig
+from stages.common.radiance.evaluate import score
 from stages.common.radiance.field import RadianceField
-from stages.common.radiance.render import FieldRender, render_field
-from stages.nerf.config import NerfConfig, TrainConfig
-from stages.nerf.evaluate import score
-from stages.nerf.losses import (
+from stages.common.radiance.losses import (
     RGB_LOSSES,
     edge_loss,
     geometry_loss,
     render_loss,
     surface_loss,
 )
-from stages.nerf.scene import occupancy_threshold
-from stages.nerf.views import Rays
+from stages.common.radiance.render import FieldRender, render_field
+from stages.common.radiance.scene import occupancy_threshold
+from stages.common.radiance.views import Rays
 
 log = logging.getLogger(__name__)
 
 
 def train(
-    cfg: NerfConfig, model: RadianceField, rays: Rays, held: Rays | None, dense: bool = True
+    cfg: TrainingConfig, model: RadianceField, rays: Rays, held: Rays | None, dense: bool = True
 ) -> dict:
     """Optimise the model on `rays`; stop on a held-out plateau, the time budget (once past
     min_steps) or max_steps.
@@ -68,6 +68,13 @@ def train(
             break
         if tc.time_budget > 0 and train_s >= tc.time_budget and step >= tc.min_steps:
             stop = "time"
+            log.warning(
+                "nerf: the time budget (train.time_budget %.0f s) stopped training at step "
+                "%d of %s: the result depends on the machine's load",
+                tc.time_budget,
+                step,
+                tc.max_steps or "no step limit",
+            )
             break
         t0, c0 = time.perf_counter(), time.process_time()
         idx = _batch(tc, rays, gen)
