@@ -1,0 +1,1 @@
+"""Depth stage: plane sweep, plane fill and field fill for photos-only captures."""

@@ -1,0 +1,64 @@
+"""The plane fill's settings (one frozen dataclass, every knob with its effect)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from stages.common.errors import BlunfError
+
+
+@dataclass(frozen=True)
+class PlanesConfig:
+    """Plane fill: depth from the room's own planes where stereo reads nothing."""
+
+    enabled: bool = True  # fill stereo's holes with plane depth (false: the maps pass through)
+    # hypotheses (hypotheses.py)
+    voxel: float = 0.02  # metres: points are thinned to one per voxel before voting
+    bin: float = 0.01  # metres: offset histogram bin along each room axis
+    smooth: float = 1.5  # bins: Gaussian smoothing of the offset histograms
+    min_support: int = 120  # voxels within `band` of a plane for it to be kept (~0.05 m²)
+    band: float = 0.02  # metres: inliers of a plane lie within this of it (refit window)
+    max_tilt_deg: float = 2.0  # a refitted normal may leave its room axis by at most this
+    max_planes: int = 40  # at most this many planes (the floor always among them)
+    normal_cos: float = 0.9  # a stereo point votes on an axis its normal is within ~25° of
+    # per view (view.py)
+    width: int = 320  # pixels: working width of the superpixels and the data term
+    superpixels: int = 800  # SLIC segments per view at `width`
+    compactness: float = 10.0  # SLIC compactness (higher: rounder, less edge-hugging)
+    neighbours: int = 4  # views whose photos and readings judge a plane in a region
+    tol: float = 0.03  # relative depth within which a reading agrees with a plane
+    tex_std: float = 0.04  # grey-level spread (0-1) at which a region's ZNCC counts fully
+    w_stereo: float = 2.0  # weight of disagreement with the region's own readings
+    w_photo: float = 1.0  # weight of the warped neighbours' ZNCC (texture-weighted)
+    w_free: float = 2.0  # weight of other views seeing through the plane
+    w_valid: float = 5.0  # weight of invalid plane points (behind, below floor, off support)
+    support_margin: float = 0.5  # metres: a plane reaches this far past its inliers' box
+    none_cost: float = 0.3  # cost of `none` (keep stereo) on a region whose readings fit a plane
+    # smoothness and solver (solve.py)
+    w_crease: float = 0.05  # two planes meeting along a region boundary (a room's corner)
+    w_jump: float = 0.4  # a depth jump between neighbouring regions on a weak colour edge
+    edge_sigma: float = 0.1  # RGB distance of region means at which a jump costs 1/e as much
+    cycles: int = 3  # alpha-expansion sweeps over all labels
+    # merge (__init__.py)
+    margin: float = 0.1  # a region is filled when `none` costs this much more than its plane
+    boundary_px: int = 2  # readings disagreeing with a plane this near a region edge drop
+    check_tol: float = 0.02  # relative: a fill is kept where another view agrees within this
+    check_agree: int = 1  # ... this many other views must agree with a fill
+    check_through: int = 0  # ... and at most this many may see through it
+    check_views: int = 6  # views each fill is checked against (those overlapping it most)
+
+    def __post_init__(self) -> None:
+        pos = ("voxel", "bin", "band", "tol", "tex_std", "check_tol")
+        for k in pos:
+            if not getattr(self, k) > 0:
+                raise BlunfError(f"depth.planes.{k} must be > 0, got {getattr(self, k)}")
+        if self.width < 16 or self.superpixels < 4 or self.max_planes < 1:
+            raise BlunfError(
+                "depth.planes.width must be >= 16, superpixels >= 4 and max_planes >= 1, got "
+                f"{self.width}, {self.superpixels}, {self.max_planes}"
+            )
+        if self.neighbours < 1 or self.cycles < 1 or self.check_views < 1:
+            raise BlunfError(
+                "depth.planes.neighbours, cycles and check_views must be >= 1, got "
+                f"{self.neighbours}, {self.cycles}, {self.check_views}"
+            )

@@ -1,0 +1,203 @@
+"""Plane hypotheses of a Manhattan room from the points stereo and SfM did read.
+
+The aligned world has z up, the floor at z = 0 and walls roughly along x and y. Points
+(checked stereo readings with their normals, SfM track points without) are thinned to one
+per voxel; each of the three room axes (z, and the two wall directions, whose yaw is
+re-estimated from the points' horizontal normals) gets a histogram of the points' offsets
+along it, whose smoothed peaks are planes (Furukawa et al., "Manhattan-world stereo", 2009).
+Each peak is refitted on its inliers within ±`band` and ±`max_tilt_deg`, and spans the box
+of its inliers. The floor is always a hypothesis.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import gaussian_filter1d
+from scipy.signal import find_peaks
+
+from stages.common.camera import pixel_grid, unproject
+from stages.depth.planes.config import PlanesConfig
+
+KINDS = ("floor", "ceiling", "wall", "top", "front")
+
+
+@dataclass(frozen=True)
+class Plane:
+    """n . X = d in the world (unit n), with its kind and the box of its inliers."""
+
+    normal: np.ndarray  # [3] unit
+    offset: float  # metres
+    kind: str  # one of KINDS
+    lo: np.ndarray  # [3] inliers' box, world metres
+    hi: np.ndarray  # [3]
+    support: int  # inlier voxels
+
+    def to_json(self) -> dict:
+        return {
+            "kind": self.kind,
+            "normal": [round(float(v), 4) for v in self.normal],
+            "offset": round(float(self.offset), 4),
+            "support": int(self.support),
+            "box": [[round(float(v), 3) for v in self.lo], [round(float(v), 3) for v in self.hi]],
+        }
+
+
+def view_points(
+    depth: np.ndarray, K: np.ndarray, pose: np.ndarray, stride: int = 2
+) -> tuple[np.ndarray, np.ndarray]:
+    """World points [N, 3] of a depth map's readings on a strided grid, and their unit
+    normals [N, 3] from the neighbouring readings (0 where one is missing or jumps)."""
+    h, w = depth.shape
+    s = max(1, stride)
+    d = np.asarray(depth, np.float64)[s // 2 :: s, s // 2 :: s]
+    good = np.isfinite(d) & (d > 0)
+    uv = pixel_grid(w, h, s)[: d.shape[0], : d.shape[1]].reshape(-1, 2)
+    p = unproject(uv, np.where(good, d, 0.0).reshape(-1), K, pose).reshape(*d.shape, 3)
+    n = np.zeros_like(p)
+    if min(d.shape) >= 3:
+        dx = p[1:-1, 2:] - p[1:-1, :-2]  # [H-2, W-2, 3]
+        dy = p[2:, 1:-1] - p[:-2, 1:-1]
+        nb = good[1:-1, 2:] & good[1:-1, :-2] & good[2:, 1:-1] & good[:-2, 1:-1]
+        # a step between neighbours longer than 10 % of the depth per pixel pair: a jump
+        step = np.maximum(np.linalg.norm(dx, axis=-1), np.linalg.norm(dy, axis=-1))
+        c = np.cross(dx, dy)
+        norm = np.linalg.norm(c, axis=-1, keepdims=True)
+        ok = nb & (step < 0.1 * s * d[1:-1, 1:-1]) & (norm[..., 0] > 1e-12)
+        n[1:-1, 1:-1] = np.where(ok[..., None], c / np.maximum(norm, 1e-12), 0.0)
+    return p[good], n[good]
+
+
+def thin(points: np.ndarray, normals: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
+    """One point per voxel (the first), with its normal."""
+    if not len(points):
+        return points, normals
+    keys = np.floor(points / voxel).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    return points[first], normals[first]
+
+
+def room_yaw(normals: np.ndarray) -> float:
+    """Yaw (radians, in [-pi/4, pi/4)) of the walls' directions from horizontal normals."""
+    horiz = normals[(np.abs(normals[:, 2]) < 0.3) & (np.linalg.norm(normals, axis=1) > 0.5)]
+    if len(horiz) < 50:
+        return 0.0
+    ang = np.mod(np.arctan2(horiz[:, 1], horiz[:, 0]), np.pi / 2)  # modulo the right angle
+    hist, _ = np.histogram(ang, bins=180, range=(0, np.pi / 2))
+    hist = gaussian_filter1d(hist.astype(np.float64), 2.0, mode="wrap")
+    yaw = (np.argmax(hist) + 0.5) * (np.pi / 2) / 180
+    return float(yaw - np.pi / 2 if yaw >= np.pi / 4 else yaw)
+
+
+def find_planes(points: np.ndarray, normals: np.ndarray, cfg: PlanesConfig) -> list[Plane]:
+    """Planes along the room's three axes (see the module's docstring).
+
+    Args:
+        points: [N, 3] world points (thinned or not: they are thinned to cfg.voxel here).
+        normals: [N, 3] unit normals, or zeros where unknown (SfM tracks): those vote on
+            every axis.
+    Returns:
+        at most cfg.max_planes planes, the floor first, then by decreasing support.
+    """
+    pts, nrm = thin(np.asarray(points, np.float64), np.asarray(normals, np.float64), cfg.voxel)
+    yaw = room_yaw(nrm)
+    c, s = np.cos(yaw), np.sin(yaw)
+    axes = [np.array([0.0, 0.0, 1.0]), np.array([c, s, 0.0]), np.array([-s, c, 0.0])]
+    known = np.linalg.norm(nrm, axis=1) > 0.5
+    found: list[tuple[np.ndarray, float, int, np.ndarray, np.ndarray]] = []
+    for a in axes:
+        votes = ~known | (np.abs(nrm @ a) >= cfg.normal_cos)
+        for n, d, idx in _axis_planes(pts, votes, a, cfg):
+            inl = pts[idx]
+            found.append((n, d, len(idx), np.percentile(inl, 2, 0), np.percentile(inl, 98, 0)))
+    floor = [f for f in found if f[0][2] > 0.99 and abs(f[1]) < 0.05]
+    rest = [f for f in found if not (f[0][2] > 0.99 and abs(f[1]) < 0.05)]
+    if floor:
+        best = max(floor, key=lambda f: f[2])
+    else:  # the align stage put the floor at z = 0: keep it even where no point shows it
+        box = (pts.min(0), pts.max(0)) if len(pts) else (np.zeros(3), np.zeros(3))
+        best = (axes[0], 0.0, 0, box[0], box[1])
+    rest.sort(key=lambda f: -f[2])
+    chosen = [best, *rest[: cfg.max_planes - 1]]
+    return _kinds(chosen)
+
+
+def _axis_planes(
+    pts: np.ndarray, votes: np.ndarray, axis: np.ndarray, cfg: PlanesConfig
+) -> list[tuple[np.ndarray, float, np.ndarray]]:
+    """(normal, offset, inlier indices) of the histogram peaks along one axis."""
+    sel = np.flatnonzero(votes)
+    if len(sel) < cfg.min_support:
+        return []
+    off = pts[sel] @ axis
+    lo = np.floor(off.min() / cfg.bin) - 3
+    bins = int(np.ceil(off.max() / cfg.bin) - lo) + 4
+    hist = np.bincount((np.floor(off / cfg.bin) - lo).astype(np.int64), minlength=bins)
+    sm = gaussian_filter1d(hist.astype(np.float64), cfg.smooth)
+    # a plane's peak holds about its support spread over the band's bins
+    height = cfg.min_support / max(1.0, 2 * cfg.band / cfg.bin)
+    peaks, _ = find_peaks(sm, height=height, distance=max(1, int(round(cfg.band / cfg.bin))))
+    out = []
+    for p in peaks[np.argsort(-sm[peaks])]:
+        d0 = (lo + p + 0.5) * cfg.bin
+        fit = _refit(pts[sel], axis, d0, cfg)
+        if fit is None:
+            continue
+        n, d, idx = fit
+        if any(abs(d - d2) < cfg.band and n @ n2 > 0.999 for n2, d2, _ in out):
+            continue  # the same plane from two neighbouring peaks
+        out.append((n, d, sel[idx]))
+    return out
+
+
+def _refit(
+    pts: np.ndarray, axis: np.ndarray, d0: float, cfg: PlanesConfig
+) -> tuple[np.ndarray, float, np.ndarray] | None:
+    """Least-squares plane on the points within band of n . X = d0, its normal kept within
+    max_tilt_deg of the axis (a larger tilt falls back to the axis); None when too few."""
+    n, d = axis, d0
+    cos_max = np.cos(np.radians(cfg.max_tilt_deg))
+    for _ in range(3):
+        idx = np.flatnonzero(np.abs(pts @ n - d) <= cfg.band)
+        if len(idx) < cfg.min_support:
+            return None
+        q = pts[idx]
+        mu = q.mean(0)
+        _, _, vt = np.linalg.svd(q - mu, full_matrices=False)
+        m = vt[-1] * np.sign(vt[-1] @ axis or 1.0)
+        n = m if m @ axis >= cos_max else axis
+        d = float(np.median(q @ n))
+    idx = np.flatnonzero(np.abs(pts @ n - d) <= cfg.band)
+    if len(idx) < cfg.min_support:
+        return None
+    return n / np.linalg.norm(n), d, idx
+
+
+def _kinds(found: list) -> list[Plane]:
+    """Kinds: floor (the first), ceiling (the highest horizontal plane above 1.9 m), top
+    (other horizontal), wall (the outermost vertical plane on each side of an axis, or one
+    whose inliers rise above 1.8 m), front (other vertical)."""
+    horiz = [i for i, f in enumerate(found) if abs(f[0][2]) > 0.9]
+    high = [i for i in horiz[1:] if found[i][1] > 1.9]
+    ceiling = max(high, key=lambda i: found[i][1]) if high else -1
+    vert = [i for i, f in enumerate(found) if abs(f[0][2]) <= 0.9]
+    walls = set()
+    for i in vert:
+        ni, di = found[i][0], found[i][1]
+        par = [j for j in vert if abs(found[j][0] @ ni) > 0.99]
+        offs = [found[j][1] * np.sign(found[j][0] @ ni) for j in par]
+        if di >= max(offs) or di <= min(offs) or found[i][4][2] > 1.8:
+            walls.add(i)
+    planes = []
+    for i, (n, d, sup, lo, hi) in enumerate(found):
+        if i == 0:
+            kind = "floor"
+        elif i == ceiling:
+            kind = "ceiling"
+        elif i in horiz:
+            kind = "top"
+        else:
+            kind = "wall" if i in walls else "front"
+        planes.append(Plane(np.asarray(n, np.float64), float(d), kind, lo, hi, int(sup)))
+    return planes
