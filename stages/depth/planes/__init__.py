@@ -22,11 +22,12 @@ from stages.common.camera import depth_to_points
 from stages.common.errors import BlunfError
 from stages.common.progress import track
 from stages.common.threads import side_by_side, torch_threads
+from stages.depth.planes.appearance import plane_colours
 from stages.depth.planes.config import PlanesConfig
 from stages.depth.planes.hypotheses import KINDS, Plane, find_planes, view_points
 from stages.depth.planes.label import label_view
 from stages.depth.planes.merge import Merged, merge_view
-from stages.depth.planes.prepare import neighbours, view_data
+from stages.depth.planes.prepare import at_size, neighbours, view_data
 from stages.nerf.consistency import consistent_depth
 
 __all__ = ["PlanesConfig", "fill"]
@@ -61,22 +62,27 @@ def fill(
         src = [(d > 0).astype(np.uint8) for d in depths]
         return depths, src, {"enabled": False, "coverage_before": before}
     views = view_data(images, Ks, poses, depths, cfg)
-    pts, nrm = [], []
+    pts, nrm, col = [], [], []
     for v in views:
-        p, q = view_points(v.depth_full, v.K_full, v.pose)
-        pts.append(p)
-        nrm.append(q)
-    for s, K, pose in zip(sparse, Ks, poses, strict=True):
-        p, _ = depth_to_points(np.asarray(s, np.float64), np.asarray(K, np.float64), pose)
-        pts.append(p)
-        nrm.append(np.zeros_like(p))
-    planes = find_planes(np.concatenate(pts), np.concatenate(nrm), cfg)
+        p, q, c = view_points(v.depth_full, v.K_full, v.pose, rgb=at_size(v.rgb, v.depth_full))
+        pts += [p]
+        nrm += [q]
+        col += [c]
+    for s, K, pose, img in zip(sparse, Ks, poses, images, strict=True):
+        s = np.asarray(s, np.float64)
+        p, _ = depth_to_points(s, np.asarray(K, np.float64), pose)
+        pts += [p]
+        nrm += [np.zeros_like(p)]
+        col += [np.asarray(img, np.float64)[s > 0]]
+    allp = np.concatenate(pts)
+    planes = find_planes(allp, np.concatenate(nrm), cfg)
+    hists = plane_colours(planes, allp, np.concatenate(col), cfg.band)
     ceil = [p.offset for p in planes if p.kind == "ceiling"]
     ceiling = ceil[0] if ceil else None
     order = neighbours(views, cfg.neighbours)
 
     def one(i: int) -> tuple[Merged, float]:
-        lab = label_view(views[i], planes, [views[j] for j in order[i]], cfg, ceiling)
+        lab = label_view(views[i], planes, [views[j] for j in order[i]], cfg, ceiling, hists)
         m = merge_view(lab, views[i].depth_full, views[i].K_full, views[i].pose, planes, cfg)
         return m, lab.energy
 

@@ -31,12 +31,14 @@ class PlanesConfig:
     w_stereo: float = 2.0  # weight of disagreement with the region's own readings
     w_photo: float = 1.0  # weight of the warped neighbours' ZNCC (texture-weighted)
     w_free: float = 2.0  # weight of other views seeing through the plane
+    w_colour: float = 0.5  # weight of a region's colour unlike every colour on the plane's inliers
     w_valid: float = 5.0  # weight of invalid plane points (behind, below floor, off support)
     support_margin: float = 0.5  # metres: a plane reaches this far past its inliers' box
     none_cost: float = 0.3  # cost of `none` (keep stereo) on a region whose readings fit a plane
     # smoothness and solver (solve.py)
     w_crease: float = 0.05  # two planes meeting along a region boundary (a room's corner)
     w_jump: float = 0.4  # a depth jump between neighbouring regions on a weak colour edge
+    w_none_edge: float = 0.1  # a plane region beside a `none` one (its depth is stereo's)
     edge_sigma: float = 0.1  # RGB distance of region means at which a jump costs 1/e as much
     cycles: int = 3  # alpha-expansion sweeps over all labels
     # merge (__init__.py)

@@ -96,6 +96,7 @@ def stats(pred: np.ndarray, ref: np.ndarray) -> dict:
         "within_5cm": round(float((err <= 0.05).mean()), 4),
         "within_3cm": round(float((err <= 0.03).mean()), 4),
         "absrel": round(float((err / ref[ok]).mean()), 4),
+        "bias": round(float(np.median((pred[ok] - ref[ok]) / ref[ok])), 4),  # median signed
     }
 
 
@@ -117,6 +118,11 @@ def evaluate(run: Path, sensor: Path, cfg: PlanesConfig, every: int, erode: int)
     for o, s, K, pose, d in zip(out, src, Ks, poses, depths, strict=True):
         kd = scale_K(K, d.shape[1] / images[0].shape[1], d.shape[0] / images[0].shape[0])
         kinds.append(kinds_of(o, s, kd, pose, planes))
+    # diagnostic: each view scaled by its own median ratio (what pose and scale drift cost)
+    per_view = []
+    for d, r in zip(depths, refs, strict=True):
+        m = (d > 0) & (r > 0)
+        per_view.append(float(np.median(r[m] / d[m])) if m.sum() > 20 else scale)
     cat = lambda xs: np.concatenate([x.reshape(-1) for x in xs])  # noqa: E731
     o, s, r, k, d0 = cat(out) * scale, cat(src), cat(refs), cat(kinds), cat(depths) * scale
     res = {
@@ -130,6 +136,11 @@ def evaluate(run: Path, sensor: Path, cfg: PlanesConfig, every: int, erode: int)
         "stereo_before": stats(d0, r),
         "stereo_after": stats(np.where(s == 1, o, 0), r),
         "planes": stats(np.where(s == 2, o, 0), r),
+        "view_scales": [round(float(np.percentile(per_view, q)), 4) for q in (5, 50, 95)],
+        "stereo_view_scaled": stats(cat([x * f for x, f in zip(depths, per_view, strict=True)]), r),
+        "planes_view_scaled": stats(
+            cat([np.where(q == 2, x * f, 0) for x, q, f in zip(out, src, per_view, strict=True)]), r
+        ),
         "all": stats(o, r),
         "kinds": {
             kn: {"coverage": round(float((k == i).mean()), 4), **stats(np.where(k == i, o, 0), r)}

@@ -45,10 +45,15 @@ class Plane:
 
 
 def view_points(
-    depth: np.ndarray, K: np.ndarray, pose: np.ndarray, stride: int = 2
-) -> tuple[np.ndarray, np.ndarray]:
-    """World points [N, 3] of a depth map's readings on a strided grid, and their unit
-    normals [N, 3] from the neighbouring readings (0 where one is missing or jumps)."""
+    depth: np.ndarray,
+    K: np.ndarray,
+    pose: np.ndarray,
+    stride: int = 2,
+    rgb: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World points [N, 3] of a depth map's readings on a strided grid, their unit normals
+    [N, 3] from the neighbouring readings (0 where one is missing or jumps) and their
+    colours [N, 3] from rgb (the depth map's size; zeros without it)."""
     h, w = depth.shape
     s = max(1, stride)
     d = np.asarray(depth, np.float64)[s // 2 :: s, s // 2 :: s]
@@ -66,7 +71,12 @@ def view_points(
         norm = np.linalg.norm(c, axis=-1, keepdims=True)
         ok = nb & (step < 0.1 * s * d[1:-1, 1:-1]) & (norm[..., 0] > 1e-12)
         n[1:-1, 1:-1] = np.where(ok[..., None], c / np.maximum(norm, 1e-12), 0.0)
-    return p[good], n[good]
+    c = (
+        np.zeros_like(p)
+        if rgb is None
+        else rgb[s // 2 :: s, s // 2 :: s][: d.shape[0], : d.shape[1]]
+    )
+    return p[good], n[good], np.asarray(c, np.float64)[good]
 
 
 def thin(points: np.ndarray, normals: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:

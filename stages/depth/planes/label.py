@@ -4,7 +4,7 @@ Pair cost between neighbouring superpixels labelled a != b, times the boundary's
 the mean length: `w_crease` when a and b are planes meeting at the boundary (their depths at
 its centre within 2 tol: a room's corner or a counter's edge), otherwise a jump,
 `w_jump` x (0.2 + 0.8 g) with g = exp(-(RGB distance / edge_sigma)^2): a strong colour edge
-makes a jump cheap. `none` beside a plane counts as a jump.
+makes a jump cheap. `none` beside a plane costs the jump scaled to `w_none_edge`.
 """
 
 from __future__ import annotations
@@ -26,10 +26,11 @@ def label_view(
     nbrs: list[ViewData],
     cfg: PlanesConfig,
     ceiling: float | None,
+    hists: np.ndarray | None = None,
 ) -> Labelling:
     """Superpixels of the view, their costs and the labels alpha-expansion picks."""
     seg = superpixels(v.rgb, cfg)
-    unary, area = data_costs(v, seg, planes, nbrs, cfg, ceiling)
+    unary, area = data_costs(v, seg, planes, nbrs, cfg, ceiling, hists)
     edges, length, centre, dist = graph(seg, v.rgb)
     n_p = len(planes)
     weight = area / max(float(area.mean()), 1.0)
@@ -50,6 +51,7 @@ def label_view(
         rel = np.abs(ta - tb) / np.maximum(np.minimum(ta, tb), 1e-6)
         crease = planes_both & (rel <= 2 * cfg.tol)
         c = np.where(crease, cfg.w_crease, jump[e])
+        c = np.where((a == n_p) | (b == n_p), cfg.w_none_edge / cfg.w_jump * jump[e], c)
         return np.where(a == b, 0.0, c * ew[e])
 
     lab, en = expand(u, edges, pair, cycles=cfg.cycles)

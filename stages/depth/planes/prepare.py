@@ -70,3 +70,12 @@ def neighbours(views: list[ViewData], k: int) -> list[list[int]]:
                     pick.append(int(j))
         out.append(pick)
     return out
+
+
+def at_size(img: np.ndarray, like: np.ndarray) -> np.ndarray:
+    """img [H, W, C] sampled (nearest pixel centre) at like's h x w."""
+    H, W = img.shape[:2]
+    h, w = like.shape[:2]
+    rows = np.minimum(((np.arange(h) + 0.5) * H / h).astype(np.int64), H - 1)
+    cols = np.minimum(((np.arange(w) + 0.5) * W / w).astype(np.int64), W - 1)
+    return img[rows][:, cols]

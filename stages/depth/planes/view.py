@@ -9,6 +9,8 @@ cost sums (each a share of the superpixel, times its area over the mean area):
 - photo-consistency: 1 - ZNCC of the whole superpixel against the neighbours' images warped
   by the plane's homography (best half), times the superpixel's texture (a blank region
   casts no photometric vote);
+- colour: how far the superpixel's mean colour lies from the colours of the plane's
+  inliers (`appearance`);
 - validity: the share of its pixels where the plane is behind, grazing, below the floor,
   above the ceiling or farther than support_margin from its inliers' box.
 `none` costs none_cost, less the share of the superpixel read by stereo off every plane.
@@ -25,6 +27,7 @@ from scipy.sparse import csr_matrix
 from skimage.segmentation import slic
 
 from stages.common.camera import pixel_grid
+from stages.depth.planes.appearance import colour_cost
 from stages.depth.planes.config import PlanesConfig
 from stages.depth.planes.geometry import homographies, plane_depth, plane_valid, rays
 from stages.depth.planes.hypotheses import Plane
@@ -77,6 +80,7 @@ def data_costs(
     nbrs: list[ViewData],
     cfg: PlanesConfig,
     ceiling: float | None,
+    hists: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """[S, P + 1] costs per unit area (see the module's docstring) and [S] areas."""
     h, w = seg.shape
@@ -106,6 +110,9 @@ def data_costs(
     if n_p:
         cost[:, :n_p] += cfg.w_free * _free_space(r, c, t, ok, seg, planes, nbrs, cfg)
         cost[:, :n_p] += cfg.w_photo * _photo(v, t, ok, onehot, area, planes, nbrs, cfg)
+    if n_p and hists is not None and cfg.w_colour > 0:
+        mean_rgb = (onehot @ v.rgb.reshape(-1, 3).astype(np.float64)) / area[:, None]
+        cost[:, :n_p] += cfg.w_colour * colour_cost(hists, mean_rgb)
     return np.nan_to_num(cost, nan=1.0, posinf=10.0, neginf=0.0), area
 
 
