@@ -26,7 +26,7 @@ class PlanesConfig:
     superpixels: int = 800  # SLIC segments per view at `width`
     compactness: float = 10.0  # SLIC compactness (higher: rounder, less edge-hugging)
     neighbours: int = 4  # views whose photos and readings judge a plane in a region
-    tol: float = 0.03  # relative depth within which a reading agrees with a plane
+    tol: float = 0.05  # relative depth within which a reading agrees with a plane
     tex_std: float = 0.04  # grey-level spread (0-1) at which a region's ZNCC counts fully
     w_stereo: float = 2.0  # weight of disagreement with the region's own readings
     w_photo: float = 1.0  # weight of the warped neighbours' ZNCC (texture-weighted)
@@ -34,7 +34,7 @@ class PlanesConfig:
     w_colour: float = 0.5  # weight of a region's colour unlike every colour on the plane's inliers
     w_valid: float = 5.0  # weight of invalid plane points (behind, below floor, off support)
     support_margin: float = 0.5  # metres: a plane reaches this far past its inliers' box
-    none_cost: float = 0.3  # cost of `none` (keep stereo) on a region whose readings fit a plane
+    none_cost: float = 0.5  # cost of `none` (keep stereo) on a region whose readings fit a plane
     # smoothness and solver (solve.py)
     w_crease: float = 0.05  # two planes meeting along a region boundary (a room's corner)
     w_jump: float = 0.4  # a depth jump between neighbouring regions on a weak colour edge
@@ -44,7 +44,7 @@ class PlanesConfig:
     # merge (__init__.py)
     margin: float = 0.1  # a region is filled when `none` costs this much more than its plane
     boundary_px: int = 2  # readings disagreeing with a plane this near a region edge drop
-    check_tol: float = 0.02  # relative: a fill is kept where another view agrees within this
+    check_tol: float = 0.05  # relative: a fill is kept where another view agrees within this
     check_agree: int = 1  # ... this many other views must agree with a fill
     check_through: int = 0  # ... and at most this many may see through it
     check_views: int = 6  # views each fill is checked against (those overlapping it most)
