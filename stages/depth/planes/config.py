@@ -31,9 +31,11 @@ class PlanesConfig:
     w_stereo: float = 2.0  # weight of disagreement with the region's own readings
     w_photo: float = 1.0  # weight of the warped neighbours' ZNCC (texture-weighted)
     w_free: float = 2.0  # weight of other views seeing through the plane
-    w_colour: float = 0.5  # weight of a region's colour unlike every colour on the plane's inliers
+    w_colour: float = 1.0  # weight of a region's colour unlike every colour on the plane's inliers
     w_valid: float = 5.0  # weight of invalid plane points (behind, below floor, off support)
-    support_margin: float = 0.5  # metres: a plane reaches this far past its inliers' box
+    support_margin: float = 0.5  # metres: a floor, wall or ceiling reaches this far past its
+    #                              inliers' box
+    furniture_margin: float = 0.15  # metres: the same for a top or front (furniture planes)
     none_cost: float = 0.5  # cost of `none` (keep stereo) on a region whose readings fit a plane
     # smoothness and solver (solve.py)
     w_crease: float = 0.05  # two planes meeting along a region boundary (a room's corner)

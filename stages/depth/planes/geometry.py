@@ -54,11 +54,14 @@ def plane_valid(
     ceiling: float | None,
 ) -> np.ndarray:
     """[P, N] True where plane p's point along ray n is a possible surface: in front of the
-    camera, not below the floor nor above the ceiling, within `margin` of its inliers' box."""
+    camera, not below the floor nor above the ceiling, within `margin` of its inliers' box
+    (margin: one for all, or (floor, wall and ceiling; top and front))."""
     ok = t > 0
+    m2 = margin if isinstance(margin, tuple) else (margin, margin)
     for k, p in enumerate(planes):
         x = centre + t[k][:, None] * r  # [N, 3]
-        inside = np.all((x >= p.lo - margin) & (x <= p.hi + margin), axis=1)
+        m = m2[1] if p.kind in ("top", "front") else m2[0]
+        inside = np.all((x >= p.lo - m) & (x <= p.hi + m), axis=1)
         z_ok = x[:, 2] >= -FLOOR_TOL
         if ceiling is not None:
             z_ok &= x[:, 2] <= ceiling + FLOOR_TOL

@@ -92,7 +92,8 @@ def data_costs(
     r = rays(uv, v.K, v.pose)
     c = v.pose[:3, 3]
     t = plane_depth(r, c, planes)  # [P, N]
-    ok = plane_valid(t, r, c, planes, cfg.support_margin, ceiling)
+    margins = (cfg.support_margin, cfg.furniture_margin)
+    ok = plane_valid(t, r, c, planes, margins, ceiling)
     n_p = len(planes)
     cost = np.zeros((s_n, n_p + 1))
     # validity
