@@ -155,9 +155,12 @@ def _facts(
     filled = sum(int((m.fill > 0).sum()) for m in merged)
     kept = sum(int((c > 0).sum()) for c in checked)
     by_kind = {k: 0 for k in KINDS}
-    for m, c in zip(merged, checked, strict=True):
+    region = {k: np.zeros(3, np.int64) for k in KINDS}  # pixels, with depth before, after
+    for m, c, d, o in zip(merged, checked, depths, out, strict=True):
         for k, p in enumerate(planes):
             by_kind[p.kind] += int(((m.plane == k) & (c > 0)).sum())
+            r = m.region == k
+            region[p.kind] += [int(r.sum()), int((r & (d > 0)).sum()), int((r & (o > 0)).sum())]
     readings = max(1, sum(int((d > 0).sum()) for d in depths))
     return {
         "enabled": True,
@@ -165,6 +168,14 @@ def _facts(
         "coverage_after": round(_coverage(out), 4),
         "coverage_planes": round(sum(int((s == 2).sum()) for s in src) / total, 4),
         "coverage_by_kind": {k: round(v / total, 4) for k, v in by_kind.items()},
+        "regions_by_kind": {  # share of the pixels in regions of each kind, and their coverage
+            k: {
+                "pixels": round(int(v[0]) / total, 4),
+                "before": round(int(v[1]) / max(1, int(v[0])), 4),
+                "after": round(int(v[2]) / max(1, int(v[0])), 4),
+            }
+            for k, v in region.items()
+        },
         "fills_dropped_by_check": round(1 - kept / filled, 4) if filled else 0.0,
         "stereo_dropped": round(sum(m.dropped for m in merged) / readings, 4),
         "planes": [p.to_json() for p in planes],

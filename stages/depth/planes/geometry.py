@@ -8,7 +8,7 @@ from stages.depth.planes.hypotheses import Plane
 
 MIN_DEPTH = 0.05  # metres: a plane closer than this along a ray is not a surface seen
 MIN_COS = 0.08  # |cos| between ray and plane normal below this: grazing, depth unstable
-FLOOR_TOL = 0.05  # metres a plane point may lie below the floor (z = 0)
+FLOOR_TOL = 0.05  # metres a plane point may lie below the floor plane
 
 
 def scale_K(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
@@ -58,13 +58,16 @@ def plane_valid(
     (margin: one for all, or (floor, wall and ceiling; top and front))."""
     ok = t > 0
     m2 = margin if isinstance(margin, tuple) else (margin, margin)
+    floor = next((p for p in planes if p.kind == "floor"), None)
+    up, base = (floor.normal, floor.offset) if floor else (np.array([0.0, 0.0, 1.0]), 0.0)
     for k, p in enumerate(planes):
         x = centre + t[k][:, None] * r  # [N, 3]
         m = m2[1] if p.kind in ("top", "front") else m2[0]
         inside = np.all((x >= p.lo - m) & (x <= p.hi + m), axis=1)
-        z_ok = x[:, 2] >= -FLOOR_TOL
+        height = x @ up - base  # above the floor plane
+        z_ok = height >= -FLOOR_TOL
         if ceiling is not None:
-            z_ok &= x[:, 2] <= ceiling + FLOOR_TOL
+            z_ok &= height <= ceiling - base + FLOOR_TOL
         ok[k] &= inside & z_ok
     return ok
 

@@ -2,11 +2,12 @@
 
 The aligned world has z up, the floor at z = 0 and walls roughly along x and y. Points
 (checked stereo readings with their normals, SfM track points without) are thinned to one
-per voxel; each of the three room axes (z, and the two wall directions, whose yaw is
-re-estimated from the points' horizontal normals) gets a histogram of the points' offsets
-along it, whose smoothed peaks are planes (Furukawa et al., "Manhattan-world stereo", 2009).
-Each peak is refitted on its inliers within ±`band` and ±`max_tilt_deg`, and spans the box
-of its inliers. The floor is always a hypothesis.
+per voxel; each of the three room axes (up, and the two wall directions, both
+re-estimated from the points' normals: the align stage's may be a few degrees off) gets a
+histogram of the points' offsets along it, whose smoothed peaks are planes (Furukawa et
+al., "Manhattan-world stereo", 2009). Each peak is refitted on its inliers within ±`band`
+and ±`max_tilt_deg`, and spans the box of its inliers. The floor (the lowest horizontal
+plane within FLOOR_SEARCH of z = 0, else z = 0 itself) is always a hypothesis.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from stages.common.camera import pixel_grid, unproject
 from stages.depth.planes.config import PlanesConfig
 
 KINDS = ("floor", "ceiling", "wall", "top", "front")
+FLOOR_SEARCH = 0.3  # metres: the floor is sought this far either side of z = 0
 
 
 @dataclass(frozen=True)
@@ -88,16 +90,30 @@ def thin(points: np.ndarray, normals: np.ndarray, voxel: float) -> tuple[np.ndar
     return points[first], normals[first]
 
 
-def room_yaw(normals: np.ndarray) -> float:
-    """Yaw (radians, in [-pi/4, pi/4)) of the walls' directions from horizontal normals."""
-    horiz = normals[(np.abs(normals[:, 2]) < 0.3) & (np.linalg.norm(normals, axis=1) > 0.5)]
-    if len(horiz) < 50:
-        return 0.0
-    ang = np.mod(np.arctan2(horiz[:, 1], horiz[:, 0]), np.pi / 2)  # modulo the right angle
-    hist, _ = np.histogram(ang, bins=180, range=(0, np.pi / 2))
-    hist = gaussian_filter1d(hist.astype(np.float64), 2.0, mode="wrap")
-    yaw = (np.argmax(hist) + 0.5) * (np.pi / 2) / 180
-    return float(yaw - np.pi / 2 if yaw >= np.pi / 4 else yaw)
+def room_axes(normals: np.ndarray) -> list[np.ndarray]:
+    """The room's three axes [up, wall 1, wall 2] from the points' normals: up is the mean
+    of the normals within 25° then 10° of z (flipped upward; z where fewer than 50), the wall
+    directions the peak of the horizontal normals' angle modulo 90° about it."""
+    unit = normals[np.linalg.norm(normals, axis=1) > 0.5]
+    up = np.array([0.0, 0.0, 1.0])
+    for cos in (np.cos(np.radians(25)), np.cos(np.radians(10))):
+        near = unit[np.abs(unit @ up) >= cos]
+        if len(near) < 50:
+            break
+        m = (near * np.sign(near @ up)[:, None]).mean(0)
+        up = m / max(float(np.linalg.norm(m)), 1e-12)
+    e1 = np.array([1.0, 0.0, 0.0]) - up[0] * up
+    e1 /= max(float(np.linalg.norm(e1)), 1e-12)
+    e2 = np.cross(up, e1)
+    horiz = unit[np.abs(unit @ up) < 0.3]
+    yaw = 0.0
+    if len(horiz) >= 50:
+        ang = np.mod(np.arctan2(horiz @ e2, horiz @ e1), np.pi / 2)  # modulo the right angle
+        hist, _ = np.histogram(ang, bins=180, range=(0, np.pi / 2))
+        hist = gaussian_filter1d(hist.astype(np.float64), 2.0, mode="wrap")
+        yaw = (np.argmax(hist) + 0.5) * (np.pi / 2) / 180
+    c, s = np.cos(yaw), np.sin(yaw)
+    return [up, c * e1 + s * e2, -s * e1 + c * e2]
 
 
 def find_planes(points: np.ndarray, normals: np.ndarray, cfg: PlanesConfig) -> list[Plane]:
@@ -111,9 +127,7 @@ def find_planes(points: np.ndarray, normals: np.ndarray, cfg: PlanesConfig) -> l
         at most cfg.max_planes planes, the floor first, then by decreasing support.
     """
     pts, nrm = thin(np.asarray(points, np.float64), np.asarray(normals, np.float64), cfg.voxel)
-    yaw = room_yaw(nrm)
-    c, s = np.cos(yaw), np.sin(yaw)
-    axes = [np.array([0.0, 0.0, 1.0]), np.array([c, s, 0.0]), np.array([-s, c, 0.0])]
+    axes = room_axes(nrm)
     known = np.linalg.norm(nrm, axis=1) > 0.5
     found: list[tuple[np.ndarray, float, int, np.ndarray, np.ndarray]] = []
     for a in axes:
@@ -121,13 +135,23 @@ def find_planes(points: np.ndarray, normals: np.ndarray, cfg: PlanesConfig) -> l
         for n, d, idx in _axis_planes(pts, votes, a, cfg):
             inl = pts[idx]
             found.append((n, d, len(idx), np.percentile(inl, 2, 0), np.percentile(inl, 98, 0)))
-    floor = [f for f in found if f[0][2] > 0.99 and abs(f[1]) < 0.05]
-    rest = [f for f in found if not (f[0][2] > 0.99 and abs(f[1]) < 0.05)]
-    if floor:
-        best = max(floor, key=lambda f: f[2])
-    else:  # the align stage put the floor at z = 0: keep it even where no point shows it
-        box = (pts.min(0), pts.max(0)) if len(pts) else (np.zeros(3), np.zeros(3))
+    # the floor: the lowest horizontal plane within FLOOR_SEARCH of z = 0 (the align stage's
+    # floor can sit a few cm off where stereo read little of a plain floor)
+    floor = [f for f in found if f[0][2] > 0.97 and abs(f[1]) <= FLOOR_SEARCH]
+    best = min(floor, key=lambda f: f[1]) if floor else None
+    rest = [f for f in found if f is not best]
+    # the floor spans the room (every point's box across), even where no point shows it
+    box = (
+        (np.percentile(pts, 2, 0), np.percentile(pts, 98, 0))
+        if len(pts)
+        else (np.zeros(3), np.zeros(3))
+    )
+    if best is None:  # the align stage put the floor at z = 0
         best = (axes[0], 0.0, 0, box[0], box[1])
+    else:
+        lo, hi = np.minimum(best[3], box[0]), np.maximum(best[4], box[1])
+        lo[2], hi[2] = best[3][2], best[4][2]
+        best = (best[0], best[1], best[2], lo, hi)
     rest.sort(key=lambda f: -f[2])
     chosen = [best, *rest[: cfg.max_planes - 1]]
     return _kinds(chosen)

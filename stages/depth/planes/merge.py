@@ -22,6 +22,7 @@ class Merged:
     fill: np.ndarray  # [h, w] plane depth filled (0 = none), before the multi-view check
     plane: np.ndarray  # [h, w] int16 index of the filling plane (-1 = none)
     dropped: int  # readings dropped as disagreeing with a plane at a region's edge
+    region: np.ndarray  # [h, w] int16 plane of the pixel's region (-1 = none)
 
 
 def merge_view(
@@ -61,4 +62,5 @@ def merge_view(
     fill_px = (kept == 0) & is_plane & fillable[seg]
     fill = np.where(fill_px, t, 0.0).astype(np.float32)
     plane = np.where(fill_px, lab_px, -1).astype(np.int16)
-    return Merged(kept, fill, plane, int(drop.sum()))
+    region = np.where(lab_px < n_p, lab_px, -1).astype(np.int16)
+    return Merged(kept, fill, plane, int(drop.sum()), region)
