@@ -45,6 +45,7 @@ class PlanesConfig:
     cycles: int = 3  # alpha-expansion sweeps over all labels
     # merge (__init__.py)
     margin: float = 0.1  # a region is filled when `none` costs this much more than its plane
+    furniture_extra: float = 0.0  # ... plus this for a top or front plane
     boundary_px: int = 2  # readings disagreeing with a plane this near a region edge drop
     check_tol: float = 0.05  # relative: a fill is kept where another view agrees within this
     check_agree: int = 1  # ... this many other views must agree with a fill

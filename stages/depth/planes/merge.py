@@ -42,7 +42,9 @@ def merge_view(
     n_p = len(planes)
     per_sp = lab.labels
     margin = lab.unary[:, n_p] - lab.unary[np.arange(len(per_sp)), np.minimum(per_sp, n_p)]
-    fillable = (per_sp < n_p) & (margin >= cfg.margin)
+    extra = np.array([cfg.furniture_extra if p.kind in ("top", "front") else 0.0 for p in planes])
+    need = cfg.margin + np.append(extra, 0.0)[np.minimum(per_sp, n_p)]
+    fillable = (per_sp < n_p) & (margin >= need)
     lab_px = per_sp[seg]  # [h, w]
     t = np.zeros(h * w)
     flat = lab_px.reshape(-1)
