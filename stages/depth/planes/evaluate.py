@@ -163,7 +163,11 @@ def main(argv: list[str] | None = None) -> int:
     over = {}
     for kv in a.set:
         key, val = kv.split("=", 1)
-        over[key] = type(getattr(PlanesConfig(), key))(val)
+        if not hasattr(PlanesConfig(), key):
+            print(f"error: --set {key}: no such setting of PlanesConfig", file=sys.stderr)
+            return 1
+        kind = type(getattr(PlanesConfig(), key))
+        over[key] = val.lower() in ("1", "true", "yes") if kind is bool else kind(val)
     try:
         res = evaluate(a.run, a.sensor, PlanesConfig(**over), a.every, a.erode)
     except BlunfError as e:
