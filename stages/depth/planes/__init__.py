@@ -61,7 +61,7 @@ def fill(
     if not cfg.enabled or n == 0:
         src = [(d > 0).astype(np.uint8) for d in depths]
         return depths, src, {"enabled": False, "coverage_before": before}
-    views = view_data(images, Ks, poses, depths, cfg)
+    views = view_data(images, Ks, poses, depths, cfg, sparse)
     pts, nrm, col = [], [], []
     for v in views:
         p, q, c = view_points(v.depth_full, v.K_full, v.pose, rgb=at_size(v.rgb, v.depth_full))

@@ -153,8 +153,26 @@ def find_planes(points: np.ndarray, normals: np.ndarray, cfg: PlanesConfig) -> l
         lo[2], hi[2] = best[3][2], best[4][2]
         best = (best[0], best[1], best[2], lo, hi)
     rest.sort(key=lambda f: -f[2])
-    chosen = [best, *rest[: cfg.max_planes - 1]]
+    bounds = _bounding_walls(pts, axes, rest, box, cfg) if cfg.bounding_walls else []
+    chosen = [best, *bounds, *rest[: cfg.max_planes - 1 - len(bounds)]]
     return _kinds(chosen)
+
+
+def _bounding_walls(pts: np.ndarray, axes: list, found: list, box: tuple, cfg: PlanesConfig):
+    """Walls no peak shows (plain paint: stereo reads nothing there): on each side of each
+    wall axis, a plane at the outermost points' offset (their 0.2th / 99.8th percentile),
+    spanning the room, unless a found vertical plane lies within 0.1 m of it."""
+    out = []
+    if len(pts) < cfg.min_support:
+        return out
+    for a in axes[1:]:
+        off = pts @ a
+        for q, sign in ((0.2, -1.0), (99.8, 1.0)):
+            d = float(np.percentile(off, q))
+            if any(abs(f[0] @ a) > 0.99 and abs(f[1] * (f[0] @ a) - d) < 0.1 for f in found):
+                continue
+            out.append((a * sign, d * sign, 0, box[0].copy(), box[1].copy()))
+    return out
 
 
 def _axis_planes(

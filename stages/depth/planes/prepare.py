@@ -21,8 +21,11 @@ def view_data(
     poses: list[np.ndarray],
     depths: list[np.ndarray],
     cfg: PlanesConfig,
+    sparse: list[np.ndarray] | None = None,
 ) -> list[ViewData]:
-    """Every view's photo (area-averaged) and readings (nearest) at the working width."""
+    """Every view's photo (area-averaged) and readings (nearest) at the working width; with
+    sparse, the SfM tracks fill in where stereo has no reading (a track on a plain wall
+    tells a plane in front of it from the wall itself)."""
     out = []
     for i, (img, K, pose, d) in enumerate(zip(images, Ks, poses, depths, strict=True)):
         img = np.asarray(img, np.float32)
@@ -38,13 +41,21 @@ def view_data(
         rows = np.minimum(((np.arange(hw) + 0.5) * h / hw).astype(np.int64), h - 1)
         cols = np.minimum(((np.arange(ww) + 0.5) * w / ww).astype(np.int64), w - 1)
         p = np.asarray(pose, np.float64)
+        dw = d[rows][:, cols]
+        if sparse is not None and cfg.tracks:
+            sv, su = np.nonzero(sparse[i] > 0)
+            tv = np.minimum((sv * hw / H).astype(np.int64), hw - 1)
+            tu = np.minimum((su * ww / W).astype(np.int64), ww - 1)
+            free = dw[tv, tu] == 0
+            dw = dw.copy()
+            dw[tv[free], tu[free]] = sparse[i][sv[free], su[free]]
         out.append(
             ViewData(
                 rgb=rgb,
                 gray=rgb @ GRAY,
                 K=scale_K(K, ww / W, hw / H),
                 pose=p,
-                depth=d[rows][:, cols],
+                depth=dw,
                 depth_full=d,
                 K_full=scale_K(K, w / W, h / H),
             )
