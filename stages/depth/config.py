@@ -17,6 +17,7 @@ from typing import ClassVar, Literal
 
 from stages.common.errors import BlunfError
 from stages.common.radiance.config import SamplingConfig, TrainingConfig
+from stages.depth.planes.config import PlanesConfig
 
 # depth sources, one uint8 per pixel of sources/<stem>.png
 NONE, STEREO, PLANES, FIELD = 0, 1, 2, 3
@@ -138,6 +139,7 @@ class DepthConfig:
     impl: str = "stereo"  # "stereo": sweep, then fill; "field": the field fill alone (no
     #                       stereo, or no SfM tracks to bound the sweep: poses given)
     stereo: StereoConfig = dataclasses.field(default_factory=StereoConfig)
+    planes: PlanesConfig = dataclasses.field(default_factory=PlanesConfig)
     field: FieldFillConfig = dataclasses.field(default_factory=FieldFillConfig)
     check: DepthCheckConfig = dataclasses.field(default_factory=DepthCheckConfig)
     threads: int = 0  # torch threads (0 = leave torch's setting)

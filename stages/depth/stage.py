@@ -37,6 +37,7 @@ from stages.depth.config import (
     DepthOutputs,
     FieldFillConfig,
 )
+from stages.depth import planes
 from stages.depth.field import fill as field_fill
 from stages.depth.render import upsample_depth
 from stages.depth.sweep import sweep_depths
@@ -85,19 +86,13 @@ def _run(cfg: DepthConfig, inputs: DepthInputs, out: Path, sweep: bool) -> Depth
                 facts["sweep_seconds"],
             )
 
-            # ---- planes: the plane fill runs HERE, between the sweep and the field fill ----
-            # At hand: images (full size, float32 0..1), Ks (full size), poses (camera-to-
-            # world, the aligned world), sparse (the SfM track depth maps, full size), depths
-            # (the sweep's checked depths at its resolution, 1/facts["scale"]). It returns
-            # depths and sources (uint8, STEREO / PLANES / NONE of stages.depth.config, the
-            # same shapes) and its facts ("planes" is the sweep's plane count: "plane_fill"):
-            #   depths, sources, facts["plane_fill"] = planes.fill(
-            #       images, Ks, poses, sparse, depths, cfg.planes, cfg.threads
-            #   )
-            # and ran=True below. What comes out of this place is what the field fill (its
-            # training depth and the readings it keeps) and fusion get.
+            # planes: where stereo read nothing, the room's own planes (planes/); its facts
+            # go under "plane_fill" ("planes" is the sweep's plane count)
             c0 = time.process_time()
-            parts["planes"] = _part(sources, time.process_time() - c0, ran=False)
+            depths, sources, facts["plane_fill"] = planes.fill(
+                images, Ks, poses, sparse, depths, cfg.planes, max(1, cfg.threads)
+            )
+            parts["planes"] = _part(sources, time.process_time() - c0, ran=cfg.planes.enabled)
 
         fill = _fill_needed(cfg.field, parts, sweep)
         facts["field_fill"] = fill

@@ -1,0 +1,182 @@
+"""Plane fill: depth where stereo reads nothing, from the room's own planes.
+
+A simplified Manhattan-world stereo (Furukawa et al. 2009) with a "none" label that keeps
+stereo on clutter (Gallup et al. 2010): plane hypotheses from the readings stereo and SfM
+did make (`hypotheses`), per view SLIC superpixels labelled with a plane or `none` by
+alpha-expansion on photo-consistency, agreement with stereo, free space and smoothness
+(`view`, `label`, `solve`), then per pixel: readings that agree with their region's plane
+or lie in a `none` region stay; readings disagreeing with a well-supported plane within
+`boundary_px` of a region's edge drop (stereo fattens objects); plane depth fills the rest
+of a region whose plane beats `none` by `margin`; the fills pass the multi-view consistency
+check against the other views' merged maps (a wrong single-view choice drops).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from stages.common.camera import depth_to_points
+from stages.common.errors import BlunfError
+from stages.common.progress import track
+from stages.common.threads import side_by_side, torch_threads
+from stages.depth.planes.appearance import plane_colours
+from stages.depth.planes.config import PlanesConfig
+from stages.depth.planes.hypotheses import KINDS, Plane, find_planes, view_points
+from stages.depth.planes.label import label_view
+from stages.depth.planes.merge import Merged, merge_view
+from stages.depth.planes.prepare import at_size, neighbours, view_data
+from stages.depth.consistency import consistent_depth
+
+__all__ = ["PlanesConfig", "fill"]
+log = logging.getLogger(__name__)
+
+
+def fill(
+    images: list[np.ndarray],
+    Ks: list[np.ndarray],
+    poses: list[np.ndarray],
+    sparse: list[np.ndarray],
+    depths: list[np.ndarray],
+    cfg: PlanesConfig,
+    threads: int = 1,
+) -> tuple[list[np.ndarray], list[np.ndarray], dict]:
+    """images: list of HxWx3 float32 in 0..1 (full size); Ks: 3x3 intrinsics at full size;
+    poses: 4x4 camera-to-world, OpenCV axes, in the aligned world (metres, z up, floor z=0,
+    walls along x and y as far as the align stage made them); sparse: full-size HxW float32
+    SfM track z-depth (0 = none); depths: the sweep's checked z-depth maps (h x w, possibly
+    smaller than the images: scale K by w/W), 0 = none.
+    Returns (depths, sources, facts): the depth maps at the same h x w with plane depth filled
+    where a plane wins and wrong stereo dropped, sources uint8 h x w (0 none, 1 stereo, 2 planes),
+    and facts for report.json (CPU-s, coverage before/after by plane kind, share of fills the
+    multi-view check dropped, the planes found with kind/normal/offset/support)."""
+    n = len(images)
+    if not n == len(Ks) == len(poses) == len(sparse) == len(depths):
+        raise BlunfError("depth.planes: images, intrinsics, poses, sparse and depth maps differ")
+    cpu0, t0 = time.process_time(), time.perf_counter()
+    depths = [np.where(np.isfinite(d) & (d > 0), d, 0).astype(np.float32) for d in depths]
+    before = _coverage(depths)
+    if not cfg.enabled or n == 0:
+        src = [(d > 0).astype(np.uint8) for d in depths]
+        return depths, src, {"enabled": False, "coverage_before": before}
+    views = view_data(images, Ks, poses, depths, cfg, sparse)
+    pts, nrm, col = [], [], []
+    for v in views:
+        p, q, c = view_points(v.depth_full, v.K_full, v.pose, rgb=at_size(v.rgb, v.depth_full))
+        pts += [p]
+        nrm += [q]
+        col += [c]
+    for s, K, pose, img in zip(sparse, Ks, poses, images, strict=True):
+        s = np.asarray(s, np.float64)
+        p, _ = depth_to_points(s, np.asarray(K, np.float64), pose)
+        pts += [p]
+        nrm += [np.zeros_like(p)]
+        col += [np.asarray(img, np.float64)[s > 0]]
+    allp = np.concatenate(pts)
+    planes = find_planes(allp, np.concatenate(nrm), cfg)
+    hists = plane_colours(planes, allp, np.concatenate(col), cfg.band)
+    ceil = [p.offset for p in planes if p.kind == "ceiling"]
+    ceiling = ceil[0] if ceil else None
+    order = neighbours(views, cfg.neighbours)
+
+    def one(i: int) -> tuple[Merged, float]:
+        lab = label_view(views[i], planes, [views[j] for j in order[i]], cfg, ceiling, hists)
+        m = merge_view(lab, views[i].depth_full, views[i].K_full, views[i].pose, planes, cfg)
+        return m, lab.energy
+
+    with torch_threads(threads):
+        merged = [m for m, _ in track(side_by_side(one, range(n)), "plane fill", n, "view")]
+    out, src, checked_fill = _check(merged, views, cfg)
+    facts = _facts(depths, out, src, merged, checked_fill, planes, before)
+    facts["cpu_seconds"] = round(time.process_time() - cpu0, 2)
+    facts["seconds"] = round(time.perf_counter() - t0, 2)
+    log.info(
+        "depth/planes: %d planes, coverage %.1f %% -> %.1f %% (%.1f %% of fills dropped by the "
+        "multi-view check) in %.0f CPU-s",
+        len(planes),
+        100 * before,
+        100 * facts["coverage_after"],
+        100 * facts["fills_dropped_by_check"],
+        facts["cpu_seconds"],
+    )
+    return out, src, facts
+
+
+def _check(
+    merged: list[Merged], views: list, cfg: PlanesConfig
+) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
+    """Each view's fills kept where other views' merged maps agree (multi-view check)."""
+    full = [np.where(m.kept > 0, m.kept, m.fill) for m in merged]
+    Ks = [v.K_full for v in views]
+    poses = [v.pose for v in views]
+    out, src, checked = [], [], []
+    for i, m in enumerate(merged):
+        others = [j for j in range(len(merged)) if j != i]
+        f = m.fill
+        if others and (f > 0).any():
+            refs = ([full[j] for j in others], [Ks[j] for j in others], [poses[j] for j in others])
+            (f,), _ = consistent_depth(
+                [m.fill],
+                [Ks[i]],
+                [poses[i]],
+                cfg.check_tol,
+                cfg.check_agree,
+                cfg.check_through,
+                cfg.check_views,
+                refs=refs,
+            )
+        elif not others:
+            f = np.zeros_like(m.fill)
+        d = np.where(m.kept > 0, m.kept, f).astype(np.float32)
+        s = np.where(m.kept > 0, 1, np.where(f > 0, 2, 0)).astype(np.uint8)
+        out.append(d)
+        src.append(s)
+        checked.append(f)
+    return out, src, checked
+
+
+def _coverage(maps: list[np.ndarray]) -> float:
+    total = sum(m.size for m in maps)
+    return float(sum(int((m > 0).sum()) for m in maps) / max(1, total))
+
+
+def _facts(
+    depths: list[np.ndarray],
+    out: list[np.ndarray],
+    src: list[np.ndarray],
+    merged: list[Merged],
+    checked: list[np.ndarray],
+    planes: list[Plane],
+    before: float,
+) -> dict:
+    total = max(1, sum(d.size for d in depths))
+    filled = sum(int((m.fill > 0).sum()) for m in merged)
+    kept = sum(int((c > 0).sum()) for c in checked)
+    by_kind = {k: 0 for k in KINDS}
+    region = {k: np.zeros(3, np.int64) for k in KINDS}  # pixels, with depth before, after
+    for m, c, d, o in zip(merged, checked, depths, out, strict=True):
+        for k, p in enumerate(planes):
+            by_kind[p.kind] += int(((m.plane == k) & (c > 0)).sum())
+            r = m.region == k
+            region[p.kind] += [int(r.sum()), int((r & (d > 0)).sum()), int((r & (o > 0)).sum())]
+    readings = max(1, sum(int((d > 0).sum()) for d in depths))
+    return {
+        "enabled": True,
+        "coverage_before": round(before, 4),
+        "coverage_after": round(_coverage(out), 4),
+        "coverage_planes": round(sum(int((s == 2).sum()) for s in src) / total, 4),
+        "coverage_by_kind": {k: round(v / total, 4) for k, v in by_kind.items()},
+        "regions_by_kind": {  # share of the pixels in regions of each kind, and their coverage
+            k: {
+                "pixels": round(int(v[0]) / total, 4),
+                "before": round(int(v[1]) / max(1, int(v[0])), 4),
+                "after": round(int(v[2]) / max(1, int(v[0])), 4),
+            }
+            for k, v in region.items()
+        },
+        "fills_dropped_by_check": round(1 - kept / filled, 4) if filled else 0.0,
+        "stereo_dropped": round(sum(m.dropped for m in merged) / readings, 4),
+        "planes": [p.to_json() for p in planes],
+    }

@@ -1,0 +1,94 @@
+"""The plane fill's settings (one frozen dataclass, every knob with its effect).
+
+Figures in the comments: `python -m stages.depth.planes.evaluate RUN --sensor CAPTURE
+--every K` on the photos-only runs of the 7-Scenes kitchen (every 5th of 100 views) and the
+Replica office (every 4th of 81), each setting changed alone from the others' values then:
+plane-filled pixels within 5 cm of the sensor and the coverage after the fill.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from stages.common.errors import BlunfError
+
+
+@dataclass(frozen=True)
+class PlanesConfig:
+    """Plane fill: depth from the room's own planes where stereo reads nothing."""
+
+    enabled: bool = False  # fill stereo's holes with plane depth (false: the maps pass through).
+    #                       Off by default: see docs/depth.md for what it measured
+    # hypotheses (hypotheses.py)
+    voxel: float = 0.02  # metres: points are thinned to one per voxel before voting
+    bin: float = 0.01  # metres: offset histogram bin along each room axis
+    smooth: float = 1.5  # bins: Gaussian smoothing of the offset histograms
+    min_support: int = 120  # voxels within `band` of a plane for it to be kept (~0.05 m²)
+    band: float = 0.02  # metres: inliers of a plane lie within this of it (refit window)
+    max_tilt_deg: float = 2.0  # a refitted normal may leave its room axis by at most this
+    max_planes: int = 40  # at most this many planes (the floor always among them)
+    bounding_walls: bool = False  # add a wall at the outermost points on each side of each
+    #                 wall axis where no peak shows one (plain walls); on, all views: honest
+    #                 procedural room 42.5 % of fills within 5 cm (41.9 off), AbsRel 0.059
+    #                 (0.072); office 58.3 % (69.1 off): its outermost points lie beyond walls
+    tracks: bool = False  # SfM track depths count as readings in the data term where stereo
+    #                      has none (the merge keeps stereo's only); on: honest room the same
+    normal_cos: float = 0.9  # a stereo point votes on an axis its normal is within ~25° of
+    # per view (view.py)
+    width: int = 320  # pixels: working width of the superpixels and the data term
+    superpixels: int = 800  # SLIC segments per view at `width`
+    compactness: float = 10.0  # SLIC compactness (higher: rounder, less edge-hugging)
+    neighbours: int = 4  # views whose photos and readings judge a plane in a region
+    tol: float = 0.05  # relative depth within which a reading agrees with a plane; 0.03:
+    #                    kitchen 19 % within 5 cm (42.6 % at 0.05), coverage 42 % (44 %)
+    tex_std: float = 0.04  # grey-level spread (0-1) at which a region's ZNCC counts fully
+    w_stereo: float = 2.0  # weight of disagreement with the region's own readings
+    w_photo: float = 1.0  # weight of the warped neighbours' ZNCC (texture-weighted)
+    w_free: float = 2.0  # weight of other views seeing through the plane
+    w_colour: float = 1.0  # weight of a region's colour unlike every colour on the plane's
+    #                       inliers; 0.5: kitchen 43.1 %, office 71.2 % (1.0: 43.8, 72.6)
+    w_valid: float = 5.0  # weight of invalid plane points (behind, below floor, off support)
+    support_margin: float = 0.5  # metres: a floor, wall or ceiling reaches this far past its
+    #                              inliers' box
+    furniture_margin: float = 0.15  # metres: the same for a top or front; 0.5: kitchen 41.7 %,
+    #                                office 70.5 % (0.15: 43.1, 71.2), coverage the same
+    none_cost: float = 0.5  # cost of `none` (keep stereo) on a region whose readings fit a
+    #                         plane; 0.3: kitchen coverage 45.8 % (0.5: 52.7), within 5 cm the
+    #                         same (41.9 / 41.7 %)
+    # smoothness and solver (label.py, solve.py)
+    w_crease: float = 0.05  # two planes meeting along a region boundary (a room's corner)
+    w_jump: float = 0.4  # a depth jump between neighbouring regions on a weak colour edge;
+    #                      0.15: kitchen the same (coverage 46.0 %, 45.5 % within 5 cm)
+    w_none_edge: float = 0.1  # a plane region beside a `none` one (its depth is stereo's);
+    #                 as a jump (0.4), at tol 0.03: kitchen coverage 40.0 % (42.3), 14 % within
+    #                 5 cm (19)
+    edge_sigma: float = 0.1  # RGB distance of region means at which a jump costs 1/e as much
+    cycles: int = 3  # alpha-expansion sweeps over all labels
+    # merge (merge.py, __init__.py)
+    margin: float = 0.1  # a region is filled when `none` costs this much more than its plane;
+    #                      0.2: kitchen coverage 50.2 % (52.7), within 5 cm 41.7 % the same
+    furniture_extra: float = 0.0  # ... plus this for a top or front plane; 0.3: office 64.2 %
+    #                    within 5 cm (61.0) but coverage 71.5 % (79.2), kitchen 36.6 % (41.8)
+    boundary_px: int = 2  # readings disagreeing with a plane this near a region edge drop
+    check_tol: float = 0.05  # relative: a fill is kept where another view agrees within this;
+    #                         0.02: kitchen coverage 44.1 % (45.8), within 5 cm 42.6 % (41.9)
+    check_agree: int = 1  # ... this many other views must agree with a fill
+    check_through: int = 0  # ... and at most this many may see through it; 1: kitchen
+    #                        coverage 47.7 % (45.8), within 5 cm 37.8 % (41.9)
+    check_views: int = 6  # views each fill is checked against (those overlapping it most)
+
+    def __post_init__(self) -> None:
+        pos = ("voxel", "bin", "band", "tol", "tex_std", "check_tol")
+        for k in pos:
+            if not getattr(self, k) > 0:
+                raise BlunfError(f"depth.planes.{k} must be > 0, got {getattr(self, k)}")
+        if self.width < 16 or self.superpixels < 4 or self.max_planes < 1:
+            raise BlunfError(
+                "depth.planes.width must be >= 16, superpixels >= 4 and max_planes >= 1, got "
+                f"{self.width}, {self.superpixels}, {self.max_planes}"
+            )
+        if self.neighbours < 1 or self.cycles < 1 or self.check_views < 1:
+            raise BlunfError(
+                "depth.planes.neighbours, cycles and check_views must be >= 1, got "
+                f"{self.neighbours}, {self.cycles}, {self.check_views}"
+            )

@@ -1,0 +1,255 @@
+"""Plane hypotheses of a Manhattan room from the points stereo and SfM did read.
+
+The aligned world has z up, the floor at z = 0 and walls roughly along x and y. Points
+(checked stereo readings with their normals, SfM track points without) are thinned to one
+per voxel; each of the three room axes (up, and the two wall directions, both
+re-estimated from the points' normals: the align stage's may be a few degrees off) gets a
+histogram of the points' offsets along it, whose smoothed peaks are planes (Furukawa et
+al., "Manhattan-world stereo", 2009). Each peak is refitted on its inliers within ±`band`
+and ±`max_tilt_deg`, and spans the box of its inliers. The floor (the lowest horizontal
+plane within FLOOR_SEARCH of z = 0, else z = 0 itself) is always a hypothesis.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import gaussian_filter1d
+from scipy.signal import find_peaks
+
+from stages.common.camera import pixel_grid, unproject
+from stages.depth.planes.config import PlanesConfig
+
+KINDS = ("floor", "ceiling", "wall", "top", "front")
+FLOOR_SEARCH = 0.3  # metres: the floor is sought this far either side of z = 0
+
+
+@dataclass(frozen=True)
+class Plane:
+    """n . X = d in the world (unit n), with its kind and the box of its inliers."""
+
+    normal: np.ndarray  # [3] unit
+    offset: float  # metres
+    kind: str  # one of KINDS
+    lo: np.ndarray  # [3] inliers' box, world metres
+    hi: np.ndarray  # [3]
+    support: int  # inlier voxels
+
+    def to_json(self) -> dict:
+        return {
+            "kind": self.kind,
+            "normal": [round(float(v), 4) for v in self.normal],
+            "offset": round(float(self.offset), 4),
+            "support": int(self.support),
+            "box": [[round(float(v), 3) for v in self.lo], [round(float(v), 3) for v in self.hi]],
+        }
+
+
+def view_points(
+    depth: np.ndarray,
+    K: np.ndarray,
+    pose: np.ndarray,
+    stride: int = 2,
+    rgb: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World points [N, 3] of a depth map's readings on a strided grid, their unit normals
+    [N, 3] from the neighbouring readings (0 where one is missing or jumps) and their
+    colours [N, 3] from rgb (the depth map's size; zeros without it)."""
+    h, w = depth.shape
+    s = max(1, stride)
+    d = np.asarray(depth, np.float64)[s // 2 :: s, s // 2 :: s]
+    good = np.isfinite(d) & (d > 0)
+    uv = pixel_grid(w, h, s)[: d.shape[0], : d.shape[1]].reshape(-1, 2)
+    p = unproject(uv, np.where(good, d, 0.0).reshape(-1), K, pose).reshape(*d.shape, 3)
+    n = np.zeros_like(p)
+    if min(d.shape) >= 3:
+        dx = p[1:-1, 2:] - p[1:-1, :-2]  # [H-2, W-2, 3]
+        dy = p[2:, 1:-1] - p[:-2, 1:-1]
+        nb = good[1:-1, 2:] & good[1:-1, :-2] & good[2:, 1:-1] & good[:-2, 1:-1]
+        # a step between neighbours longer than 10 % of the depth per pixel pair: a jump
+        step = np.maximum(np.linalg.norm(dx, axis=-1), np.linalg.norm(dy, axis=-1))
+        c = np.cross(dx, dy)
+        norm = np.linalg.norm(c, axis=-1, keepdims=True)
+        ok = nb & (step < 0.1 * s * d[1:-1, 1:-1]) & (norm[..., 0] > 1e-12)
+        n[1:-1, 1:-1] = np.where(ok[..., None], c / np.maximum(norm, 1e-12), 0.0)
+    c = (
+        np.zeros_like(p)
+        if rgb is None
+        else rgb[s // 2 :: s, s // 2 :: s][: d.shape[0], : d.shape[1]]
+    )
+    return p[good], n[good], np.asarray(c, np.float64)[good]
+
+
+def thin(points: np.ndarray, normals: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
+    """One point per voxel (the first), with its normal."""
+    if not len(points):
+        return points, normals
+    keys = np.floor(points / voxel).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    return points[first], normals[first]
+
+
+def room_axes(normals: np.ndarray) -> list[np.ndarray]:
+    """The room's three axes [up, wall 1, wall 2] from the points' normals: up is the mean
+    of the normals within 25° then 10° of z (flipped upward; z where fewer than 50), the wall
+    directions the peak of the horizontal normals' angle modulo 90° about it."""
+    unit = normals[np.linalg.norm(normals, axis=1) > 0.5]
+    up = np.array([0.0, 0.0, 1.0])
+    for cos in (np.cos(np.radians(25)), np.cos(np.radians(10))):
+        near = unit[np.abs(unit @ up) >= cos]
+        if len(near) < 50:
+            break
+        m = (near * np.sign(near @ up)[:, None]).mean(0)
+        up = m / max(float(np.linalg.norm(m)), 1e-12)
+    e1 = np.array([1.0, 0.0, 0.0]) - up[0] * up
+    e1 /= max(float(np.linalg.norm(e1)), 1e-12)
+    e2 = np.cross(up, e1)
+    horiz = unit[np.abs(unit @ up) < 0.3]
+    yaw = 0.0
+    if len(horiz) >= 50:
+        ang = np.mod(np.arctan2(horiz @ e2, horiz @ e1), np.pi / 2)  # modulo the right angle
+        hist, _ = np.histogram(ang, bins=180, range=(0, np.pi / 2))
+        hist = gaussian_filter1d(hist.astype(np.float64), 2.0, mode="wrap")
+        yaw = (np.argmax(hist) + 0.5) * (np.pi / 2) / 180
+    c, s = np.cos(yaw), np.sin(yaw)
+    return [up, c * e1 + s * e2, -s * e1 + c * e2]
+
+
+def find_planes(points: np.ndarray, normals: np.ndarray, cfg: PlanesConfig) -> list[Plane]:
+    """Planes along the room's three axes (see the module's docstring).
+
+    Args:
+        points: [N, 3] world points (thinned or not: they are thinned to cfg.voxel here).
+        normals: [N, 3] unit normals, or zeros where unknown (SfM tracks): those vote on
+            every axis.
+    Returns:
+        at most cfg.max_planes planes, the floor first, then by decreasing support.
+    """
+    pts, nrm = thin(np.asarray(points, np.float64), np.asarray(normals, np.float64), cfg.voxel)
+    axes = room_axes(nrm)
+    known = np.linalg.norm(nrm, axis=1) > 0.5
+    found: list[tuple[np.ndarray, float, int, np.ndarray, np.ndarray]] = []
+    for a in axes:
+        votes = ~known | (np.abs(nrm @ a) >= cfg.normal_cos)
+        for n, d, idx in _axis_planes(pts, votes, a, cfg):
+            inl = pts[idx]
+            found.append((n, d, len(idx), np.percentile(inl, 2, 0), np.percentile(inl, 98, 0)))
+    # the floor: the lowest horizontal plane within FLOOR_SEARCH of z = 0 (the align stage's
+    # floor can sit a few cm off where stereo read little of a plain floor)
+    floor = [f for f in found if f[0][2] > 0.97 and abs(f[1]) <= FLOOR_SEARCH]
+    best = min(floor, key=lambda f: f[1]) if floor else None
+    rest = [f for f in found if f is not best]
+    # the floor spans the room (every point's box across), even where no point shows it
+    box = (
+        (np.percentile(pts, 2, 0), np.percentile(pts, 98, 0))
+        if len(pts)
+        else (np.zeros(3), np.zeros(3))
+    )
+    if best is None:  # the align stage put the floor at z = 0
+        best = (axes[0], 0.0, 0, box[0], box[1])
+    else:
+        lo, hi = np.minimum(best[3], box[0]), np.maximum(best[4], box[1])
+        lo[2], hi[2] = best[3][2], best[4][2]
+        best = (best[0], best[1], best[2], lo, hi)
+    rest.sort(key=lambda f: -f[2])
+    bounds = _bounding_walls(pts, axes, rest, box, cfg) if cfg.bounding_walls else []
+    chosen = [best, *bounds, *rest[: cfg.max_planes - 1 - len(bounds)]]
+    return _kinds(chosen)
+
+
+def _bounding_walls(pts: np.ndarray, axes: list, found: list, box: tuple, cfg: PlanesConfig):
+    """Walls no peak shows (plain paint: stereo reads nothing there): on each side of each
+    wall axis, a plane at the outermost points' offset (their 0.2th / 99.8th percentile),
+    spanning the room, unless a found vertical plane lies within 0.1 m of it."""
+    out = []
+    if len(pts) < cfg.min_support:
+        return out
+    for a in axes[1:]:
+        off = pts @ a
+        for q, sign in ((0.2, -1.0), (99.8, 1.0)):
+            d = float(np.percentile(off, q))
+            if any(abs(f[0] @ a) > 0.99 and abs(f[1] * (f[0] @ a) - d) < 0.1 for f in found):
+                continue
+            out.append((a * sign, d * sign, 0, box[0].copy(), box[1].copy()))
+    return out
+
+
+def _axis_planes(
+    pts: np.ndarray, votes: np.ndarray, axis: np.ndarray, cfg: PlanesConfig
+) -> list[tuple[np.ndarray, float, np.ndarray]]:
+    """(normal, offset, inlier indices) of the histogram peaks along one axis."""
+    sel = np.flatnonzero(votes)
+    if len(sel) < cfg.min_support:
+        return []
+    off = pts[sel] @ axis
+    lo = np.floor(off.min() / cfg.bin) - 3
+    bins = int(np.ceil(off.max() / cfg.bin) - lo) + 4
+    hist = np.bincount((np.floor(off / cfg.bin) - lo).astype(np.int64), minlength=bins)
+    sm = gaussian_filter1d(hist.astype(np.float64), cfg.smooth)
+    # a plane's peak holds about its support spread over the band's bins
+    height = cfg.min_support / max(1.0, 2 * cfg.band / cfg.bin)
+    peaks, _ = find_peaks(sm, height=height, distance=max(1, int(round(cfg.band / cfg.bin))))
+    out = []
+    for p in peaks[np.argsort(-sm[peaks])]:
+        d0 = (lo + p + 0.5) * cfg.bin
+        fit = _refit(pts[sel], axis, d0, cfg)
+        if fit is None:
+            continue
+        n, d, idx = fit
+        if any(abs(d - d2) < cfg.band and n @ n2 > 0.999 for n2, d2, _ in out):
+            continue  # the same plane from two neighbouring peaks
+        out.append((n, d, sel[idx]))
+    return out
+
+
+def _refit(
+    pts: np.ndarray, axis: np.ndarray, d0: float, cfg: PlanesConfig
+) -> tuple[np.ndarray, float, np.ndarray] | None:
+    """Least-squares plane on the points within band of n . X = d0, its normal kept within
+    max_tilt_deg of the axis (a larger tilt falls back to the axis); None when too few."""
+    n, d = axis, d0
+    cos_max = np.cos(np.radians(cfg.max_tilt_deg))
+    for _ in range(3):
+        idx = np.flatnonzero(np.abs(pts @ n - d) <= cfg.band)
+        if len(idx) < cfg.min_support:
+            return None
+        q = pts[idx]
+        mu = q.mean(0)
+        _, _, vt = np.linalg.svd(q - mu, full_matrices=False)
+        m = vt[-1] * np.sign(vt[-1] @ axis or 1.0)
+        n = m if m @ axis >= cos_max else axis
+        d = float(np.median(q @ n))
+    idx = np.flatnonzero(np.abs(pts @ n - d) <= cfg.band)
+    if len(idx) < cfg.min_support:
+        return None
+    return n / np.linalg.norm(n), d, idx
+
+
+def _kinds(found: list) -> list[Plane]:
+    """Kinds: floor (the first), ceiling (the highest horizontal plane above 1.9 m), top
+    (other horizontal), wall (the outermost vertical plane on each side of an axis, or one
+    whose inliers rise above 1.8 m), front (other vertical)."""
+    horiz = [i for i, f in enumerate(found) if abs(f[0][2]) > 0.9]
+    high = [i for i in horiz[1:] if found[i][1] > 1.9]
+    ceiling = max(high, key=lambda i: found[i][1]) if high else -1
+    vert = [i for i, f in enumerate(found) if abs(f[0][2]) <= 0.9]
+    walls = set()
+    for i in vert:
+        ni, di = found[i][0], found[i][1]
+        par = [j for j in vert if abs(found[j][0] @ ni) > 0.99]
+        offs = [found[j][1] * np.sign(found[j][0] @ ni) for j in par]
+        if di >= max(offs) or di <= min(offs) or found[i][4][2] > 1.8:
+            walls.add(i)
+    planes = []
+    for i, (n, d, sup, lo, hi) in enumerate(found):
+        if i == 0:
+            kind = "floor"
+        elif i == ceiling:
+            kind = "ceiling"
+        elif i in horiz:
+            kind = "top"
+        else:
+            kind = "wall" if i in walls else "front"
+        planes.append(Plane(np.asarray(n, np.float64), float(d), kind, lo, hi, int(sup)))
+    return planes
