@@ -215,7 +215,7 @@ def test_fill_is_the_floor_colour_round_the_footprint():
 
 
 class _FieldOf:
-    """A model-like object over the analytic field (what `ground_fill` asks of it: its functions)."""
+    """A model-like object over the analytic field (what `ground_fill` asks: its functions)."""
 
     def __init__(self, density_fn, color_fn) -> None:
         self.density, self.color = density_fn, color_fn
