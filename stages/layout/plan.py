@@ -21,6 +21,7 @@ from skimage.measure import find_contours
 
 from stages.common.blueprint import Blueprint
 from stages.common.capture import UNKNOWN
+from stages.common.classes import FLOOR_NAME, STRUCTURE, WALL_NAME
 from stages.layout.config import LayoutConfig
 from stages.layout.extract import (
     Frame,
@@ -31,8 +32,6 @@ from stages.layout.extract import (
     frame_of,
     outline,
 )
-
-STRUCTURE = ("floor", "wall", "ceiling")
 
 
 def _r(x: np.ndarray | float) -> list | float:
@@ -60,7 +59,7 @@ def _thickness(
 
 def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
     """Rooms, walls and openings of the blueprint (world metres)."""
-    wid, fid = class_id(bp, "wall"), class_id(bp, "floor")
+    wid, fid = class_id(bp, WALL_NAME), class_id(bp, FLOOR_NAME)
     out: dict = {"units": "m", "angle_deg": 0.0, "rooms": [], "walls": [], "openings": []}
     if wid is None:
         return out

@@ -49,7 +49,7 @@ class LossConfig:
     depth_weight: float = 1.0  # weight of the L1 loss on expected depth (metres)
     surface_weight: float = 1.0  # with depth: weight of (1 - opacity) + weight in front of it
     semantic_weight: float = 0.5  # weight of the semantic cross-entropy (Semantic-NeRF
-    # uses 0.04 over 200k steps; in a few hundred steps 0.04 leaves every class "wall")
+    # uses 0.04 over 200k steps; in a few hundred steps 0.04 leaves every class a wall)
     trunc_steps: int = 4  # with depth, training rays end this many steps behind it (0 = off)
     surface_rays: int = 16384  # with depth: extra pixels per step whose colour is fitted at
     # their depth point (one field query each, no marching); 0 = off

@@ -34,8 +34,17 @@ import numpy as np
 import open3d as o3d
 
 from stages.common.capture import UNKNOWN
+from stages.common.classes import (
+    CEILING,
+    CEILING_NAME,
+    FLOOR,
+    FLOOR_NAME,
+    OBJECT,
+    WALL,
+    WALL_NAME,
+)
 from stages.common.rows import unique_rows
-from stages.semantics.config import CEILING, FLOOR, OBJECT, WALL, SemanticsConfig
+from stages.semantics.config import SemanticsConfig
 
 log = logging.getLogger(__name__)
 
@@ -102,24 +111,24 @@ def segment(
     pool = horiz & (n[:, 2] > 0) & (np.abs(c[:, 2]) < cfg.floor_max_z)
     for plane, inl in _planes(c, n, area, pool, cfg, rng, horizontal=True):
         if area[inl].sum() >= cfg.plane_min_area:
-            _accept(seg, plane, inl, "floor", FLOOR, c, area)
+            _accept(seg, plane, inl, FLOOR_NAME, FLOOR, c, area)
     floor = seg.cls == FLOOR
     if floor.any():
         seg.floor_z = float(np.median(c[floor, 2]))
     pool = horiz & (n[:, 2] < 0) & (c[:, 2] > cfg.ceiling_min_z)
     for plane, inl in _planes(c, n, area, pool, cfg, rng, horizontal=True):
         if area[inl].sum() >= cfg.plane_min_area:
-            _accept(seg, plane, inl, "ceiling", CEILING, c, area)
+            _accept(seg, plane, inl, CEILING_NAME, CEILING, c, area)
     pool = vert & (seg.cls == UNKNOWN)
     for plane, inl in _planes(c, n, area, pool, cfg, rng, horizontal=False):
         if _is_wall(plane, c[inl], area[inl], cfg):
-            _accept(seg, plane, inl, "wall", WALL, c, area)
+            _accept(seg, plane, inl, WALL_NAME, WALL, c, area)
         else:
             seg.rejected.append(_describe(plane, inl, "vertical", c, area))
             log.debug("semantics: not a wall %s", seg.rejected[-1])
     if more_walls is not None:
         for w in more_walls(c, n, area, seg.floor_z):
-            if not any(_same_wall(w, p) for p in seg.planes if p["kind"] == "wall"):
+            if not any(_same_wall(w, p) for p in seg.planes if p["kind"] == WALL_NAME):
                 seg.planes.append(w)
                 log.debug("semantics: wall from points %s", w)
     _absorb(seg, c, cfg)
@@ -222,7 +231,7 @@ def _describe(plane: np.ndarray, inl: np.ndarray, kind: str, c: np.ndarray, area
     """A plane for semantics.json and for the seams: normal, d, area and its box, which is
     [lo0, lo1, hi0, hi1] in xy for a horizontal plane, in (s along it, z) for a vertical one."""
     p = c[inl]
-    q = p[:, :2] if kind in ("floor", "ceiling") else np.stack([p @ _axes(plane), p[:, 2]], 1)
+    q = p[:, :2] if kind in (FLOOR_NAME, CEILING_NAME) else np.stack([p @ _axes(plane), p[:, 2]], 1)
     return {
         "kind": kind,
         "normal": [round(float(x), 4) for x in plane[:3]],
@@ -247,7 +256,7 @@ def _same_wall(a: dict, b: dict) -> bool:
 def _absorb(seg: Segmentation, c: np.ndarray, cfg: SemanticsConfig) -> None:
     """Unlabelled triangles near an accepted plane (its "dist", else plane_dist), inside its
     box, join it (any normal)."""
-    ids = {"floor": FLOOR, "wall": WALL, "ceiling": CEILING}
+    ids = {FLOOR_NAME: FLOOR, WALL_NAME: WALL, CEILING_NAME: CEILING}
     for pl in seg.planes:
         free = np.flatnonzero(seg.cls == UNKNOWN)
         p = c[free]
@@ -259,7 +268,7 @@ def _absorb(seg: Segmentation, c: np.ndarray, cfg: SemanticsConfig) -> None:
 def in_extent(plane: dict, p: np.ndarray, pad: float) -> np.ndarray:
     """bool [...]: whether points p [..., 3] lie inside an accepted plane's box (`_describe`)
     grown by `pad` metres: in xy for a floor or ceiling, in (s along it, z) for a wall."""
-    if plane["kind"] in ("floor", "ceiling"):
+    if plane["kind"] in (FLOOR_NAME, CEILING_NAME):
         q = p[..., :2]
     else:
         along = _axes(np.append(np.asarray(plane["normal"], np.float64), plane["d"]))
