@@ -26,6 +26,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from pipeline.config import Config, load_config
+from pipeline.runner import OnEvent, RunEvent, StageEvent
 from pipeline.summary import summarise
 from stages.common.errors import BlunfError
 from stages.common.io import check_exists
@@ -34,7 +35,8 @@ from stages.common.progress import configure as configure_progress
 log = logging.getLogger(__name__)
 
 KEY_PREFIX = "blunf-run-"
-TOPIC = "blunf-batch"  # Dask event topic: {"scene", "worker"} when a task starts a capture
+TOPIC = "blunf-batch"  # Dask event topic: {"scene", "worker"} when a task starts a capture,
+#                        {"scene", "stage"} when its run takes up a stage
 
 
 @dataclass(frozen=True)
@@ -96,7 +98,7 @@ def run_capture(job: Job) -> Outcome:
     try:
         logging.getLogger("blunf").info("batch: %s on worker %s", job.capture, res.worker)
         edits = Path(job.edits) if job.edits else None
-        rep = run(Path(job.capture), Path(job.out), job.cfg, edits)
+        rep = run(Path(job.capture), Path(job.out), job.cfg, edits, _stage_events(res.scene))
         res.ok = True
         res.stages = {f"{s.name}:{s.impl}": s.status for s in rep.stages}
     except BlunfError as e:
@@ -267,28 +269,23 @@ def _drive(client, jobs: list[Job], opts: BatchOptions) -> list[Outcome]:
 
 def _progress(client, jobs: list[Job], results: dict[str, Outcome], seen: dict[str, str]) -> str:
     """'2 done, 1 failed, 2 running (a: fusion, b: blueprint), 3 waiting'; `seen` keeps the
-    last stage seen of each capture (none has a temp folder between two stages)."""
+    last stage each capture's run took up (its runner's events, `_stage_events`)."""
     try:
-        started = {e["scene"] for _, e in client.get_events(TOPIC) if isinstance(e, dict)}
+        events = [e for _, e in client.get_events(TOPIC) if isinstance(e, dict)]
     except Exception:  # a scheduler going away mid-batch: progress is best effort
-        started = set()
+        events = []
+    for e in events:
+        seen[e["scene"]] = e.get("stage", seen.get(e["scene"], "starting"))
     running = []
     for j in jobs:
         scene = Path(j.out).name
-        if scene in started and scene not in results:
-            seen[scene] = _stage_running(Path(j.out)) or seen.get(scene, "starting")
+        if scene in seen and scene not in results:
             running.append(f"{scene}: {seen[scene]}")
     done = sum(r.ok for r in results.values())
     failed = len(results) - done
     waiting = len(jobs) - len(results) - len(running)
     inner = f" ({', '.join(running)})" if running else ""
     return f"{done} done, {failed} failed, {len(running)} running{inner}, {waiting} waiting"
-
-
-def _stage_running(out: Path) -> str | None:
-    """The stage a run is in: the one with a temp folder (pipeline/cache.py's contract)."""
-    tmps = sorted(out.glob("*/.tmp-*"), key=lambda p: p.stat().st_mtime if p.exists() else 0)
-    return tmps[-1].parent.name if tmps else None
 
 
 def _finish(opts: BatchOptions, outcomes: list[Outcome], wall: float | None) -> dict:
@@ -358,6 +355,16 @@ def _unlog(h: logging.Handler) -> None:
     for name in _LOGGERS:
         logging.getLogger(name).removeHandler(h)
     h.close()
+
+
+def _stage_events(scene: str) -> OnEvent:
+    """The runner's listener in a worker: each stage it takes up, told to the client."""
+
+    def on_event(e: RunEvent) -> None:
+        if isinstance(e, StageEvent) and e.what == "start":
+            _event({"scene": scene, "stage": e.stage})
+
+    return on_event
 
 
 def _event(msg: dict) -> None:

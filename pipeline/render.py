@@ -2,19 +2,16 @@
 
 A run folder is read through its report.json: the plan (blueprint.npz), the fused mesh and
 the posed frames of the stages it ran, and the trained field when the nerf stage ran. Edits
-are resolved exactly as the edit stage resolves them (`stages.edit.nerf.resolve_edit`) and
-rendered through the same function (`render_view_edited`), so a view rendered here equals the
-edit stage's render of that view with the same spec.
+are resolved and rendered by the edit stage's own view (`stages.edit.view.EditedView`), so a
+view rendered here equals the edit stage's render of that view with the same spec.
 """
 
 from __future__ import annotations
 
 import json
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -27,9 +24,6 @@ from stages.common.io import read_json
 from stages.edit.config import EditConfig
 from stages.edit.select import select_cells
 from stages.edit.spec import Edit
-
-if TYPE_CHECKING:
-    from stages.edit.surface import SurfaceRenderer
 
 TRAIN_HINT = (
     "blunf run CAPTURE --out {run} --config configs/edit-fast.yaml --edits {run}/edits/studio.yaml"
@@ -143,13 +137,6 @@ def pose_wxyz(pose: np.ndarray) -> np.ndarray:
     return np.array([w, x, y, z])
 
 
-def scaled(intr: Intrinsics, s: float) -> Intrinsics:
-    """The camera at `s` times its resolution (as the edit stage's render_scale)."""
-    if s == 1.0:
-        return intr
-    return intr.scaled(max(1, round(intr.width * s)), max(1, round(intr.height * s)))
-
-
 @dataclass
 class Rendered:
     rgb: np.ndarray  # [H, W, 3] uint8
@@ -159,13 +146,11 @@ class Rendered:
 
 
 class Scene:
-    """A run loaded once for rendering edits: plan, components, mesh, frames and field."""
+    """A run loaded once for rendering edits: plan, components, frames and the edited view
+    (`stages.edit.view.EditedView`: fused mesh, field, resolved edits)."""
 
     def __init__(self, files: RunFiles):
-        import torch  # noqa: F401  (the field's loader; imported late: the CLI starts fast)
-
-        from stages.edit.nerf import _load_mesh, _load_model
-        from stages.edit.ops import vertex_colors
+        from stages.edit.view import EditedView
 
         self.files = files
         self.cfg = edit_config(files.edit)
@@ -173,19 +158,12 @@ class Scene:
         self.cmap = component_map(self.bp)
         self.components = {c["id"]: c for c in components(self.bp)}
         self.cap = Capture.load(files.frames)
-        self.mesh = _load_mesh(files.mesh)
-        self.verts = np.asarray(self.mesh.vertices, np.float64)
-        rgba = vertex_colors(self.mesh)
-        self.colors = None if rgba is None else rgba[:, :3].astype(np.float64) / 255.0
-        self.model = None if files.model is None else _load_model(files.model)
-        self._resolved: dict[tuple, object] = {}
-        self._surface: SurfaceRenderer | None = (
-            None  # the fast path (stages.edit.surface), made on first use
-        )
+        self.edited = EditedView.load(self.cfg, files.model, files.mesh, self.bp, self.cmap)
+        self.verts, self.colors = self.edited.verts, self.edited.colors
 
     @property
     def has_field(self) -> bool:
-        return self.model is not None
+        return self.edited.model is not None
 
     def view(self, n: int) -> tuple[np.ndarray, Intrinsics]:
         """Input view n's pose and intrinsics."""
@@ -201,32 +179,6 @@ class Scene:
         """The plan cells an edit selects (one-line error when none)."""
         return select_cells(e.select, self.bp, self.cmap)
 
-    def _field_edit(self, e: Edit):
-        from stages.edit.nerf import resolve_edit
-
-        # the texture file's time and size too: an upload under a name used before replaces
-        # the file, and the edit must see the new picture
-        tex = None if e.texture is None else Path(e.texture)
-        stamp = (tex.stat().st_mtime_ns, tex.stat().st_size) if tex and tex.is_file() else None
-        key = (e.op, e.select.kind, repr(e.select.value), e.select.width, e.color, e.strength,
-               str(e.texture), stamp)  # fmt: skip
-        if key not in self._resolved:
-            sel = self.selection(e)
-            self._resolved[key] = resolve_edit(
-                self.cfg, e, sel, self.bp, self.cmap, self.verts, self.colors, self.model
-            )
-        return self._resolved[key]
-
-    def surface(self) -> SurfaceRenderer:
-        """The fast path's renderer (`stages.edit.surface`), made once."""
-        from stages.edit.surface import SurfaceRenderer
-
-        if self.model is None:
-            raise BlunfError(f"{self.files.run}: the run has no trained NeRF to render")
-        if self._surface is None:
-            self._surface = SurfaceRenderer(self.model, self.verts, np.asarray(self.mesh.faces))
-        return self._surface
-
     def render(
         self,
         pose: np.ndarray,
@@ -236,42 +188,15 @@ class Scene:
         fast: bool = False,
     ) -> Rendered:
         """The view with `edits` applied (none when `before`), as the edit stage's `after`
-        picture: field edits rendered, mask selections blended half with magenta. `fast`:
-        through the fused mesh's ray cast, the field asked at its hits
-        (`stages.edit.surface`), instead of the volume render."""
-        from stages.common.threads import torch_threads
-        from stages.edit.nerf import _overlay, _u8
-        from stages.edit.render import render_view_edited
-
-        if self.model is None:
+        picture (`EditedView.render`). `fast`: through the fused mesh's ray cast, the field
+        asked at its hits (`stages.edit.surface`), instead of the volume render."""
+        if not self.has_field:
             raise BlunfError(
                 f"{self.files.run}: the run has no trained NeRF to render; train one with "
                 + TRAIN_HINT.format(run=self.files.run)
             )
-        model = self.model
-        t0 = time.perf_counter()
-        with torch_threads(self.cfg.threads):
-            fes = [] if before else [self._field_edit(e) for e in edits]
-            field_ops = [fe for fe in fes if fe.op != "mask"]
-            masks = [fe.extent for fe in fes if fe.op == "mask"]
-            sr = self.surface() if fast else None
-
-            def view(ops: list, ext: list) -> dict[str, np.ndarray]:
-                if sr is not None:
-                    return sr.render_view(pose, intr, ops, ext)
-                return render_view_edited(model, pose, intr, ops, self.cfg.chunk, ext)
-
-            # masks are those of the unedited scene, as the edit stage draws them
-            res = view(field_ops, [] if field_ops else masks)
-            if masks and field_ops:
-                res["masks"] = view([], masks)["masks"]
-            rgb = res["rgb"]
-            for k in range(len(masks)):
-                rgb = _overlay(rgb, res["masks"][k] >= self.cfg.mask_threshold)
-        # per render, not the renderer's: each studio tab renders on its own thread
-        share = float(res["fallback"].mean()) if sr is not None else None
-        depth = np.where(res["acc"] >= 0.5, res["depth"], np.inf)
-        return Rendered(_u8(rgb), time.perf_counter() - t0, share, depth.astype(np.float32))
+        p = self.edited.render(pose, intr, () if before else edits, fast)
+        return Rendered(p.image, p.seconds, p.volume_rendered, p.depth)
 
 
 def render_command(run: Path, view: int | None, camera: Path | None, spec: Path | None,
@@ -280,6 +205,7 @@ def render_command(run: Path, view: int | None, camera: Path | None, spec: Path 
     through the fused mesh's ray cast (`stages.edit.surface`), not the volume render."""
     from stages.common.io import write_image
     from stages.edit.spec import load_spec
+    from stages.edit.view import scaled
 
     if (view is None) == (camera is None):
         raise BlunfError("render: give exactly one of --view N and --camera FILE")

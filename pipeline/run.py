@@ -10,7 +10,7 @@ from pipeline.config import Config
 from pipeline.planner import gt_files, make_plan
 from pipeline.publish import Publication, writing
 from pipeline.report import Report
-from pipeline.runner import Runner, check_impl
+from pipeline.runner import OnEvent, Runner, check_impl
 from stages.align import AlignInputs
 from stages.blueprint import BlueprintInputs, NerfTopInputs
 from stages.common.capture import Capture
@@ -31,8 +31,10 @@ from stages.semantics import SemanticsInputs
 log = logging.getLogger(__name__)
 
 
-def run(capture: Path, out: Path, cfg: Config, edits: Path | None = None) -> Report:
-    """Build the blueprint of `capture` into the run folder `out`; returns the report."""
+def run(capture: Path, out: Path, cfg: Config, edits: Path | None = None,
+        on_event: OnEvent | None = None) -> Report:  # fmt: skip
+    """Build the blueprint of `capture` into the run folder `out`; returns the report.
+    `on_event`: each stage's start, end and progress (`pipeline.runner.Runner`)."""
     capture, out = Path(capture), Path(out)
     check_exists(capture, "capture folder")
     if out.resolve().is_relative_to(capture.resolve()):
@@ -53,7 +55,7 @@ def run(capture: Path, out: Path, cfg: Config, edits: Path | None = None) -> Rep
     pub = Publication(out)  # a read-only run folder fails here, before any work
     report = Report(scene=out.name, capture=str(capture.resolve()), config=cfg.to_dict())
     try:
-        _recipe(Runner(out, cfg, report), pub, capture, cfg, spec)
+        _recipe(Runner(out, cfg, report, on_event), pub, capture, cfg, spec)
         pub.add_report(report.to_json())  # report.json and report.html
         with writing(out):
             pub.switch()

@@ -1,4 +1,10 @@
-"""Runs one stage through the cache: look up its key, else run it in a temp folder."""
+"""Runs one stage through the cache: look up its key, else run it in a temp folder.
+
+A caller that follows a run (the studio's trainer, `blunf batch`) gives the runner
+`on_event`, as pycolmap's mapping takes callbacks: it gets a StageEvent when each stage is
+taken up and when it ends (ran, cached, skipped or failed), and in between the stage's
+progress (`stages.common.progress.StepProgress`), in order, on the run's thread.
+"""
 
 from __future__ import annotations
 
@@ -8,8 +14,11 @@ import os
 import shutil
 import time
 import typing
+from collections.abc import Callable
+from contextlib import nullcontext
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from pipeline.cache import Cache, stage_key
 from pipeline.config import Config, stage_view
@@ -18,6 +27,7 @@ from pipeline.publish import writing
 from pipeline.report import Report, StageRecord, peak_rss_mb, peak_rss_reset
 from stages.common.errors import BlunfError
 from stages.common.io import read_json
+from stages.common.progress import StepProgress, listening
 from stages.common.progress import close_all as close_progress
 from stages.common.threads import torch_threads
 
@@ -34,15 +44,38 @@ def check_impl(stage: str, impl: str) -> None:
         raise BlunfError(f"{stage}.impl: unknown implementation {impl!r} (known: {', '.join(reg)})")
 
 
-class Runner:
-    """Executes stages of one run directory, recording each in the report."""
+@dataclass(frozen=True)
+class StageEvent:
+    """A stage taken up ("start") or finished ("end", with how: as the report records it)."""
 
-    def __init__(self, out: Path, cfg: Config, report: Report):
+    stage: str
+    impl: str
+    what: Literal["start", "end"]
+    status: Literal["ran", "cached", "skipped", "failed"] | None = None  # None at "start"
+    reason: str = ""  # why the plan runs or skips it
+    seconds: float = 0.0  # "end" of a stage that ran
+    error: str = ""  # "end" of a stage that failed: the exception, one line
+
+
+RunEvent = StageEvent | StepProgress
+OnEvent = Callable[[RunEvent], None]
+
+
+class Runner:
+    """Executes stages of one run directory, recording each in the report; `on_event` gets
+    each stage's start and end and its progress (see the module's docstring)."""
+
+    def __init__(self, out: Path, cfg: Config, report: Report, on_event: OnEvent | None = None):
         self.out = Path(out)
         self.cfg = cfg
         self.report = report
+        self.on_event = on_event
         self.cache = Cache(self.out)
         self.cache.sweep()
+
+    def _tell(self, stage: str, impl: str, what: Literal["start", "end"], **kw: Any) -> None:
+        if self.on_event is not None:
+            self.on_event(StageEvent(stage, impl, what, **kw))
 
     def step(self, step: Step, inputs: Any) -> Any:
         """A step of the plan: its stage's outputs, or None when the plan skips it (the skip
@@ -51,6 +84,8 @@ class Runner:
         if not step.run:
             log.info("%-10s skipped: %s", step.stage, step.reason)
             self.report.add(StageRecord(step.stage, step.impl, "skipped", step.reason))
+            self._tell(step.stage, step.impl, "start", reason=step.reason)
+            self._tell(step.stage, step.impl, "end", status="skipped", reason=step.reason)
             return None
         stage, impl = step.work or (step.stage, step.impl)
         return self.stage(stage, impl, inputs() if callable(inputs) else inputs, step.reason)
@@ -63,6 +98,7 @@ class Runner:
         input_keys = self.cache.input_keys(inputs)  # hashes outside files (the capture) once
         key = stage_key(stage, impl, view, input_keys)
         changed = _changed(scfg, impl)
+        self._tell(stage, impl, "start", reason=reason)
         with writing(self.out / stage), self.cache.lock(stage, key):
             folder = self.cache.folder(stage, key)
             if self.cache.is_done(stage, key):
@@ -74,6 +110,7 @@ class Runner:
                         stage, impl, "cached", reason, 0.0, None, key, meta.get("facts", {})
                     )
                 )
+                self._tell(stage, impl, "end", status="cached", reason=reason)
                 return outputs_cls.at(folder)
             log.info("%-10s %s: running (%s)%s", stage, impl, key, changed)
             fn = registry(stage)[impl]  # imports the implementation (torch, Open3D...) only now
@@ -82,7 +119,8 @@ class Runner:
             try:  # a failing stage leaves nothing behind (a killed one is swept by the next run)
                 peak_rss_reset()
                 t0, c0 = time.perf_counter(), time.process_time()
-                with torch_threads(_run_threads(self.cfg.run.threads)):
+                listen = nullcontext() if self.on_event is None else listening(self.on_event)
+                with torch_threads(_run_threads(self.cfg.run.threads)), listen:
                     fn(scfg, inputs, tmp)
                 secs, cpu = time.perf_counter() - t0, time.process_time() - c0
                 stats = stats_name(outputs_cls, impl)
@@ -100,15 +138,19 @@ class Runner:
                     "outputs_class": f"{outputs_cls.__module__}:{outputs_cls.__qualname__}",
                 }
                 folder = self.cache.commit(tmp, stage, key, meta)
-            except BaseException:
+            except BaseException as e:
                 shutil.rmtree(tmp, ignore_errors=True)
+                close_progress()  # a bar the stage left open (it raised mid-step)
+                error = f"{type(e).__name__}: {e}".splitlines()[0] if str(e) else type(e).__name__
+                self._tell(stage, impl, "end", status="failed", reason=reason, error=error)
                 raise
             finally:
-                close_progress()  # a bar the stage left open (it raised mid-step)
+                close_progress()
         log.info("%-10s ran in %.1fs", stage, secs)
         self.report.add(
             StageRecord(stage, impl, "ran", reason, round(secs, 3), meta["peak_rss_mb"], key, facts)
         )
+        self._tell(stage, impl, "end", status="ran", reason=reason, seconds=round(secs, 3))
         return outputs_cls.at(folder)
 
 

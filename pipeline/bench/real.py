@@ -48,6 +48,7 @@ import numpy as np
 
 from stages.common.blueprint import Blueprint
 from stages.common.capture import UNKNOWN, Capture, write_layout
+from stages.common.classes import GEOMETRY, GEOMETRY_IGNORE, UNKNOWN_NAME
 from stages.common.errors import BlunfError
 from stages.common.gt_frame import plan_frame
 from stages.common.io import read_json, write_json
@@ -57,7 +58,7 @@ from stages.ingest import load
 
 log = logging.getLogger(__name__)
 
-CLASSES = ("floor", "wall", "object")  # the classes the geometry labels the plan with
+CLASSES = tuple(n for k, n in GEOMETRY.items() if k not in GEOMETRY_IGNORE)  # on the plan
 
 
 def stripped_copy(src: Path, out: Path, sensor: bool, poses: bool | None = None) -> Path:
@@ -173,7 +174,7 @@ def confusion(pred: Blueprint, ref: Blueprint, pred_to_ref: np.ndarray | None) -
         ids, n = np.unique(sel, return_counts=True)
         name = ref.classes.get(int(c), str(int(c)))
         out[name] = {
-            ("unknown" if i == UNKNOWN else ref.classes.get(int(i), str(int(i)))): round(
+            (UNKNOWN_NAME if i == UNKNOWN else ref.classes.get(int(i), str(int(i)))): round(
                 100.0 * int(k) / sel.size, 1
             )
             for i, k in zip(ids, n, strict=True)

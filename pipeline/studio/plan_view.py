@@ -24,7 +24,7 @@ import numpy as np
 
 from pipeline.render import viewer_camera
 from stages.common.blueprint import Blueprint, Grid
-from stages.common.plan_picture import class_color
+from stages.common.classes import class_color
 
 HIGHLIGHT = (255, 0, 255, 170)
 STROKE = (255, 40, 40, 255)

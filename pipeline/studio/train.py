@@ -6,8 +6,8 @@ NeRF top-view baseline). The studio trains it the way the command it names would
 `pipeline.run.run` on the run's capture into the same run folder, with the run's own
 config (report.json) and configs/edit-fast.yaml on top. Every stage but the NeRF, the edit and
 what follows is found in the run's cache, and the same command typed later finds the NeRF
-there too. The run's stage lines (logger `pipeline.runner`) and its progress bars
-(`stages.common.progress.open_steps`) are what the page shows while it works.
+there too. The page shows the run's events while it works (`pipeline.runner.Runner`'s
+`on_event`): the stage at work and its step's progress.
 """
 
 from __future__ import annotations
@@ -22,9 +22,11 @@ from pathlib import Path
 import yaml
 
 from pipeline.config import Config, load_config, merge
+from pipeline.runner import RunEvent, StageEvent
 from pipeline.studio.state import Session
 from stages.common.errors import BlunfError
 from stages.common.io import read_json
+from stages.common.progress import StepProgress
 
 log = logging.getLogger(__name__)
 
@@ -48,18 +50,6 @@ def training_config(run: Path, sets: Sequence[str] = ()) -> Config:
             raise BlunfError(f"{rep}: its config does not load ({e})") from None
 
 
-class _StageLines(logging.Handler):
-    """Keeps the last stage line the runner logs from the training thread."""
-
-    def __init__(self, thread: int):
-        super().__init__(logging.INFO)
-        self.thread, self.last = thread, ""
-
-    def emit(self, record: logging.LogRecord) -> None:
-        if record.thread == self.thread:
-            self.last = " ".join(record.getMessage().split())
-
-
 class Trainer:
     """One background training of the session's run; `status()` says how far it is."""
 
@@ -70,7 +60,8 @@ class Trainer:
         self.stages: list[str] = []  # the stage lines seen, in order
         self.t0 = 0.0
         self.thread: threading.Thread | None = None
-        self._lines: _StageLines | None = None
+        self._stage = ""  # the stage at work, e.g. "nerf grid: running"
+        self._step: StepProgress | None = None  # its step under way (None: none open)
 
     @property
     def running(self) -> bool:
@@ -91,22 +82,26 @@ class Trainer:
         cfg = training_config(sess.files.run, self.sets)  # a config that fails: here, at once
         spec = sess.save(list(views))
         self.state, self.error, self.stages, self.t0 = "running", "", [], time.perf_counter()
+        self._stage, self._step = "", None
         self.thread = threading.Thread(target=self._work, args=(cfg, spec), daemon=True)
         self.thread.start()
         return spec
 
+    def _on_event(self, e: RunEvent) -> None:
+        """The run's events (its thread): the stage lines seen, the step under way."""
+        if isinstance(e, StageEvent):
+            how = "running" if e.what == "start" else e.status
+            self._stage = f"{e.stage} {e.impl}: {how}"
+            self.stages.append(self._stage)
+            self._step = None
+        else:
+            self._step = None if e.done else e
+
     def _work(self, cfg: Config, spec: Path) -> None:
         from pipeline.run import run
 
-        lines = _StageLines(threading.get_ident())
-        self._lines = lines
-        runner_log = logging.getLogger("pipeline.runner")
-        runner_log.addHandler(lines)
-        level = runner_log.level
-        if not runner_log.isEnabledFor(logging.INFO):
-            runner_log.setLevel(logging.INFO)
         try:
-            run(self.session.files.capture, self.session.files.run, cfg, spec)
+            run(self.session.files.capture, self.session.files.run, cfg, spec, self._on_event)
             self.session.reload()
             if not self.session.scene.has_field:
                 raise BlunfError(f"{self.session.files.run}: the run trained no NeRF")
@@ -116,9 +111,6 @@ class Trainer:
         except Exception as e:  # the server goes on; the page says what failed
             log.exception("studio: training failed")
             self.error, self.state = f"{e.__class__.__name__}: {e}", "failed"
-        finally:
-            runner_log.removeHandler(lines)
-            runner_log.setLevel(level)
 
     def wait(self, timeout: float | None = None) -> str:
         if self.thread is not None:
@@ -128,8 +120,6 @@ class Trainer:
     def progress(self) -> tuple[str, float | None]:
         """What the page shows: a line (the stage at work, its step) and the fraction of
         the step done (None when unknown)."""
-        from stages.common.progress import open_steps
-
         secs = time.perf_counter() - self.t0
         if self.state == "done":
             return f"NeRF trained in {secs:.0f} s.", 1.0
@@ -137,14 +127,13 @@ class Trainer:
             return f"Training failed: {self.error}", None
         if self.state == "idle":
             return "", None
-        stage = self._lines.last if self._lines is not None else ""
-        if stage and (not self.stages or self.stages[-1] != stage):
-            self.stages.append(stage)
-        steps = open_steps()
+        step = self._step
         frac = None
-        line = f"Training ({secs:.0f} s): {stage or 'starting'}"
-        if steps:
-            name, n, total, unit = steps[-1]
-            line += f"  \n{name}: {n:.0f}" + (f"/{total:.0f}" if total else "") + f" {unit}"
+        line = f"Training ({secs:.0f} s): {self._stage or 'starting'}"
+        if step is not None:
+            n, total = step.n, step.total
+            line += (
+                f"  \n{step.name}: {n:.0f}" + (f"/{total:.0f}" if total else "") + f" {step.unit}"
+            )
             frac = min(1.0, n / total) if total else None
         return line, frac

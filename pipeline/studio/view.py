@@ -1,10 +1,11 @@
 """One tab of the studio: its camera and the render thread that draws its background.
 
 The background is the NeRF's render from the tab's camera with the edits applied
-(`pipeline.render.Scene.render`): a quarter-resolution preview while the camera moves, the
-full view once it rests. It is sent with its depth, so the plan on the floor, the selection
-and the frusta are hidden behind the rendered surfaces (without it, the plan would be drawn
-over every pixel below the horizon, objects included, and wash out what an edit changed).
+(`stages.edit.view.EditedView.render`, through `pipeline.render.Scene`): a quarter-resolution
+preview while the camera moves, the full view once it rests. It is sent with its depth, so the
+plan on the floor, the selection and the frusta are hidden behind the rendered surfaces
+(without it, the plan would be drawn over every pixel below the horizon, objects included,
+and wash out what an edit changed).
 In the plan view (the camera straight above the plan) nothing is rendered: the canvas shows
 the plan alone.
 """
@@ -19,9 +20,10 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 import viser
 
-from pipeline.render import pose_wxyz, scaled, viewer_camera
+from pipeline.render import pose_wxyz, viewer_camera
 from pipeline.studio.plan_view import PLAN_FOV, top_view
 from stages.common.errors import BlunfError
+from stages.edit.view import scaled
 
 if TYPE_CHECKING:
     from pipeline.studio.state import Session

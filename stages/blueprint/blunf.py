@@ -24,6 +24,7 @@ from stages.blueprint.config import BlueprintConfig, BlueprintInputs, BlueprintO
 from stages.blueprint.instances import instance_raster
 from stages.common.blueprint import Blueprint, Grid, read_observed
 from stages.common.capture import UNKNOWN
+from stages.common.classes import FLOOR_NAME, STRUCTURE, ids_named
 from stages.common.encoding import (
     HashGrid2D,
     Identity,
@@ -39,7 +40,6 @@ from stages.common.threads import torch_threads
 
 log = logging.getLogger(__name__)
 
-STRUCTURE = ("floor", "wall", "ceiling")  # class names shrink_objects leaves as they are
 TRAIN_ACC_POINTS = 262_144  # points scored for the reported train accuracy
 
 
@@ -123,8 +123,8 @@ def shrink_objects(
     (a disk) of a floor cell become floor, the class of the nearest floor cell: depth that
     fattens objects spreads them over the floor round them, never into the wall behind.
     """
-    floor = np.isin(labels, [k for k, n in classes.items() if n == "floor"])
-    structure = np.isin(labels, [k for k, n in classes.items() if n in STRUCTURE])
+    floor = np.isin(labels, ids_named(classes, FLOOR_NAME))
+    structure = np.isin(labels, ids_named(classes, *STRUCTURE))  # left as they are
     obj = ~structure & (labels != UNKNOWN)
     if cells <= 0 or not obj.any() or not floor.any():
         return labels, 0

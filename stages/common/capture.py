@@ -16,12 +16,12 @@ import numpy as np
 
 from stages.common.camera import Intrinsics, check_pose
 from stages.common.checks import check_intrinsics, check_unique_stems
+from stages.common.classes import UNKNOWN as UNKNOWN  # (re-exported: its home is classes)
 from stages.common.errors import BlunfError
 from stages.common.io import read_json, write_json
 
 IMAGE_EXTS = (".jpg", ".jpeg", ".png")
 DEPTH_EXTS = (".png", ".npy")
-UNKNOWN = 255  # blueprint / label value for unknown or unseen
 # intrinsics of images without any given: (intrinsics, calib, camera) per image
 GuessIntrinsics = Callable[[list[Path]], list[tuple[Intrinsics, str, str]]]
 

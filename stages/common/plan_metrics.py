@@ -17,6 +17,7 @@ import numpy as np
 
 from stages.common.blueprint import Blueprint
 from stages.common.capture import UNKNOWN
+from stages.common.classes import CATCH_ALL, KEPT
 from stages.common.errors import BlunfError
 
 log = logging.getLogger(__name__)
@@ -90,8 +91,8 @@ def evaluate_plan(pred: Blueprint, gt: Blueprint, pred_to_gt: np.ndarray | None 
     return plan_metrics(lut[labels], gt.labels, gt.classes)
 
 
-CATCH_ALL = ("object", "occupied")  # coarse classes standing for every GT class but these:
-KEPT = ("floor", "wall")  # ... (when the prediction has them; else they fall in it too)
+# CATCH_ALL: coarse classes standing for every GT class but the KEPT ones (when the
+# prediction has them; else they fall in it too)
 
 
 def coarse_gt(pred: Blueprint, gt: Blueprint) -> Blueprint:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import colorsys
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -12,30 +11,8 @@ from PIL import Image, ImageDraw, ImageFont
 
 from stages.common.blueprint import Blueprint
 from stages.common.capture import UNKNOWN
+from stages.common.classes import class_color, label_name
 
-# Kelly's colours of maximum contrast (greys, black and white left out), indexed by class id.
-PALETTE = [
-    (243, 195, 0),
-    (135, 86, 146),
-    (243, 132, 0),
-    (161, 202, 241),
-    (190, 0, 50),
-    (194, 178, 128),
-    (0, 136, 86),
-    (230, 143, 172),
-    (0, 103, 165),
-    (249, 147, 121),
-    (96, 78, 151),
-    (246, 166, 0),
-    (179, 68, 108),
-    (220, 211, 0),
-    (136, 45, 23),
-    (141, 182, 0),
-    (101, 69, 34),
-    (226, 88, 34),
-    (43, 61, 38),
-]
-UNKNOWN_COLOR = (240, 240, 240)  # unseen / outside cells: blank (a paper grey)
 BACKGROUND = (255, 255, 255)
 INK = (0, 0, 0)
 TARGET_PX = 480  # small plans are upscaled (nearest neighbour) to about this many pixels
@@ -50,16 +27,6 @@ class PlanBox:
     x0: int
     y0: int
     scale: int
-
-
-def class_color(cid: int) -> tuple[int, int, int]:
-    """The fixed RGB colour of a class id (UNKNOWN_COLOR for 255)."""
-    if cid == UNKNOWN:
-        return UNKNOWN_COLOR
-    if 0 <= cid < len(PALETTE):
-        return PALETTE[cid]
-    r, g, b = colorsys.hsv_to_rgb((cid * 0.618033988749895) % 1.0, 0.7, 0.85)  # golden-ratio hue
-    return (round(r * 255), round(g * 255), round(b * 255))
 
 
 def plan_png(bp: Blueprint, path: Path, title: str = "") -> None:
@@ -80,7 +47,7 @@ def plan_picture(bp: Blueprint, title: str = "") -> tuple[Image.Image, PlanBox]:
     line = _text_size(probe, "Ag", font)[1] + 6
     ids = [int(c) for c in np.unique(labels)]
     entries = [
-        (class_color(c), "unknown" if c == UNKNOWN else bp.classes.get(c, f"class {c}"))
+        (class_color(c), label_name(bp.classes, c))
         for c in sorted(ids, key=lambda c: (c == UNKNOWN, c))
     ]
     legend_w = 24 + max([_text_size(probe, n, font)[0] for _, n in entries] + [40])

@@ -16,6 +16,11 @@ A stage marks its steps in a line or two, without re-indenting its loops:
 
 A bar a stage leaves open (an exception) is closed by `close_all`, which the runner calls
 after every stage.
+
+A caller that shows progress its own way (a web page, a batch's summary line) listens
+instead of reading the bars: `with listening(fn): ...` calls fn(StepProgress) for every step
+opened, advanced and closed in that block's thread (as pycolmap's mapping callbacks), the
+bars and log lines going on as before.
 """
 
 from __future__ import annotations
@@ -24,7 +29,9 @@ import logging
 import sys
 import threading
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
 log = logging.getLogger(__name__)
@@ -39,6 +46,33 @@ _lock = threading.Lock()
 _bars_on = 0  # bars on screen now
 _redirection: Any = None  # the logging redirection while any bar is on screen
 T = TypeVar("T")
+_local = threading.local()  # .listeners: the listeners of this thread's `listening` blocks
+
+
+@dataclass(frozen=True)
+class StepProgress:
+    """How far one step is: sent to listeners when it opens, advances and closes."""
+
+    name: str  # the step, e.g. "nerf" or "edit render"
+    n: float  # how far, in `unit`
+    total: float | None  # None: a phase of unknown length
+    unit: str
+    done: bool = False  # the step closed (finished, or stopped by an exception)
+    info: dict[str, Any] = field(default_factory=dict)  # facts shown beside the count
+
+
+Listener = Callable[[StepProgress], None]
+
+
+@contextmanager
+def listening(fn: Listener) -> Iterator[None]:
+    """Within the block, fn gets a StepProgress for each change of a step this thread opens."""
+    mine = getattr(_local, "listeners", ())
+    _local.listeners = (*mine, fn)
+    try:
+        yield
+    finally:
+        _local.listeners = mine
 
 
 def configure(mode: str) -> None:
@@ -72,6 +106,8 @@ class Progress:
         self._last_log = self.t0
         self._bar: Any = None
         self._ticker: threading.Thread | None = None
+        self._listeners: tuple[Listener, ...] = getattr(_local, "listeners", ())
+        self._tell()
         if self.mode == "bar":
             self._start_bar()
         with _lock:
@@ -90,6 +126,7 @@ class Progress:
         self.n = n
         if info:
             self.info.update(info)
+        self._tell()
         if self._bar is not None:
             if info:
                 self._bar.set_postfix(_fmt_info(self.info, self.unit), refresh=False)
@@ -104,6 +141,7 @@ class Progress:
         with _lock:
             if self in _open:
                 _open.remove(self)
+        self._tell()
         if self._bar is not None:
             self._bar.close()
             _redirect(-1)
@@ -122,6 +160,13 @@ class Progress:
         self.close()
 
     # -- inside -----------------------------------------------------------------------------
+    def _tell(self) -> None:
+        if self._listeners:
+            n, total, info = self.n, self.total, dict(self.info)
+            ev = StepProgress(self.name, n, total, self.unit, self.closed, info)
+            for fn in self._listeners:
+                fn(ev)
+
     def _start_bar(self) -> None:
         from tqdm import tqdm
 
@@ -195,13 +240,6 @@ def track(items: Iterable[T], name: str, total: int | None = None, unit: str = "
         for x in items:
             yield x
             bar.update(1)
-
-
-def open_steps() -> list[tuple[str, float, float | None, str]]:
-    """The steps under way now, oldest first: (name, count, total or None, unit) (for a page
-    that shows a run's progress)."""
-    with _lock:
-        return [(p.name, p.n, p.total, p.unit) for p in _open]
 
 
 def close_all() -> None:

@@ -6,9 +6,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar
 
+from stages.common.classes import FLOOR_NAME, UNKNOWN_NAME
 from stages.common.errors import BlunfError
 
-REMOVED_LABELS = ("floor", "unknown")
+REMOVED_LABELS = (FLOOR_NAME, UNKNOWN_NAME)
 RENDERS = ("volume", "surface")
 
 
@@ -17,7 +18,7 @@ class EditConfig:
     """How a selection becomes a 3-D extent, and how the edited scene is rendered and scored."""
 
     impl: str = "nerf"  # registry key in stages.edit.IMPLS: "nerf" (edits applied while rendering)
-    floor_class: str = "floor"  # name of the floor class in the plan's class table
+    floor_class: str = FLOOR_NAME  # name of the floor class in the plan's class table
     floor_band: float = 0.05  # metres: geometry within this of z = 0 is floor; a floor selection
     #                           is the slab |z| <= floor_band, an object's top ignores it
     floor_clear: float = 0.02  # metres: an object's extent starts this high (floor under it kept)
@@ -26,8 +27,8 @@ class EditConfig:
     #                        the object (smaller runs below it are noise)
     top_margin: float = 0.05  # metres added above an object's measured top
     pad: float = 0.02  # metres the footprint grows by sideways (the field's blur at object sides)
-    removed_label: str = "floor"  # plan cells of removed selections become "floor" (when the
-    #                               plan has it and the selection is not floor) or "unknown" (255)
+    removed_label: str = FLOOR_NAME  # plan cells of removed selections become floor (when the
+    #                                 plan has it and the selection is not floor) or unknown (255)
     mask_threshold: float = 0.5  # a pixel is selected when its weight inside the extent >= this
     change_threshold: float = 0.02  # a pixel changed when a channel moved more than this (RGB 0-1)
     render_scale: float = 1.0  # renders at this fraction of the frames' resolution

@@ -26,6 +26,7 @@ from torch import Tensor
 
 from stages.common.blueprint import Blueprint, Grid
 from stages.common.capture import UNKNOWN
+from stages.common.classes import FLOOR_NAME
 from stages.common.components import class_name
 from stages.common.errors import BlunfError
 from stages.edit.config import EditConfig
@@ -225,7 +226,7 @@ def edited_plan(
     for e, sel in zip(spec.edits, cells, strict=True):
         if e.op != "remove":
             continue
-        if cfg.removed_label == "floor" and floor_ids:
+        if cfg.removed_label == FLOOR_NAME and floor_ids:
             is_floor = np.isin(bp.labels, floor_ids)
             lab[sel & ~is_floor] = floor_ids[0]
             lab[sel & is_floor] = UNKNOWN

@@ -14,7 +14,8 @@ from PIL import Image, ImageDraw, ImageFont
 from stages.common.architect import PAD_M, overlay
 from stages.common.blueprint import Blueprint
 from stages.common.capture import UNKNOWN
-from stages.common.plan_picture import class_color, nice_length
+from stages.common.classes import class_color, label_name
+from stages.common.plan_picture import nice_length
 
 LONG_PX = 1400  # the plan's longer side (px)
 MARGIN = 24
@@ -37,7 +38,7 @@ def architect_png(bp: Blueprint, plan: dict, path: Path, title: str = "") -> tup
     probe = ImageDraw.Draw(Image.new("RGB", (1, 1)))
     line = int(probe.textbbox((0, 0), "Ag", font=font)[3]) + 10
     ids = sorted((int(c) for c in np.unique(labels)), key=lambda c: (c == UNKNOWN, c))
-    names = ["unknown" if c == UNKNOWN else bp.classes.get(c, f"class {c}") for c in ids]
+    names = [label_name(bp.classes, c) for c in ids]
     legend_w = 40 + max(int(probe.textlength(n, font=font)) for n in names + ["walls (plan)"])
     top = MARGIN + (line + 6 if title else 0)
     w, h = plan_img.size

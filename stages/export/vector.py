@@ -21,6 +21,7 @@ from ezdxf.lldxf.validator import INVALID_LAYER_NAME_CHARACTERS
 
 from stages.common.blueprint import Blueprint
 from stages.common.capture import UNKNOWN
+from stages.common.classes import UNKNOWN_NAME, class_color
 from stages.common.components import (
     class_name,
     component_map,
@@ -29,7 +30,6 @@ from stages.common.components import (
     polygons,
     rings,
 )
-from stages.common.plan_picture import class_color
 
 __all__ = [
     "class_color",
@@ -118,7 +118,7 @@ def write_svg(
     if unknown:
         areas[UNKNOWN] = unknown * cell * cell
     legend = [
-        (cid, "unknown" if cid == UNKNOWN else class_name(bp, cid), a)
+        (cid, UNKNOWN_NAME if cid == UNKNOWN else class_name(bp, cid), a)
         for cid, a in sorted(areas.items())
     ]
     width = MARGIN + pw + MARGIN + LEGEND_W + MARGIN

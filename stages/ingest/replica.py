@@ -22,6 +22,7 @@ import numpy as np
 
 from stages.common.camera import Intrinsics
 from stages.common.capture import IMAGE_EXTS, UNKNOWN, Capture, Frame
+from stages.common.classes import CEILING_NAME
 from stages.common.errors import BlunfError
 from stages.common.io import image_size, read_json, read_label, write_json, write_label_png
 
@@ -94,7 +95,7 @@ def read(src: Path, work: Path) -> Capture:
         raise BlunfError(f"{info_path}: expected a JSON object")
     classes, remap = class_table(info, str(info_path))
     lut, objects = instance_lut(info, remap, str(info_path))
-    ignore = tuple(i for i, name in sorted(classes.items()) if "ceiling" in name.lower())
+    ignore = tuple(i for i, name in sorted(classes.items()) if CEILING_NAME in name.lower())
 
     rgb_dir = src / "rgb"
     images = (

@@ -24,6 +24,7 @@ from skimage.measure import find_contours
 
 from stages.common.blueprint import Blueprint
 from stages.common.capture import UNKNOWN
+from stages.common.classes import FLOOR_NAME, STRUCTURE, WALL_NAME
 from stages.layout.config import LayoutConfig
 from stages.layout.extract import (
     Frame,
@@ -35,7 +36,6 @@ from stages.layout.extract import (
     outline,
 )
 
-STRUCTURE = ("floor", "wall", "ceiling")
 SEEN_NEAR = 0.1  # metres: a face is seen where a seen wall cell lies this close to its band
 SEEN_SHARE = 0.5  # a wall is seen (not inferred) when this share of its face is
 
@@ -90,7 +90,7 @@ def _thickness(
 
 def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
     """Rooms, walls and openings of the blueprint (world metres)."""
-    wid, fid = class_id(bp, "wall"), class_id(bp, "floor")
+    wid, fid = class_id(bp, WALL_NAME), class_id(bp, FLOOR_NAME)
     out: dict = {"units": "m", "angle_deg": 0.0, "rooms": [], "walls": [], "openings": []}
     if wid is None:
         return out

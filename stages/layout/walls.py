@@ -17,6 +17,7 @@ from shapely.geometry import Polygon
 
 from stages.common.blueprint import Blueprint
 from stages.common.capture import UNKNOWN
+from stages.common.classes import FLOOR_NAME, WALL_NAME, ids_named
 from stages.common.errors import BlunfError
 from stages.common.io import write_json
 from stages.layout.config import LayoutConfig, LayoutInputs, LayoutOutputs
@@ -57,7 +58,7 @@ def build_plan(bp: Blueprint, cfg: LayoutConfig, mesh: Path | None = None) -> di
         plan = moved_to_faces(plan, face_offsets(scene, plan["walls"]), cfg, bp.grid.cell)
         plan["openings"] = _distinct(mesh_openings(plan["walls"], verts, tris, cfg))
         plan["walls"] = seen_thickness(scene, plan["walls"], cfg)
-        fid = [k for k, v in bp.classes.items() if v == "floor"]
+        fid = ids_named(bp.classes, FLOOR_NAME)
         floor = bp.grid.centers()[np.isin(bp.labels, fid)]
         ceil = ceiling(scene, floor[:: max(1, len(floor) // 50)])
         plan["objects"] = objects(
@@ -121,7 +122,7 @@ def seen_floor(bp: Blueprint, scene: o3d.t.geometry.RaycastingScene) -> Blueprin
     cabinet before a stretch of wall stereo did not fuse, whose rays meet the cabinet's back
     or nothing (photos alone, rectangle seed 5: the outline stepped 0.56 m inside the north
     wall round it, corner F1 0.6 against 1.0)."""
-    fid = [k for k, v in bp.classes.items() if v == "floor"]
+    fid = ids_named(bp.classes, FLOOR_NAME)
     floor = np.isin(bp.labels, fid)
     if not floor.any():
         return bp
@@ -133,7 +134,7 @@ def seen_floor(bp: Blueprint, scene: o3d.t.geometry.RaycastingScene) -> Blueprin
     labels = bp.labels.copy()
     rows, cols = np.nonzero(floor)
     gone = np.nonzero(~(t <= 2 * FLOOR_BAND))[0]
-    wid = [k for k, v in bp.classes.items() if v == "wall"]
+    wid = ids_named(bp.classes, WALL_NAME)
     near = ndi.binary_dilation(np.isin(bp.labels, wid), iterations=WALL_NEAR)
 
     def is_wall(pts: np.ndarray) -> np.ndarray:

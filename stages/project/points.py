@@ -27,6 +27,7 @@ import numpy as np
 from stages.common.blueprint import Grid
 from stages.common.camera import Intrinsics, pixel_grid, unproject
 from stages.common.capture import UNKNOWN, Capture, Frame, heldout_views
+from stages.common.classes import HEIGHT as HEIGHT_CLASSES
 from stages.common.errors import BlunfError
 from stages.common.io import image_size, read_depth, read_label, save_npz, write_json
 from stages.common.points import str_keys, write_grid, write_points
@@ -36,7 +37,6 @@ from stages.project.topview import top_view_keep
 
 log = logging.getLogger(__name__)
 
-HEIGHT_CLASSES = {0: "floor", 1: "occupied"}
 LABELLINGS = ("auto", "labels", "height")
 OCCLUSIONS = ("top", "none")
 

@@ -8,10 +8,6 @@ from typing import ClassVar
 
 from stages.common.errors import BlunfError
 
-FLOOR, WALL, CEILING, OBJECT = 0, 1, 2, 3
-CLASSES = {FLOOR: "floor", WALL: "wall", CEILING: "ceiling", OBJECT: "object"}
-IGNORE = (CEILING,)  # the ceiling is labelled in the views but never projected to the plan
-
 
 @dataclass(frozen=True)
 class SemanticsConfig:

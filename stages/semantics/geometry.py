@@ -17,15 +17,22 @@ import numpy as np
 import open3d as o3d
 
 from stages.common.capture import UNKNOWN, Capture, Frame
+from stages.common.classes import (
+    CEILING_NAME,
+    FLOOR,
+    FLOOR_NAME,
+    OBJECT,
+    STRUCTURE,
+    UNKNOWN_NAME,
+    WALL,
+    WALL_NAME,
+)
+from stages.common.classes import GEOMETRY as CLASSES
+from stages.common.classes import GEOMETRY_IGNORE as IGNORE
 from stages.common.errors import BlunfError
 from stages.common.io import write_depth_npy, write_json, write_label_png
 from stages.common.o3d import o3d_extrinsic, o3d_intrinsic
 from stages.semantics.config import (
-    CLASSES,
-    FLOOR,
-    IGNORE,
-    OBJECT,
-    WALL,
     SemanticsConfig,
     SemanticsInputs,
     SemanticsOutputs,
@@ -81,7 +88,7 @@ def run(cfg: SemanticsConfig, inputs: SemanticsInputs, out: Path) -> SemanticsOu
     sem.save(outs.frames)
 
     n_obj = int(seg.instance.max(initial=0))
-    planes = {k: sum(p["kind"] == k for p in seg.planes) for k in ("floor", "wall", "ceiling")}
+    planes = {k: sum(p["kind"] == k for p in seg.planes) for k in STRUCTURE}
     stats = {
         "triangles": len(tris),
         "planes": planes,
@@ -107,7 +114,7 @@ def run(cfg: SemanticsConfig, inputs: SemanticsInputs, out: Path) -> SemanticsOu
         },
         "area_m2": {
             name: round(float(seg.area[seg.cls == k].sum()), 3)
-            for k, name in [*CLASSES.items(), (UNKNOWN, "unknown")]
+            for k, name in [*CLASSES.items(), (UNKNOWN, UNKNOWN_NAME)]
         },
         "pixels": pixels,  # fraction of all pixels per class over every view
         "views": len(frames),
@@ -120,9 +127,9 @@ def run(cfg: SemanticsConfig, inputs: SemanticsInputs, out: Path) -> SemanticsOu
     write_json(outs.stats, stats)
     log.info(
         "semantics: %d floor, %d wall, %d ceiling planes; %d objects; %d views in %.1f s",
-        planes["floor"],
-        planes["wall"],
-        planes["ceiling"],
+        planes[FLOOR_NAME],
+        planes[WALL_NAME],
+        planes[CEILING_NAME],
         n_obj,
         len(frames),
         t_segment + t_render,
@@ -161,7 +168,7 @@ def _render(
     cls = np.append(seg.cls, np.uint8(UNKNOWN))  # [T + 1]: the last entry is "no hit"
     inst = np.append(seg.instance, 0)  # [T + 1]
     wide = inst.max(initial=0) > 255
-    walls = tuple(p for p in seg.planes if p["kind"] == "wall")
+    walls = tuple(p for p in seg.planes if p["kind"] == WALL_NAME)
     # the point walls are plain walls seen through by construction: always filled
     fill_walls = tuple(w for w in walls if cfg.wall_fill or w.get("source") == "points")
     counts = np.zeros(256, np.int64)
@@ -203,7 +210,7 @@ def _render(
         write_label_png(ipath, ids)
         frames.append(replace(f, label=path, instance=ipath))
     total = max(int(counts.sum()), 1)
-    names = {**CLASSES, UNKNOWN: "unknown"}
+    names = {**CLASSES, UNKNOWN: UNKNOWN_NAME}
     pixels = {name: round(int(counts[k]) / total, 4) for k, name in names.items()}
     return frames, {
         **pixels,

@@ -34,6 +34,7 @@ import numpy as np
 
 from stages.common.camera import unproject
 from stages.common.capture import Capture
+from stages.common.classes import WALL_NAME
 from stages.common.io import read_depth
 from stages.common.rows import unique_rows
 
@@ -171,7 +172,7 @@ def _outermost(
     top = max(float(p[on, 2].max()), opt.top)
     normal = -n  # facing the room (the cameras)
     return int(on.sum()), {
-        "kind": "wall",
+        "kind": WALL_NAME,
         "normal": [round(float(x), 4) for x in normal],
         "d": round(s0, 4),  # normal @ x + d = 0 on the plane: -s + s0
         "area_m2": round(n_cells * COVER_CELL**2, 3),

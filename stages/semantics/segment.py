@@ -41,8 +41,17 @@ import numpy as np
 import open3d as o3d
 
 from stages.common.capture import UNKNOWN
+from stages.common.classes import (
+    CEILING,
+    CEILING_NAME,
+    FLOOR,
+    FLOOR_NAME,
+    OBJECT,
+    WALL,
+    WALL_NAME,
+)
 from stages.common.rows import unique_rows
-from stages.semantics.config import CEILING, FLOOR, OBJECT, WALL, SemanticsConfig
+from stages.semantics.config import SemanticsConfig
 from stages.semantics.pieces import split_by_top
 
 log = logging.getLogger(__name__)
@@ -111,14 +120,14 @@ def segment(
     pool = horiz & (n[:, 2] > 0) & (np.abs(c[:, 2]) < cfg.floor_max_z)
     for plane, inl in _planes(c, n, area, pool, cfg, rng, horizontal=True):
         if area[inl].sum() >= cfg.plane_min_area:
-            _accept(seg, plane, inl, "floor", FLOOR, c, area)
+            _accept(seg, plane, inl, FLOOR_NAME, FLOOR, c, area)
     floor = seg.cls == FLOOR
     if floor.any():
         seg.floor_z = float(np.median(c[floor, 2]))
     pool = horiz & (n[:, 2] < 0) & (c[:, 2] > cfg.ceiling_min_z)
     for plane, inl in _planes(c, n, area, pool, cfg, rng, horizontal=True):
         if area[inl].sum() >= cfg.plane_min_area:
-            _accept(seg, plane, inl, "ceiling", CEILING, c, area)
+            _accept(seg, plane, inl, CEILING_NAME, CEILING, c, area)
     pool = vert & (seg.cls == UNKNOWN)
     found = []
     for plane, inl in _planes(c, n, area, pool, cfg, rng, horizontal=False):
@@ -131,7 +140,7 @@ def segment(
     hung = np.zeros(t, bool)  # surfaces hanging before a wall: in no object
     for (plane, inl), is_outer in zip(found, outer, strict=True):
         if is_outer:
-            _accept(seg, plane, inl, "wall", WALL, c, area)
+            _accept(seg, plane, inl, WALL_NAME, WALL, c, area)
             continue
         # in front of a wall: furniture standing on the floor is left to the object
         # clusters; what hangs clear of it (blinds, a curtain, a board) stays unknown and
@@ -142,7 +151,7 @@ def segment(
             hung[inl] = True
     if more_walls is not None:
         for w in more_walls(c, n, area, seg.floor_z):
-            if not any(_same_wall(w, p) for p in seg.planes if p["kind"] == "wall"):
+            if not any(_same_wall(w, p) for p in seg.planes if p["kind"] == WALL_NAME):
                 seg.planes.append(w)
                 log.debug("semantics: wall from points %s", w)
     _absorb(seg, c, cfg)
@@ -276,7 +285,7 @@ def _describe(plane: np.ndarray, inl: np.ndarray, kind: str, c: np.ndarray, area
     """A plane for semantics.json and for the seams: normal, d, area and its box, which is
     [lo0, lo1, hi0, hi1] in xy for a horizontal plane, in (s along it, z) for a vertical one."""
     p = c[inl]
-    q = p[:, :2] if kind in ("floor", "ceiling") else np.stack([p @ _axes(plane), p[:, 2]], 1)
+    q = p[:, :2] if kind in (FLOOR_NAME, CEILING_NAME) else np.stack([p @ _axes(plane), p[:, 2]], 1)
     return {
         "kind": kind,
         "normal": [round(float(x), 4) for x in plane[:3]],
@@ -301,7 +310,7 @@ def _same_wall(a: dict, b: dict) -> bool:
 def _absorb(seg: Segmentation, c: np.ndarray, cfg: SemanticsConfig) -> None:
     """Unlabelled triangles near an accepted plane (its "dist", else plane_dist), inside its
     box, join it (any normal)."""
-    ids = {"floor": FLOOR, "wall": WALL, "ceiling": CEILING}
+    ids = {FLOOR_NAME: FLOOR, WALL_NAME: WALL, CEILING_NAME: CEILING}
     for pl in seg.planes:
         free = np.flatnonzero(seg.cls == UNKNOWN)
         p = c[free]
@@ -313,7 +322,7 @@ def _absorb(seg: Segmentation, c: np.ndarray, cfg: SemanticsConfig) -> None:
 def in_extent(plane: dict, p: np.ndarray, pad: float) -> np.ndarray:
     """bool [...]: whether points p [..., 3] lie inside an accepted plane's box (`_describe`)
     grown by `pad` metres: in xy for a floor or ceiling, in (s along it, z) for a wall."""
-    if plane["kind"] in ("floor", "ceiling"):
+    if plane["kind"] in (FLOOR_NAME, CEILING_NAME):
         q = p[..., :2]
     else:
         along = _axes(np.append(np.asarray(plane["normal"], np.float64), plane["d"]))

@@ -17,6 +17,8 @@ import numpy as np
 import trimesh
 from shapely.geometry import Polygon, box
 
+from stages.common.classes import FLOOR_NAME
+
 WALLS = ("wall_north", "wall_south", "wall_east", "wall_west")
 WIDTH = (0.8, 1.0)  # door width range (metres)
 CORNER = 0.3  # a door keeps this far from the room's corners (metres)
@@ -151,7 +153,7 @@ def cut_doors(
         if q.name in WALLS and any(d.wall == q.name for d in doors):
             pieces = wall_pieces(q.name, doors, wall_bounds(q.name, lx, ly, t, h))
             q = replace(q, mesh=trimesh.util.concatenate([bounds_mesh(b) for b in pieces]))
-        elif q.name == "floor":
+        elif q.name == FLOOR_NAME:
             slabs = [bounds_mesh(threshold(d, lx, ly, t)) for d in doors]
             q = replace(q, mesh=trimesh.util.concatenate([q.mesh, *slabs]))
         out.append(q)

@@ -8,7 +8,7 @@ from collections.abc import Callable
 import numpy as np
 import trimesh
 
-from stages.synth.classes import BED, CABINET, CHAIR, PLANT, SOFA, TABLE
+from stages.common.classes import BED, CABINET, CHAIR, PLANT, SOFA, TABLE
 
 
 # ---- primitives ------------------------------------------------------------------------

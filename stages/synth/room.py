@@ -19,20 +19,22 @@ import trimesh
 from shapely import affinity
 from shapely.geometry import Point, Polygon, box
 
-from stages.synth.classes import (  # noqa: F401  (re-exported: room.FLOOR etc.)
+from stages.common.classes import (  # noqa: F401  (re-exported: room.FLOOR etc.)
     BED,
     CABINET,
     CEILING,
+    CEILING_NAME,
     CHAIR,
-    CLASSES,
     FLOOR,
-    IGNORE,
-    PALETTE,
+    FLOOR_NAME,
     PLANT,
     SOFA,
     TABLE,
     WALL,
 )
+from stages.common.classes import SYNTH as CLASSES
+from stages.common.classes import SYNTH_COLORS as PALETTE
+from stages.common.classes import SYNTH_IGNORE as IGNORE  # noqa: F401  (re-exported)
 from stages.synth.doors import WALLS, Door, clearance, cut_doors, draw_doors, draw_passages
 from stages.synth.furniture import BUILDERS, Built, box_mesh, build_chair, build_table, join_meshes
 
@@ -268,7 +270,7 @@ def _room_parts(
 ) -> list[Part]:
     """Floor slab under the interior, four walls outside it, the ceiling slab on top."""
     parts = [
-        Part(box_mesh(0, lx, 0, ly, -0.05, 0.0), FLOOR, 0, "floor", _jitter(rng, PALETTE[FLOOR]))
+        Part(box_mesh(0, lx, 0, ly, -0.05, 0.0), FLOOR, 0, FLOOR_NAME, _jitter(rng, PALETTE[FLOOR]))
     ]
     walls = {
         "wall_north": box_mesh(-t, lx + t, ly, ly + t, 0, h),
@@ -280,7 +282,7 @@ def _room_parts(
         parts.append(Part(mesh, WALL, 0, name, _jitter(rng, PALETTE[WALL])))
     color = _jitter(rng, PALETTE[CEILING])  # drawn either way: the room must not depend on it
     if ceiling:
-        parts.append(Part(box_mesh(0, lx, 0, ly, h, h + 0.05), CEILING, 0, "ceiling", color))
+        parts.append(Part(box_mesh(0, lx, 0, ly, h, h + 0.05), CEILING, 0, CEILING_NAME, color))
     return parts
 
 

@@ -19,7 +19,8 @@ import trimesh
 from shapely.geometry import Polygon, box
 from shapely.ops import unary_union
 
-from stages.synth.classes import CEILING, FLOOR, PALETTE, WALL
+from stages.common.classes import CEILING, CEILING_NAME, FLOOR, FLOOR_NAME, WALL
+from stages.common.classes import SYNTH_COLORS as PALETTE
 from stages.synth.doors import (
     CORNER,
     WIDTH,
@@ -240,7 +241,7 @@ def build_l_room(seed: int, ceiling: bool = True, doors: int = 0, passages: int 
     for d in gaps:
         x0, y0, x1, y1 = _span(d, by_name[d.wall], wall).bounds
         floor.append(bounds_mesh((x0, x1, y0, y1, -0.05, 0.0)))
-    parts = [Part(_concat(floor), FLOOR, 0, "floor", _jitter(rng, PALETTE[FLOOR]))]
+    parts = [Part(_concat(floor), FLOOR, 0, FLOOR_NAME, _jitter(rng, PALETTE[FLOOR]))]
     for f in faces:
         cut = [d for d in gaps if d.wall == f.name]
         pieces = wall_pieces(f.name, cut, f.bounds, f.along_x) if cut else [f.bounds]
@@ -259,7 +260,7 @@ def build_l_room(seed: int, ceiling: bool = True, doors: int = 0, passages: int 
     color = _jitter(rng, PALETTE[CEILING])
     if ceiling:
         top = [bounds_mesh((*b, height, height + 0.05)) for b in tiles]
-        parts.append(Part(_concat(top), CEILING, 0, "ceiling", color))
+        parts.append(Part(_concat(top), CEILING, 0, CEILING_NAME, color))
     parts += furniture_parts(rng, lay)
     log.info(
         "L room %.2f x %.2f (notch %.2f x %.2f) x %.2f m, %d pieces of furniture",

@@ -11,6 +11,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -189,6 +190,8 @@ def test_local_cluster_gives_the_plans_of_runs_alone(local_batch, alone):
     assert "local cluster of 2 workers" in err
     assert "Dask dashboard http://127.0.0.1:" in err
     assert "running (room" in err, "no progress line named a running capture"
+    # ... and the stage its run took up (the runner's events, told by the worker)
+    assert re.search(r"running \(room\w*: (ingest|poses|align|fusion|semantics|project)", err), err
     assert_same(out, alone)
     facts = json.loads((out / "batch.json").read_text())
     assert facts["ok"] == 3 and facts["failed"] == 1

@@ -13,8 +13,8 @@ import numpy as np
 
 from pipeline.cli import main
 from stages.common.blueprint import Blueprint
+from stages.common.classes import OBJECT
 from stages.common.components import component_map
-from stages.semantics.config import OBJECT
 
 FAST = ["--set", "blueprint.blunf.steps=300", "--set", "fusion.voxel=0.04"]
 

@@ -182,7 +182,7 @@ def test_fill_is_the_floor_colour_round_the_footprint():
     # footprint (green here), not of the floor further out (red), nor of the box (blue);
     # the field is asked only when the mesh has no colours; no fill for a recolour, for a
     # removal of floor, or without floor round the footprint
-    from stages.edit.nerf import _fill
+    from stages.edit.view import ground_fill
 
     bp = _plan()
     cells = _select("click", (0.6, 0.6))
@@ -204,18 +204,18 @@ def test_fill_is_the_floor_colour_round_the_footprint():
             raise AssertionError("the mesh has colours: the field is not asked")
 
     e = Edit(0, "remove", Selector("click", (0.6, 0.6)))
-    fill = _fill(CFG, e, ext, comps, verts, cols, NoField())
+    fill = ground_fill(CFG, e, ext, comps, verts, cols, NoField())
     assert fill is not None and torch.equal(fill, torch.tensor([0.0, 1.0, 0.0]))
-    grey = _fill(CFG, e, ext, comps, verts, None, _FieldOf(density, color))
+    grey = ground_fill(CFG, e, ext, comps, verts, None, _FieldOf(density, color))
     assert grey is not None and torch.allclose(grey, torch.tensor(GREY))
-    assert _fill(CFG, replace(e, op="recolor"), ext, comps, verts, cols, NoField()) is None
+    assert ground_fill(CFG, replace(e, op="recolor"), ext, comps, verts, cols, NoField()) is None
     floor_comp = [{**comps[0], "class": "floor"}]
-    assert _fill(CFG, e, ext, floor_comp, verts, cols, NoField()) is None
-    assert _fill(CFG, e, ext, comps, box, cols[-2:], NoField()) is None
+    assert ground_fill(CFG, e, ext, floor_comp, verts, cols, NoField()) is None
+    assert ground_fill(CFG, e, ext, comps, box, cols[-2:], NoField()) is None
 
 
 class _FieldOf:
-    """A model-like object over the analytic field (what `_fill` asks of it: its functions)."""
+    """A model-like object over the analytic field (what `ground_fill` asks: its functions)."""
 
     def __init__(self, density_fn, color_fn) -> None:
         self.density, self.color = density_fn, color_fn

@@ -20,7 +20,7 @@ from shapely.ops import unary_union
 from stages.common.architect import overlay
 from stages.common.blueprint import Blueprint, Grid
 from stages.common.capture import UNKNOWN
-from stages.common.plan_picture import class_color
+from stages.common.classes import class_color
 from stages.evaluate.layout import interior_angles, score_layout
 from stages.export.files import ExportInputs
 from stages.export.files import _picture as export_picture

@@ -102,3 +102,31 @@ def test_close_all_closes_what_a_failing_stage_left_open(log_mode):
 def test_bad_mode_is_refused():
     with pytest.raises(ValueError, match="progress mode"):
         P.configure("loud")
+
+
+def test_a_listener_gets_every_change_of_its_threads_steps():
+    # opened (n 0), each update with its facts, closed (done) - whatever the display mode;
+    # a step of another thread is not told to this thread's listener
+    import threading
+
+    got: list[P.StepProgress] = []
+    P.configure("off")
+    try:
+        with P.listening(got.append):
+            bar = P.progress("nerf", total=3, unit="step")
+            bar.update(1, psnr=20.5)
+            bar.update(2)
+            bar.close()
+            other = threading.Thread(target=lambda: list(P.track(range(4), "elsewhere")))
+            other.start()
+            other.join()
+        list(P.track(range(2), "after the block"))
+    finally:
+        P.configure("auto")
+    assert [(e.name, e.n, e.total, e.done) for e in got] == [
+        ("nerf", 0, 3, False),
+        ("nerf", 1, 3, False),
+        ("nerf", 3, 3, False),
+        ("nerf", 3, 3, True),
+    ]
+    assert got[1].info == {"psnr": 20.5} and got[0].info == {} and got[0].unit == "step"

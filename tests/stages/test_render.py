@@ -6,7 +6,8 @@ import numpy as np
 from PIL import Image
 
 from stages.common.blueprint import Blueprint, Grid
-from stages.common.plan_picture import UNKNOWN_COLOR, class_color, plan_picture, plan_png
+from stages.common.classes import UNKNOWN_COLOR, class_color
+from stages.common.plan_picture import plan_picture, plan_png
 
 # 3 rows x 4 columns; row 0 is north (highest y). Class 7 appears only in the north-east
 # corner, so a picture drawn south up would show it bottom-right instead of top-right.

@@ -14,12 +14,12 @@ import trimesh
 
 from stages.common.camera import Intrinsics
 from stages.common.capture import UNKNOWN, Capture, Frame, read_layout
+from stages.common.classes import CEILING, FLOOR, OBJECT, WALL
 from stages.common.errors import BlunfError
 from stages.common.io import read_label, write_image
 from stages.fusion import IMPLS as FUSION
 from stages.fusion import FusionConfig, FusionInputs
 from stages.semantics import IMPLS, SemanticsConfig, SemanticsInputs
-from stages.semantics.config import CEILING, FLOOR, OBJECT, WALL
 from stages.semantics.floorfill import Footprint
 from stages.semantics.segment import segment, triangles
 from tests.conftest import shared_capture

@@ -15,10 +15,10 @@ import trimesh
 
 from stages.common.camera import Intrinsics
 from stages.common.capture import UNKNOWN, Capture
+from stages.common.classes import FLOOR
 from stages.common.io import read_label
 from stages.common.o3d import o3d_extrinsic, o3d_intrinsic
 from stages.semantics import IMPLS, SemanticsConfig, SemanticsInputs
-from stages.semantics.config import FLOOR
 from tests.stages.test_semantics import _holed_room, _look, _views_capture
 
 LX = 6.0  # the counters run along x in [0, LX]; the hull spans y in [-0.5, 3]

@@ -16,9 +16,9 @@ import pytest
 
 from stages.common.camera import Intrinsics
 from stages.common.capture import Capture, Frame
+from stages.common.classes import OBJECT, WALL
 from stages.common.io import read_label, write_depth_npy
 from stages.semantics import IMPLS, SemanticsConfig, SemanticsInputs
-from stages.semantics.config import OBJECT, WALL
 from stages.semantics.pointwalls import PointWallOptions, point_walls, room_directions
 from tests.stages.test_semantics import _look, _views_capture
 from tests.stages.test_semantics_floorfree import _rays, box_mesh

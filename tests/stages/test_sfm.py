@@ -16,6 +16,7 @@ from stages.common.errors import BlunfError
 from stages.common.io import read_json
 from stages.evaluate.poses import pose_metrics
 from stages.poses import IMPLS, PosesConfig, PosesInputs, PosesOutputs
+from stages.poses.models import metric_scale
 from stages.poses.scale import (
     depth_ratios,
     scale_from_camera_height,
@@ -23,7 +24,7 @@ from stages.poses.scale import (
     scale_from_distance,
     scale_from_priors,
 )
-from stages.poses.sfm import _colmap_camera, _scale, first_octave
+from stages.poses.sfm import _colmap_camera, first_octave
 
 SHARED_DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 
@@ -280,19 +281,19 @@ def test_sfm_incremental_on_a_synthetic_room(room: Path, tmp_path: Path) -> None
     ids, kept = [by_name[n] for n in names], list(range(len(names)))
     height = float(np.median([p[2, 3] for p in gt.values()]))  # floor at z = 0 in GT
     cfg = PosesConfig(scale_from="camera_height", camera_height=height)
-    s, _ = _scale(cfg, got, rec, ids, kept)
+    s, _ = metric_scale(cfg, got, rec, ids, kept)
     assert s == pytest.approx(1.0, abs=0.05)
     # No length given: the hand-held camera height prior (1.45 m; the room's cameras are at
     # 1.25-1.65 m, median 1.43) over the floor found in the sparse points (these views do not
     # see the ceiling). Measured: scale 1.010.
-    s, facts = _scale(PosesConfig(scale_from="priors"), got, rec, ids, kept)
+    s, facts = metric_scale(PosesConfig(scale_from="priors"), got, rec, ids, kept)
     assert facts["method"] == "priors" and facts["source"] == "camera_height", facts
     assert s == pytest.approx(1.0, rel=0.05)
     assert 0.0 < facts["uncertainty_rel"] <= 0.1
     # Known distance between the first and last camera centres: exactly known / estimated.
     c0, c1 = got.frames[0].pose[:3, 3], got.frames[-1].pose[:3, 3]  # type: ignore[index]
     cfg = PosesConfig(scale_from="distance", known_distance=1.7)
-    s, facts = _scale(cfg, got, rec, ids, kept)
+    s, facts = metric_scale(cfg, got, rec, ids, kept)
     assert s == pytest.approx(1.7 / np.linalg.norm(c1 - c0), rel=1e-6)
 
 
@@ -364,7 +365,8 @@ def _priors_find_the_floor(sparse: Path, got: Capture, cap: Capture, height: flo
     names = sorted(by_name)  # capture order
     stems = [f.stem for f in cap.frames]
     kept = [stems.index(f.stem) for f in got.frames]
-    s, facts = _scale(PosesConfig(scale_from="priors"), cap, rec, [by_name[n] for n in names], kept)
+    ids = [by_name[n] for n in names]
+    s, facts = metric_scale(PosesConfig(scale_from="priors"), cap, rec, ids, kept)
     assert facts["method"] == "priors"
     assert facts["camera_height_m"] / s == pytest.approx(height, rel=0.05), facts
     assert s == pytest.approx(1.0, rel=0.1)

@@ -12,7 +12,8 @@ from PIL import Image
 from scipy import ndimage as ndi
 
 from stages.common.blueprint import Blueprint
-from stages.common.plan_picture import class_color, plan_picture
+from stages.common.classes import class_color
+from stages.common.plan_picture import plan_picture
 from stages.export.vector import write_svg
 
 NS = {"s": "http://www.w3.org/2000/svg"}

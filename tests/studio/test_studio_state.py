@@ -14,8 +14,8 @@ from pipeline.render import camera_json, pose_wxyz, viewer_camera
 from pipeline.studio.plan_view import StrokeDrag, cell_centre, plan_picture, screen_ray, top_view
 from pipeline.studio.state import SPEC_NAME, Session, floor_point
 from pipeline.studio.train import Trainer, training_config
+from stages.common.classes import class_color
 from stages.common.errors import BlunfError
-from stages.common.plan_picture import class_color
 from stages.edit.render import look_at
 from stages.edit.spec import load_spec
 from tests.runs import VOXEL
