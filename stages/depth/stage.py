@@ -27,6 +27,7 @@ from stages.common.capture import Capture
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth, read_image, write_depth_npy, write_image, write_json
 from stages.common.threads import torch_threads
+from stages.depth import planes
 from stages.depth.config import (
     FIELD,
     NONE,
@@ -37,7 +38,6 @@ from stages.depth.config import (
     DepthOutputs,
     FieldFillConfig,
 )
-from stages.depth import planes
 from stages.depth.field import fill as field_fill
 from stages.depth.render import upsample_depth
 from stages.depth.sweep import sweep_depths

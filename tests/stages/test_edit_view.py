@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 import trimesh
+from stages.nerf.scene import build_model
 
 from stages.common.camera import Intrinsics
 from stages.common.components import component_map
@@ -16,7 +17,6 @@ from stages.edit.render import look_at
 from stages.edit.spec import Edit, Selector
 from stages.edit.view import MASK_TINT, EditedView
 from stages.nerf.config import NerfConfig
-from stages.nerf.scene import build_model
 from tests.conftest import tune
 from tests.stages.edit_scene import BOX_A, BOX_B, CFG, _plan
 

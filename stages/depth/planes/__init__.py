@@ -22,13 +22,13 @@ from stages.common.camera import depth_to_points
 from stages.common.errors import BlunfError
 from stages.common.progress import track
 from stages.common.threads import side_by_side, torch_threads
+from stages.depth.consistency import consistent_depth
 from stages.depth.planes.appearance import plane_colours
 from stages.depth.planes.config import PlanesConfig
 from stages.depth.planes.hypotheses import KINDS, Plane, find_planes, view_points
 from stages.depth.planes.label import label_view
 from stages.depth.planes.merge import Merged, merge_view
 from stages.depth.planes.prepare import at_size, neighbours, view_data
-from stages.depth.consistency import consistent_depth
 
 __all__ = ["PlanesConfig", "fill"]
 log = logging.getLogger(__name__)
