@@ -24,11 +24,9 @@ scored against the sensor's (pipeline.bench.depth: coverage, within 5 cm, AbsRel
 writes DIR/real.json (figures, seconds), DIR/depth.json (per view) and keeps DIR/sfm-ref,
 DIR/ref, DIR/photos and the three copies.
 A run folder already finished under DIR is reused (the pipeline's caches): a second call
-with other photos-only settings reruns only what they change. The NeRF trains for a
-wall-clock budget (nerf.train.time_budget): on a loaded machine it takes few steps and the
-plan suffers (7-Scenes kitchen, 30 frames, 14 steps in 120 s: fwIoU 16.3); for figures
-that do not depend on the machine's load give
-`--set nerf.train.time_budget=0 --set nerf.train.max_steps=N`.
+with other photos-only settings reruns only what they change. The depth stage's field fill
+stops on its step count (depth.field.train.max_steps), so the figures do not depend on the
+machine's load.
 """
 
 from __future__ import annotations

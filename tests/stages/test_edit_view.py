@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 import trimesh
-from stages.nerf.scene import build_model
+from stages.common.radiance.scene import build_model
 
 from stages.common.camera import Intrinsics
 from stages.common.components import component_map
