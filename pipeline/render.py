@@ -32,7 +32,7 @@ if TYPE_CHECKING:
     from stages.edit.surface import SurfaceRenderer
 
 TRAIN_HINT = (
-    "blunf run CAPTURE --out {run} --config configs/edit-fast.yaml --edits {run}/edits/studio.yaml"
+    "blunf run CAPTURE --out {run} --config configs/edit-fast.yaml --edits {run}/studio/studio.yaml"
 )
 
 

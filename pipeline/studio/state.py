@@ -18,6 +18,7 @@ import numpy as np
 import yaml
 from PIL import Image, UnidentifiedImageError
 
+from pipeline.publish import STUDIO
 from pipeline.render import RunFiles, Scene, run_files
 from stages.common.capture import UNKNOWN
 from stages.common.errors import BlunfError
@@ -55,7 +56,9 @@ class Session:
     def __init__(self, run: Path):
         self.files: RunFiles = run_files(run)
         self.scene = Scene(self.files)
-        self.folder = self.files.run / "edits"  # where the spec and its textures are kept
+        # where the spec, its textures and renders are kept: outside the published run (a
+        # rerun replaces RUN/edits), never removed by a run (pipeline/publish.py)
+        self.folder = self.files.run / STUDIO
         self.edits: list[dict] = []
         self.undone: list[dict] = []
         self.selection: Selection | None = None
@@ -246,7 +249,7 @@ class Session:
             return {"edits": [dict(e) for e in self.edits], "views": list(views) or [0]}
 
     def save(self, views: list[int]) -> Path:
-        """Write RUN/edits/studio.yaml (views: the input views the run renders)."""
+        """Write RUN/studio/studio.yaml (views: the input views the run renders)."""
         with self.lock:
             if not self.edits:
                 raise BlunfError("save: no edits to save")
