@@ -123,7 +123,9 @@ def parser() -> argparse.ArgumentParser:
     t = sub.add_parser("studio", help="edit a run in the browser (local web page)")
     t.add_argument("run_dir", type=Path)
     t.add_argument("--port", type=int, default=8080)
-    t.add_argument("--host", default="127.0.0.1", help="address to listen on (default local)")
+    t.add_argument("--host", default="127.0.0.1",
+                   help="address to listen on (default local; any address needs the token of "
+                   "the URL it prints, as the local one does)")  # fmt: skip
 
     c = sub.add_parser("clean", help="drop the cache entries the latest run did not use")
     c.add_argument("run_dir", type=Path)

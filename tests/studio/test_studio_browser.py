@@ -189,7 +189,7 @@ def test_studio_remove_recolour_save(tiny_run, tmp_path) -> None:
         assert f":{port}" in line, line
         driver = _driver()
         page = Page(driver)
-        driver.get(f"http://127.0.0.1:{port}")
+        driver.get(line.split()[2])  # the URL printed, with the launch's token
         _wait(lambda: "Go to view" in page.text(), 60, "the studio's panel")
         page.checkbox("Render only")
         page.choose("Input view", f"{view}: {stem}")
