@@ -28,7 +28,7 @@ from pathlib import Path
 from pipeline.config import Config, load_config
 from pipeline.summary import summarise
 from stages.common.errors import BlunfError
-from stages.common.io import check_exists
+from stages.common.io import check_exists, finite_json
 from stages.common.progress import configure as configure_progress
 
 log = logging.getLogger(__name__)
@@ -306,7 +306,7 @@ def _finish(opts: BatchOptions, outcomes: list[Outcome], wall: float | None) -> 
         "scheduler": opts.scheduler or "local",
         "outcomes": [asdict(r) for r in outcomes],
     }
-    (opts.out / "batch.json").write_text(json.dumps(facts, indent=1) + "\n")
+    (opts.out / "batch.json").write_text(json.dumps(finite_json(facts), indent=1) + "\n")
     if wall is not None:
         timing = (
             f"<p>{facts['ok']} of {facts['captures']} captures in {wall:.1f} s wall time; "

@@ -4,12 +4,14 @@ expensive stage, so that a bad edit spec or label map fails in seconds, not afte
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from stages.common.capture import UNKNOWN, Capture
 from stages.common.errors import BlunfError
 from stages.common.io import read_label
+from stages.common.memory import check_memory
 from stages.edit import EditSpec
 from stages.edit.spec import check_views
 
@@ -26,6 +28,21 @@ def check_capture(cap: Capture, spec: EditSpec | None, memo: Path) -> None:
         return
     check_label_ids(cap)
     memo.touch()
+
+
+STEREO_BYTES = 48  # per plane and pixel of a view's sweep: its [D, HW] float32 warps and
+#                    costs (stages/nerf/stereo.py `_cost`), a dozen alive at once
+
+
+def check_sizes(cap: Capture, stereo: Any) -> None:
+    """Settings whose memory follows the photos' size, refused in one line before any work:
+    the plane sweep's cost volume (planes x pixels of the largest view)."""
+    if not cap.frames or not getattr(stereo, "enabled", False):
+        return
+    px = max(f.intrinsics.width * f.intrinsics.height for f in cap.frames)
+    px /= max(1, stereo.scale) ** 2 * stereo.coarse**2
+    planes = max(stereo.planes, stereo.refine)
+    check_memory(planes * px * STEREO_BYTES, f"nerf.stereo.planes={stereo.planes}")
 
 
 def check_label_ids(cap: Capture) -> None:

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from pipeline.runtime import setup_runtime
 from stages.common.errors import BlunfError
+from stages.common.io import finite_json
 from stages.common.progress import configure as configure_progress
 
 log = logging.getLogger("blunf")
@@ -180,7 +181,7 @@ def _dispatch(args: argparse.Namespace) -> int:
         n = setup_runtime(cfg.run.threads)
         log.debug("threads: %d", n)
         report = run(args.capture, args.out, cfg, args.edits)
-        summary = {k: v for k, v in report.metrics.items()}
+        summary = finite_json(dict(report.metrics))  # strict JSON: NaN as null
         print(
             json.dumps(
                 {
@@ -191,6 +192,7 @@ def _dispatch(args: argparse.Namespace) -> int:
                     "metrics": summary,
                 },
                 indent=1,
+                allow_nan=False,
             ),
             flush=True,
         )
@@ -261,6 +263,7 @@ def _dispatch(args: argparse.Namespace) -> int:
     if args.cmd == "render":
         from pipeline.render import render_command
 
+        _check_out_file(args.out)
         setup_runtime()
         r = render_command(
             args.run_dir, args.view, args.camera, args.edits, args.scale, args.out, args.fast
@@ -279,3 +282,11 @@ def _dispatch(args: argparse.Namespace) -> int:
         print(f"freed {freed / 1e6:.1f} MB ({n} entries)")
         return 0
     raise BlunfError(f"unknown command {args.cmd!r}")
+
+
+def _check_out_file(out: Path) -> None:
+    """`--out` names a picture to write into an existing folder (checked before any work)."""
+    if out.is_dir():
+        raise BlunfError(f"{out}: is a folder; --out names the picture to write (view.png)")
+    if not out.parent.is_dir():
+        raise BlunfError(f"{out.parent}: folder not found (--out {out})")

@@ -49,6 +49,9 @@ class RunFiles:
     edit: dict  # the run's edit settings (config.edit)
 
 
+RENDER_BYTES = 256  # per pixel of a render: its rays' samples, chunked, and the float images
+
+
 def run_files(run: Path) -> RunFiles:
     """The files of a finished run, or a one-line error naming what is missing."""
     run = Path(run)
@@ -286,6 +289,9 @@ def render_command(run: Path, view: int | None, camera: Path | None, spec: Path 
     if not 0 < scale <= 4:
         raise BlunfError(f"render: --scale must be in (0, 4], got {scale}")
     edits = load_spec(spec).edits if spec is not None else ()
+    if camera is not None:  # a bad camera file or size fails before the run is read
+        pose, intr = camera_json(camera)
+        _check_size(scaled(intr, scale))
     files = run_files(run)
     if files.model is None:
         raise BlunfError(
@@ -294,10 +300,8 @@ def render_command(run: Path, view: int | None, camera: Path | None, spec: Path 
     scene = Scene(files)
     if view is not None:
         pose, intr = scene.view(view)
-    else:
-        assert camera is not None
-        pose, intr = camera_json(camera)
     intr = scaled(intr, scale)
+    _check_size(intr)
     for e in edits:  # a selection off the plan fails before any render
         scene.selection(e)
     scene.render(pose, scaled(intr, 0.125), edits, fast=fast)  # warm-up: resolves the edits
@@ -308,3 +312,9 @@ def render_command(run: Path, view: int | None, camera: Path | None, spec: Path 
     if fast:
         res["volume_rendered"] = round(r.volume_rendered or 0.0, 4)
     return res
+
+
+def _check_size(intr: Intrinsics) -> None:
+    from stages.common.memory import check_memory
+
+    check_memory(intr.width * intr.height * RENDER_BYTES, f"render: {intr.width}x{intr.height}")

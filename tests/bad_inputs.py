@@ -329,6 +329,31 @@ CASES = [
     Case("set_no_equals", args=("--set", "fusion.voxel"), names="fusion.voxel"),
     Case("set_out_of_range", args=("--set", "fusion.voxel=-1"), names="fusion.voxel"),
     Case("set_unknown_impl", args=("--set", "fusion.impl=nope"), names="nope"),
+    # every numeric setting finite (a `> 0` check lets inf through): refused at config load
+    Case("set_voxel_inf", args=("--set", "fusion.voxel=.inf"), names="fusion.voxel"),
+    Case("set_lr_inf", args=("--set", "blueprint.blunf.lr=.inf"), names="blueprint.blunf.lr"),
+    Case("set_lr_nan", args=("--set", "blueprint.blunf.lr=.nan"), names="blueprint.blunf.lr"),
+    Case("set_depth_max_inf", args=("--set", "fusion.depth_max=.inf"), names="fusion.depth_max"),
+    Case("set_cell_nan", args=("--set", "project.cell=.nan"), names="project.cell"),
+    Case("set_cell_zero", args=("--set", "project.cell=0"), names="project.cell"),
+    Case("set_cell_negative", args=("--set", "project.cell=-0.02"), names="project.cell"),
+    Case("set_threads_negative", args=("--set", "run.threads=-1"), names="run.threads"),
+    # sizes that would take more memory than the machine has: refused in one line
+    Case(  # the plan field's loss turns NaN: the run fails, no all-floor plan published
+        "blunf_diverges",
+        args=("--set", "blueprint.blunf.lr=1e30"),
+        names="blueprint.blunf: the training diverged",
+    ),
+    Case(
+        "set_block_resolution_huge",
+        args=("--set", "fusion.block_resolution=1000"),
+        names="fusion.block_resolution=1000",
+    ),
+    Case(
+        "set_planes_huge",
+        args=("--set", "nerf.stereo.planes=10000000"),
+        names="nerf.stereo.planes=10000000",
+    ),
     Case("set_unknown_method", args=("--set", "run.methods=blunf,nope"), names="nope"),
     Case("config_missing", args=("--config", "{tmp}/nope.yaml"), names="{tmp}/nope.yaml"),
     Case("config_is_a_folder", args=("--config", "{tmp}/empty"), names="{tmp}/empty"),

@@ -1,0 +1,40 @@
+"""Bad arguments of the commands besides `blunf run` (render, batch): one line, exit 2,
+nothing half-written."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from pipeline.cli import main
+from tests.test_bad_input import check_error, snapshot
+
+
+def _camera(tmp, width: int, height: int):
+    f = tmp / "cam.json"
+    intr = {"fx": width, "fy": width, "cx": width / 2, "cy": height / 2}
+    intr.update(width=width, height=height)
+    f.write_text(json.dumps({"pose": np.eye(4).tolist(), "intrinsics": intr}))
+    return f
+
+
+@pytest.mark.parametrize(
+    "out, names",
+    [("missing/v.png", "missing: folder not found"), ("folder", "folder: is a folder")],
+)
+def test_render_out_missing_folder_or_a_folder(tmp_path, capsys, out, names) -> None:
+    (tmp_path / "folder").mkdir()
+    cam = _camera(tmp_path, 64, 48)
+    before = snapshot(tmp_path)
+    rc = main(["render", str(tmp_path), "--camera", str(cam), "--out", str(tmp_path / out)])
+    check_error(rc, capsys.readouterr().err, names, subprocess_run=False)
+    assert snapshot(tmp_path) == before
+
+
+def test_render_camera_too_large(tmp_path, capsys) -> None:
+    cam = _camera(tmp_path, 100000, 100000)
+    rc = main(["render", str(tmp_path), "--camera", str(cam), "--out", str(tmp_path / "v.png")])
+    check_error(rc, capsys.readouterr().err, "render: 100000x100000: asks for", False)
+    assert not (tmp_path / "v.png").exists()
