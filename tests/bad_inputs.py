@@ -14,6 +14,7 @@ import numpy as np
 from PIL import Image
 
 from stages.common.io import write_depth_png
+from tests.bomb import bomb_png
 
 STEM = "0003"  # the frame each case breaks
 
@@ -47,6 +48,16 @@ def _truncate(cap: Path, tmp: Path) -> None:
 
 def _garbage(cap: Path, tmp: Path) -> None:
     _img(cap).write_bytes(np.random.default_rng(0).bytes(777))
+
+
+def _bomb(cap: Path, tmp: Path) -> None:
+    _img(cap).write_bytes(bomb_png())  # claims 30000x30000: PIL's DecompressionBombError
+
+
+def _photos_bomb(cap: Path, tmp: Path) -> None:
+    """A plain photo folder (the capture's images alone), one of them a decompression bomb."""
+    shutil.copytree(cap / "images", tmp / "photos")
+    (tmp / "photos" / f"{STEM}.png").write_bytes(bomb_png())
 
 
 def _empty_file(cap: Path, tmp: Path) -> None:
@@ -237,6 +248,8 @@ CASES = [
     Case("image_truncated", _truncate, names=f"images/{STEM}.png"),
     Case("image_garbage", _garbage, names=f"images/{STEM}.png"),
     Case("image_empty_file", _empty_file, names=f"images/{STEM}.png"),
+    Case("image_decompression_bomb", _bomb, names=f"images/{STEM}.png"),
+    Case("photos_decompression_bomb", _photos_bomb, capture="{tmp}/photos", names=f"{STEM}.png"),
     Case("image_sizes_mixed", _mixed_sizes, names=f"images/{STEM}.png"),
     Case("depth_missing_for_one", _depth_missing, names=f"{STEM}.png"),
     Case("depth_wrong_size", _depth_size, names=f"depth/{STEM}.png"),

@@ -38,3 +38,30 @@ def test_render_camera_too_large(tmp_path, capsys) -> None:
     rc = main(["render", str(tmp_path), "--camera", str(cam), "--out", str(tmp_path / "v.png")])
     check_error(rc, capsys.readouterr().err, "render: 100000x100000: asks for", False)
     assert not (tmp_path / "v.png").exists()
+
+
+def test_unreadable_photo(tiny_room, tmp_path) -> None:
+    """A photo without read permission: one line naming it (not a PermissionError from
+    hashing the capture). Root reads any file, so as root the run goes without the
+    capabilities that let it (setpriv)."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+
+    from tests.test_bad_input import ROOT
+
+    cap = tmp_path / "cap"
+    shutil.copytree(tiny_room, cap)
+    photo = sorted((cap / "images").iterdir())[3]
+    os.chmod(photo, 0o000)
+    argv = [sys.executable, "-m", "pipeline", "run", str(cap), "--out", str(tmp_path / "run")]
+    if os.geteuid() == 0:
+        setpriv = shutil.which("setpriv")
+        if setpriv is None:
+            pytest.skip("running as root without setpriv: every file is readable")
+        drop = "-dac_override,-dac_read_search"
+        argv = [setpriv, f"--bounding-set={drop}", f"--inh-caps={drop}", *argv]
+    env = {**os.environ, "BLUNF_THREADS": "1", "PYTHONPATH": str(ROOT)}
+    r = subprocess.run(argv, capture_output=True, text=True, cwd=ROOT, env=env, timeout=300)
+    check_error(r.returncode, r.stderr, f"{photo}: cannot read", subprocess_run=True)

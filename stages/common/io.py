@@ -24,6 +24,17 @@ MAX_DEPTH_RATIO = 20.0
 DEPTH_MODES = ("I;16", "I;16B", "I;16L", "I;16N", "I", "F")
 
 
+# what PIL raises on a file that is not a readable image; DecompressionBombError (a header
+# claiming more pixels than PIL opens) is neither an OSError nor a ValueError
+IMAGE_ERRORS = (
+    UnidentifiedImageError,
+    OSError,
+    SyntaxError,
+    ValueError,
+    Image.DecompressionBombError,
+)
+
+
 def check_exists(path: Path, what: str) -> Path:
     """`path` as given, once it is known to lead somewhere; else a one-line error that says
     why not: not found, a symlink whose target is missing, a symlink loop, no permission.
@@ -52,7 +63,7 @@ def _open(path: Path) -> Image.Image:
         return img
     except FileNotFoundError:
         raise BlunfError(f"{path}: file not found") from None
-    except (UnidentifiedImageError, OSError, SyntaxError) as e:
+    except IMAGE_ERRORS as e:
         raise BlunfError(f"{path}: not a readable image ({e.__class__.__name__})") from None
 
 
@@ -68,7 +79,7 @@ def image_size(path: Path) -> tuple[int, int]:
             return img.size
     except FileNotFoundError:
         raise BlunfError(f"{path}: file not found") from None
-    except (UnidentifiedImageError, OSError) as e:
+    except IMAGE_ERRORS as e:
         raise BlunfError(f"{path}: not a readable image ({e.__class__.__name__})") from None
 
 
@@ -93,7 +104,7 @@ def depth_size(path: Path) -> tuple[int, int]:
             return img.size
     except FileNotFoundError:
         raise BlunfError(f"{path}: file not found") from None
-    except (UnidentifiedImageError, OSError) as e:
+    except IMAGE_ERRORS as e:
         raise BlunfError(f"{path}: not a readable image ({e.__class__.__name__})") from None
 
 
