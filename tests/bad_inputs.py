@@ -60,6 +60,13 @@ def _photos_bomb(cap: Path, tmp: Path) -> None:
     (tmp / "photos" / f"{STEM}.png").write_bytes(bomb_png())
 
 
+def _run_folder(cap: Path, tmp: Path) -> None:
+    """A finished run folder (its report.json, its .runs/) beside the capture."""
+    (tmp / "runf" / ".runs").mkdir(parents=True)
+    (tmp / "runf" / "report.json").write_text("{}")
+    shutil.copytree(cap / "images", tmp / "runf" / "images")
+
+
 def _empty_file(cap: Path, tmp: Path) -> None:
     _img(cap).write_bytes(b"")
 
@@ -414,6 +421,7 @@ CASES = [
         ("--edits", "{tmp}/edits.yaml"),
         names="edits[0].texture",
     ),
+    Case("capture_is_a_run_folder", _run_folder, capture="{tmp}/runf", names="a run folder"),
     Case("out_inside_capture", out="{cap}/run", names="{cap}/run"),
     Case("out_is_capture", out="{cap}", names="{cap}"),
     Case("out_is_a_file", out="{tmp}/file.txt", names="{tmp}/file.txt"),
