@@ -159,11 +159,46 @@ def _pid(name: str) -> int | None:
     return int(tail) if tail.isdigit() else None
 
 
+def run_alive(name: str) -> bool:
+    """Whether the run that made `.runs/<name>` (`<time_ns>-<pid>`) still lives: its pid is
+    alive and that process started before the folder was made (a dead run's pid taken by a
+    later process does not keep its folder forever)."""
+    pid = _pid(name)
+    if pid is None or not alive(pid):
+        return False
+    made = name.split("-", 1)[0]
+    started = _process_start(pid)
+    return started is None or not made.isdigit() or started <= int(made) / 1e9 + 1.0
+
+
+def _process_start(pid: int) -> float | None:
+    """When process `pid` started (seconds since the epoch; Linux /proc), else None."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+        ticks = int(stat.rsplit(")", 1)[1].split()[19])  # field 22: starttime
+        btime = next(
+            int(ln.split()[1]) for ln in Path("/proc/stat").read_text().splitlines()
+            if ln.startswith("btime ")
+        )  # fmt: skip
+        return btime + ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError, StopIteration):
+        return None
+
+
+def killed_runs(out: Path) -> list[Path]:
+    """The `.runs/<id>` folders of runs that died before switching theirs in."""
+    runs, cur = Path(out) / RUNS, _current(Path(out))
+    if not runs.is_dir():
+        return []
+    return [d for d in runs.iterdir() if d.name != cur and not run_alive(d.name)]
+
+
 def in_progress(out: Path) -> list[int]:
     """Pids of other live runs writing into this run folder now."""
     runs, cur = Path(out) / RUNS, _current(Path(out))
-    pids = [_pid(p.name) for p in runs.iterdir() if p.name != cur] if runs.is_dir() else []
-    return sorted({p for p in pids if p is not None and p != os.getpid() and alive(p)})
+    names = [p.name for p in runs.iterdir() if p.name != cur] if runs.is_dir() else []
+    live = [n for n in names if _pid(n) != os.getpid() and run_alive(n)]
+    return sorted({p for p in map(_pid, live) if p is not None})
 
 
 def sweep(out: Path) -> None:
@@ -174,7 +209,7 @@ def sweep(out: Path) -> None:
     if (out / RUNS).is_dir():
         for d in (out / RUNS).iterdir():
             pid = _pid(d.name)
-            if d.name != cur and pid is not None and (pid == os.getpid() or not alive(pid)):
+            if d.name != cur and pid is not None and (pid == os.getpid() or not run_alive(d.name)):
                 shutil.rmtree(d, ignore_errors=True)
     folders = [out] + [out / n for n in ("edits", STUDIO) if (out / n).is_dir()]
     for folder in folders:
