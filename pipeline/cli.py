@@ -147,6 +147,8 @@ def main(argv: list[str] | None = None) -> int:
         logging.getLogger("ezdxf").setLevel(logging.WARNING)
     # bars on a terminal, else a log line every ~10 % (stages/common/progress.py)
     configure_progress("off" if getattr(args, "quiet", False) else "auto")
+    if argv is None and args.cmd in ("run", "batch", "import", "bench"):
+        _terminate_quietly()
     try:
         return _dispatch(args)
     except BlunfError as e:
@@ -160,9 +162,32 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"blunf: error: {err}", file=sys.stderr)
         return 2
+    except Terminated:
+        print("blunf: terminated", file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
         print("blunf: interrupted", file=sys.stderr)
         return 130
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, ending blunf as Ctrl-C does (temp folders removed, one line)."""
+
+
+def _terminate_quietly() -> None:
+    """pycolmap installs glog's failure handler when imported, which prints ~30 lines of
+    native stack on SIGTERM: import it first, then take SIGTERM back."""
+    import signal
+
+    try:
+        import pycolmap  # noqa: F401
+    except ImportError:
+        pass
+
+    def terminated(signum: int, frame: object) -> None:
+        raise Terminated
+
+    signal.signal(signal.SIGTERM, terminated)
 
 
 def _dispatch(args: argparse.Namespace) -> int:

@@ -65,3 +65,32 @@ def test_unreadable_photo(tiny_room, tmp_path) -> None:
     env = {**os.environ, "BLUNF_THREADS": "1", "PYTHONPATH": str(ROOT)}
     r = subprocess.run(argv, capture_output=True, text=True, cwd=ROOT, env=env, timeout=300)
     check_error(r.returncode, r.stderr, f"{photo}: cannot read", subprocess_run=True)
+
+
+def test_sigterm_ends_in_one_line(tiny_room, tmp_path) -> None:
+    """SIGTERM during a run: `blunf: terminated`, exit 143, no native stack (pycolmap's
+    glog handler prints one), no temp folder left."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from tests.test_bad_input import ROOT, assert_cache_clean
+
+    out = tmp_path / "run"
+    env = {**os.environ, "BLUNF_THREADS": "1", "PYTHONPATH": str(ROOT)}
+    p = subprocess.Popen(
+        [sys.executable, "-m", "pipeline", "run", str(tiny_room), "--out", str(out),
+         "--set", "fusion.voxel=0.05"],
+        stderr=subprocess.PIPE, text=True, cwd=ROOT, env=env,
+    )  # fmt: skip
+    t0 = time.monotonic()
+    while not (out / "fusion").exists() and time.monotonic() - t0 < 120:  # at work
+        time.sleep(0.1)
+    p.send_signal(signal.SIGTERM)
+    _, err = p.communicate(timeout=120)
+    assert p.returncode == 143, err[-2000:]
+    assert err.strip().splitlines()[-1] == "blunf: terminated"
+    assert "stack trace" not in err and "*** " not in err, err[-2000:]
+    assert_cache_clean(out)
