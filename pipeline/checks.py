@@ -14,6 +14,7 @@ from stages.common.io import read_label
 from stages.common.memory import check_memory
 from stages.edit import EditSpec
 from stages.edit.spec import check_views
+from stages.project.points import HEIGHT_CLASSES
 
 
 def check_capture(cap: Capture, spec: EditSpec | None, memo: Path) -> None:
@@ -43,6 +44,24 @@ def check_sizes(cap: Capture, stereo: Any) -> None:
     px /= max(1, stereo.scale) ** 2 * stereo.coarse**2
     planes = max(stereo.planes, stereo.refine)
     check_memory(planes * px * STEREO_BYTES, f"nerf.stereo.planes={stereo.planes}")
+
+
+def check_edit_classes(cap: Capture, spec: EditSpec | None, labelling: str) -> None:
+    """An edit selecting a class the plan cannot hold (not in the capture's class table, or
+    not floor / occupied when the plan is labelled by height) fails here, after ingest,
+    not after the NeRF trained."""
+    if spec is None:
+        return
+    by_height = labelling == "height" or (labelling == "auto" and not cap.has_labels)
+    if not by_height and not cap.classes:
+        return  # ids compared as they are: names unknown until the plan
+    names = set(HEIGHT_CLASSES.values()) if by_height else set(cap.classes.values())
+    for e in spec.edits:
+        if e.select.kind == "class" and e.select.value not in names:
+            raise BlunfError(
+                f"{e.select.where}: no class {e.select.value!r} in the capture's classes "
+                f"({', '.join(sorted(names))})"
+            )
 
 
 def check_label_ids(cap: Capture) -> None:

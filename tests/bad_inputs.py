@@ -422,6 +422,12 @@ CASES = [
         names="edits[0].texture",
     ),
     Case("capture_is_a_run_folder", _run_folder, capture="{tmp}/runf", names="a run folder"),
+    Case(  # known at ingest (the class table), not after the NeRF trained
+        "edits_class_not_in_table",
+        _text("../edits.yaml", "edits:\n  - select: {class: piano}\n    op: remove\n"),
+        ("--edits", "{tmp}/edits.yaml"),
+        names="no class 'piano' in the capture's classes",
+    ),
     Case("out_inside_capture", out="{cap}/run", names="{cap}/run"),
     Case("out_is_capture", out="{cap}", names="{cap}"),
     Case("out_is_a_file", out="{tmp}/file.txt", names="{tmp}/file.txt"),
