@@ -185,8 +185,11 @@ def test_studio_remove_recolour_save(tiny_run, tmp_path) -> None:
     )  # fmt: skip
     driver = None
     try:
-        line = proc.stdout.readline() if proc.stdout else ""
-        assert f":{port}" in line, line
+        line = ""  # the studio's line (websockets and viser print theirs before it)
+        while proc.stdout and not line.startswith("blunf studio:"):
+            line = proc.stdout.readline()
+            assert line, "the studio ended before printing its URL"
+        assert f":{port}/?token=" in line, line
         driver = _driver()
         page = Page(driver)
         driver.get(line.split()[2])  # the URL printed, with the launch's token
