@@ -29,7 +29,7 @@ from pipeline.config import Config, load_config
 from pipeline.runner import OnEvent, RunEvent, StageEvent
 from pipeline.summary import summarise
 from stages.common.errors import BlunfError
-from stages.common.io import check_exists
+from stages.common.io import check_exists, finite_json
 from stages.common.progress import configure as configure_progress
 
 log = logging.getLogger(__name__)
@@ -152,6 +152,9 @@ def batch(captures: list[Path], opts: BatchOptions) -> dict:
     return _finish(opts, outcomes, wall)
 
 
+BATCH_FILES = ("index.html", "summary.csv", "batch.json")  # what a batch writes in OUT
+
+
 def _jobs(captures: list[Path], opts: BatchOptions) -> list[Job]:
     """Check everything a user can get wrong before any cluster starts."""
     if not captures:
@@ -159,19 +162,26 @@ def _jobs(captures: list[Path], opts: BatchOptions) -> list[Job]:
     if opts.threads_per_worker < 1:
         raise BlunfError(f"--threads-per-worker {opts.threads_per_worker}: must be >= 1")
     cfg = load_config(opts.config, list(opts.sets))
-    if opts.edits is not None and not opts.edits.is_file():
-        raise BlunfError(f"{opts.edits}: edit spec not found")
+    if opts.edits is not None:
+        from stages.edit.spec import load_spec
+
+        load_spec(opts.edits)  # a bad spec fails here, before any cluster starts
     out = opts.out.resolve()
     if out.exists() and not out.is_dir():
         raise BlunfError(f"{opts.out}: the batch folder exists and is not a folder")
-    seen: dict[str, Path] = {}
+    # the names each capture takes in OUT (its folder and its log), and the batch's own
+    taken: dict[str, str] = {n: "the batch's own file" for n in BATCH_FILES}
     jobs = []
     for c in captures:
         check_exists(c, "capture folder")
         name = c.resolve().name
-        if name in seen:
-            raise BlunfError(f"{c}: a second capture named {name!r} (first: {seen[name]})")
-        seen[name] = c
+        for n in (name, f"{name}.log"):
+            if n in taken:
+                raise BlunfError(
+                    f"{c}: its output {opts.out / n} would collide with {taken[n]}; "
+                    "rename the capture folder"
+                )
+        taken[name] = taken[f"{name}.log"] = f"capture {c}'s output"
         jobs.append(
             Job(
                 capture=str(c.resolve()),
@@ -303,7 +313,7 @@ def _finish(opts: BatchOptions, outcomes: list[Outcome], wall: float | None) -> 
         "scheduler": opts.scheduler or "local",
         "outcomes": [asdict(r) for r in outcomes],
     }
-    (opts.out / "batch.json").write_text(json.dumps(facts, indent=1) + "\n")
+    (opts.out / "batch.json").write_text(json.dumps(finite_json(facts), indent=1) + "\n")
     if wall is not None:
         timing = (
             f"<p>{facts['ok']} of {facts['captures']} captures in {wall:.1f} s wall time; "

@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 import stages
+from stages.common.errors import BlunfError
 
 KEY_LEN = 16
 STAGES_ROOT = Path(stages.__file__).parent
@@ -140,9 +141,12 @@ def content_hash(path: Path) -> str:
     )
     for p in files:
         h.update(str(p.relative_to(path) if p != path else p.name).encode())
-        with open(p, "rb") as f:
-            for chunk in iter(lambda: f.read(1 << 20), b""):
-                h.update(chunk)
+        try:
+            with open(p, "rb") as f:
+                for chunk in iter(lambda: f.read(1 << 20), b""):
+                    h.update(chunk)
+        except OSError as e:  # e.g. a photo without read permission
+            raise BlunfError(f"{p}: cannot read ({e.strerror})") from None
     return h.hexdigest()
 
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from pipeline.cache import alive
 from pipeline.config import stage_configs
-from pipeline.publish import in_progress
+from pipeline.publish import in_progress, killed_runs, sweep
 from stages.common.errors import BlunfError
 from stages.common.io import read_json
 
@@ -33,7 +33,9 @@ def clean(run_dir: Path) -> tuple[int, int]:
     if not isinstance(stages_, list):
         raise BlunfError(f"{report}: no 'stages' list: not a run report")
     keep = {(s.get("name"), s.get("key")) for s in stages_ if isinstance(s, dict)}
-    freed = count = 0
+    killed = killed_runs(run_dir)
+    freed, count = sum(map(_size, killed)), len(killed)
+    sweep(run_dir)  # killed runs' .runs/<id> folders (their pid dead or taken by another)
     for stage in stage_configs():
         folder = run_dir / stage
         if not folder.is_dir() or folder.is_symlink():

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from pipeline.runtime import setup_runtime
 from stages.common.errors import BlunfError
+from stages.common.io import finite_json
 from stages.common.progress import configure as configure_progress
 
 log = logging.getLogger("blunf")
@@ -123,7 +124,9 @@ def parser() -> argparse.ArgumentParser:
     t = sub.add_parser("studio", help="edit a run in the browser (local web page)")
     t.add_argument("run_dir", type=Path)
     t.add_argument("--port", type=int, default=8080)
-    t.add_argument("--host", default="127.0.0.1", help="address to listen on (default local)")
+    t.add_argument("--host", default="127.0.0.1",
+                   help="address to listen on (default local; any address needs the token of "
+                   "the URL it prints, as the local one does)")  # fmt: skip
 
     c = sub.add_parser("clean", help="drop the cache entries the latest run did not use")
     c.add_argument("run_dir", type=Path)
@@ -144,6 +147,8 @@ def main(argv: list[str] | None = None) -> int:
         logging.getLogger("ezdxf").setLevel(logging.WARNING)
     # bars on a terminal, else a log line every ~10 % (stages/common/progress.py)
     configure_progress("off" if getattr(args, "quiet", False) else "auto")
+    if argv is None and args.cmd in ("run", "batch", "import", "bench"):
+        _terminate_quietly()
     try:
         return _dispatch(args)
     except BlunfError as e:
@@ -157,9 +162,32 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"blunf: error: {err}", file=sys.stderr)
         return 2
+    except Terminated:
+        print("blunf: terminated", file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
         print("blunf: interrupted", file=sys.stderr)
         return 130
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, ending blunf as Ctrl-C does (temp folders removed, one line)."""
+
+
+def _terminate_quietly() -> None:
+    """pycolmap installs glog's failure handler when imported, which prints ~30 lines of
+    native stack on SIGTERM: import it first, then take SIGTERM back."""
+    import signal
+
+    try:
+        import pycolmap  # noqa: F401
+    except ImportError:
+        pass
+
+    def terminated(signum: int, frame: object) -> None:
+        raise Terminated
+
+    signal.signal(signal.SIGTERM, terminated)
 
 
 def _dispatch(args: argparse.Namespace) -> int:
@@ -178,7 +206,7 @@ def _dispatch(args: argparse.Namespace) -> int:
         n = setup_runtime(cfg.run.threads)
         log.debug("threads: %d", n)
         report = run(args.capture, args.out, cfg, args.edits)
-        summary = {k: v for k, v in report.metrics.items()}
+        summary = finite_json(dict(report.metrics))  # strict JSON: NaN as null
         print(
             json.dumps(
                 {
@@ -189,6 +217,7 @@ def _dispatch(args: argparse.Namespace) -> int:
                     "metrics": summary,
                 },
                 indent=1,
+                allow_nan=False,
             ),
             flush=True,
         )
@@ -259,6 +288,7 @@ def _dispatch(args: argparse.Namespace) -> int:
     if args.cmd == "render":
         from pipeline.render import render_command
 
+        _check_out_file(args.out)
         setup_runtime()
         r = render_command(
             args.run_dir, args.view, args.camera, args.edits, args.scale, args.out, args.fast
@@ -277,3 +307,11 @@ def _dispatch(args: argparse.Namespace) -> int:
         print(f"freed {freed / 1e6:.1f} MB ({n} entries)")
         return 0
     raise BlunfError(f"unknown command {args.cmd!r}")
+
+
+def _check_out_file(out: Path) -> None:
+    """`--out` names a picture to write into an existing folder (checked before any work)."""
+    if out.is_dir():
+        raise BlunfError(f"{out}: is a folder; --out names the picture to write (view.png)")
+    if not out.parent.is_dir():
+        raise BlunfError(f"{out.parent}: folder not found (--out {out})")

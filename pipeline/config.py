@@ -8,6 +8,7 @@ key and where it came from.
 from __future__ import annotations
 
 import dataclasses
+import math
 import types
 import typing
 from dataclasses import dataclass, field, fields, is_dataclass, replace
@@ -30,6 +31,8 @@ class RunSection:
     threads: int = 0
 
     def __post_init__(self) -> None:
+        if not 0 <= self.threads <= 1024:
+            raise BlunfError(f"run.threads: must be 0 (all cores) or 1..1024, got {self.threads}")
         if not self.methods:
             raise BlunfError("run.methods: give at least one blueprint method, e.g. [blunf, mvr]")
         if len(set(self.methods)) != len(self.methods):
@@ -230,14 +233,19 @@ def _coerce(v: Any, tp: Any, where: str) -> Any:
             return v
         raise BlunfError(f"{where}: expected an integer, got {v!r}")
     if tp is float:
+        x = None
         if isinstance(v, int | float) and not isinstance(v, bool):
-            return float(v)
-        if isinstance(v, str):
+            x = float(v)
+        elif isinstance(v, str):
             try:
-                return float(v)
+                x = float(v)
             except ValueError:
                 pass
-        raise BlunfError(f"{where}: expected a number, got {v!r}")
+        if x is None:
+            raise BlunfError(f"{where}: expected a number, got {v!r}")
+        if not math.isfinite(x):  # `> 0` checks downstream would let inf through
+            raise BlunfError(f"{where}: must be a finite number, got {v!r}")
+        return x
     if tp is str:
         if isinstance(v, str):
             return v

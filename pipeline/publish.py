@@ -9,6 +9,11 @@ copying leaves only its own `.runs/<id>` (its pid dead), which the next run swee
 previous run's outputs untouched; so does a run that fails. Older runs' folders are removed
 once replaced.
 
+A run removes only what runs wrote: `.runs/<id>` folders and the links to them. What a
+person keeps in the run folder stays: the studio saves into `RUN/studio/` (a name no run
+publishes), and a real folder where a run publishes a link (an older layout's `edits/`,
+where the studio once saved) is moved aside into `RUN/studio/`, never deleted.
+
 The environment variable BLUNF_PUBLISH_PAUSE (seconds) makes a run wait after each file it
 publishes: tests use it to kill a run in the middle of publishing.
 """
@@ -31,6 +36,7 @@ from stages.common.io import write_json
 
 RUNS = ".runs"
 CURRENT = ".current"
+STUDIO = "studio"  # the studio's saves: never published, never removed by a run
 # errors that mean "this folder cannot be written" (read-only media, full disk, quota,
 # RLIMIT_FSIZE), never a fault of the capture or of the config
 WRITE_ERRNOS = frozenset({errno.EROFS, errno.ENOSPC, errno.EFBIG, errno.EDQUOT})
@@ -73,6 +79,8 @@ class Publication:
 
     def add(self, src: Path, name: str) -> None:
         """Copy `src` to `name` (relative, e.g. "edits/orbit.gif") in this run's outputs."""
+        if Path(name).parts[0] == STUDIO:
+            raise ValueError(f"{name}: {STUDIO}/ is the studio's, never a run's output")
         dst = self.dir / name
         with writing(dst):
             dst.parent.mkdir(parents=True, exist_ok=True)
@@ -102,9 +110,9 @@ class Publication:
         for p in self.out.iterdir():  # names the previous run had and this one has not
             if p.is_symlink() and os.readlink(p) == f"{CURRENT}/{p.name}" and p.name not in names:
                 p.unlink(missing_ok=True)
-        legacy = self.out / "edits"  # an older layout's edits/ folder, of an older run
-        if "edits" not in names and legacy.is_dir() and not legacy.is_symlink():
-            shutil.rmtree(legacy, ignore_errors=True)
+        legacy = self.out / "edits"  # an older layout's real edits/ folder (studio saves)
+        if legacy.is_dir() and not legacy.is_symlink():
+            set_aside(legacy)
         if old is not None and old != self.dir.name:
             shutil.rmtree(self.out / RUNS / old, ignore_errors=True)
         sweep(self.out)
@@ -121,8 +129,21 @@ def _link(path: Path, target: str) -> None:
     tmp.unlink(missing_ok=True)
     os.symlink(target, tmp)
     if path.is_dir() and not path.is_symlink():  # a real folder of an older run folder layout
-        shutil.rmtree(path)
+        set_aside(path)
     os.replace(tmp, path)
+
+
+def set_aside(folder: Path) -> Path:
+    """Move a real folder out of a published name's way into RUN/studio/ (never delete it:
+    an older layout's `edits/` holds the studio's saves). The first becomes RUN/studio itself
+    when there is none yet (where the studio looks for its save), later ones go inside it."""
+    studio = folder.parent / STUDIO
+    if not studio.exists():
+        dst = studio
+    else:
+        dst = studio / f"older-{folder.name}-{time.time_ns()}"
+    os.replace(folder, dst)
+    return dst
 
 
 def _current(out: Path) -> str | None:
@@ -138,11 +159,46 @@ def _pid(name: str) -> int | None:
     return int(tail) if tail.isdigit() else None
 
 
+def run_alive(name: str) -> bool:
+    """Whether the run that made `.runs/<name>` (`<time_ns>-<pid>`) still lives: its pid is
+    alive and that process started before the folder was made (a dead run's pid taken by a
+    later process does not keep its folder forever)."""
+    pid = _pid(name)
+    if pid is None or not alive(pid):
+        return False
+    made = name.split("-", 1)[0]
+    started = _process_start(pid)
+    return started is None or not made.isdigit() or started <= int(made) / 1e9 + 1.0
+
+
+def _process_start(pid: int) -> float | None:
+    """When process `pid` started (seconds since the epoch; Linux /proc), else None."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+        ticks = int(stat.rsplit(")", 1)[1].split()[19])  # field 22: starttime
+        btime = next(
+            int(ln.split()[1]) for ln in Path("/proc/stat").read_text().splitlines()
+            if ln.startswith("btime ")
+        )  # fmt: skip
+        return btime + ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError, StopIteration):
+        return None
+
+
+def killed_runs(out: Path) -> list[Path]:
+    """The `.runs/<id>` folders of runs that died before switching theirs in."""
+    runs, cur = Path(out) / RUNS, _current(Path(out))
+    if not runs.is_dir():
+        return []
+    return [d for d in runs.iterdir() if d.name != cur and not run_alive(d.name)]
+
+
 def in_progress(out: Path) -> list[int]:
     """Pids of other live runs writing into this run folder now."""
     runs, cur = Path(out) / RUNS, _current(Path(out))
-    pids = [_pid(p.name) for p in runs.iterdir() if p.name != cur] if runs.is_dir() else []
-    return sorted({p for p in pids if p is not None and p != os.getpid() and alive(p)})
+    names = [p.name for p in runs.iterdir() if p.name != cur] if runs.is_dir() else []
+    live = [n for n in names if _pid(n) != os.getpid() and run_alive(n)]
+    return sorted({p for p in map(_pid, live) if p is not None})
 
 
 def sweep(out: Path) -> None:
@@ -153,9 +209,9 @@ def sweep(out: Path) -> None:
     if (out / RUNS).is_dir():
         for d in (out / RUNS).iterdir():
             pid = _pid(d.name)
-            if d.name != cur and pid is not None and (pid == os.getpid() or not alive(pid)):
+            if d.name != cur and pid is not None and (pid == os.getpid() or not run_alive(d.name)):
                 shutil.rmtree(d, ignore_errors=True)
-    folders = [out] + ([out / "edits"] if (out / "edits").is_dir() else [])
+    folders = [out] + [out / n for n in ("edits", STUDIO) if (out / n).is_dir()]
     for folder in folders:
         for t in folder.glob(".*.tmp-*"):
             pid = _pid(t.name)

@@ -26,7 +26,7 @@ from stages.edit.select import select_cells
 from stages.edit.spec import Edit
 
 TRAIN_HINT = (
-    "blunf run CAPTURE --out {run} --config configs/edit-fast.yaml --edits {run}/edits/studio.yaml"
+    "blunf run CAPTURE --out {run} --config configs/edit-fast.yaml --edits {run}/studio/studio.yaml"
 )
 
 
@@ -41,6 +41,9 @@ class RunFiles:
     frames: Path  # frames.json with poses and intrinsics (the edit stage's frames)
     model: Path | None  # model.pt of the nerf stage; None when the run trained no field
     edit: dict  # the run's edit settings (config.edit)
+
+
+RENDER_BYTES = 256  # per pixel of a render: its rays' samples, chunked, and the float images
 
 
 def run_files(run: Path) -> RunFiles:
@@ -212,6 +215,9 @@ def render_command(run: Path, view: int | None, camera: Path | None, spec: Path 
     if not 0 < scale <= 4:
         raise BlunfError(f"render: --scale must be in (0, 4], got {scale}")
     edits = load_spec(spec).edits if spec is not None else ()
+    if camera is not None:  # a bad camera file or size fails before the run is read
+        pose, intr = camera_json(camera)
+        _check_size(scaled(intr, scale))
     files = run_files(run)
     if files.model is None:
         raise BlunfError(
@@ -220,10 +226,8 @@ def render_command(run: Path, view: int | None, camera: Path | None, spec: Path 
     scene = Scene(files)
     if view is not None:
         pose, intr = scene.view(view)
-    else:
-        assert camera is not None
-        pose, intr = camera_json(camera)
     intr = scaled(intr, scale)
+    _check_size(intr)
     for e in edits:  # a selection off the plan fails before any render
         scene.selection(e)
     scene.render(pose, scaled(intr, 0.125), edits, fast=fast)  # warm-up: resolves the edits
@@ -234,3 +238,9 @@ def render_command(run: Path, view: int | None, camera: Path | None, spec: Path 
     if fast:
         res["volume_rendered"] = round(r.volume_rendered or 0.0, 4)
     return res
+
+
+def _check_size(intr: Intrinsics) -> None:
+    from stages.common.memory import check_memory
+
+    check_memory(intr.width * intr.height * RENDER_BYTES, f"render: {intr.width}x{intr.height}")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from pipeline.checks import check_capture
+from pipeline.checks import check_capture, check_edit_classes, check_sizes
 from pipeline.config import Config
 from pipeline.planner import gt_files, make_plan
 from pipeline.publish import Publication, writing
@@ -71,6 +71,8 @@ def _recipe(r: Runner, pub: Publication, capture: Path, cfg: Config, spec: EditS
     cap = Capture.load(frames)
     with writing(frames.parent):  # what the frames decide fails here, before any costly stage
         check_capture(cap, spec, frames.parent / ".labels-checked")
+    check_sizes(cap, cfg["depth"].stereo)  # settings whose memory follows the photos' size
+    check_edit_classes(cap, spec, cfg["project"].labelling)
     plan = make_plan(cap, cfg, spec.path if spec is not None else None)
 
     posed = r.step(plan.get("poses"), PosesInputs(frames=frames))

@@ -14,6 +14,7 @@ import numpy as np
 from PIL import Image
 
 from stages.common.io import write_depth_png
+from tests.bomb import bomb_png
 
 STEM = "0003"  # the frame each case breaks
 
@@ -47,6 +48,23 @@ def _truncate(cap: Path, tmp: Path) -> None:
 
 def _garbage(cap: Path, tmp: Path) -> None:
     _img(cap).write_bytes(np.random.default_rng(0).bytes(777))
+
+
+def _bomb(cap: Path, tmp: Path) -> None:
+    _img(cap).write_bytes(bomb_png())  # claims 30000x30000: PIL's DecompressionBombError
+
+
+def _photos_bomb(cap: Path, tmp: Path) -> None:
+    """A plain photo folder (the capture's images alone), one of them a decompression bomb."""
+    shutil.copytree(cap / "images", tmp / "photos")
+    (tmp / "photos" / f"{STEM}.png").write_bytes(bomb_png())
+
+
+def _run_folder(cap: Path, tmp: Path) -> None:
+    """A finished run folder (its report.json, its .runs/) beside the capture."""
+    (tmp / "runf" / ".runs").mkdir(parents=True)
+    (tmp / "runf" / "report.json").write_text("{}")
+    shutil.copytree(cap / "images", tmp / "runf" / "images")
 
 
 def _empty_file(cap: Path, tmp: Path) -> None:
@@ -237,6 +255,8 @@ CASES = [
     Case("image_truncated", _truncate, names=f"images/{STEM}.png"),
     Case("image_garbage", _garbage, names=f"images/{STEM}.png"),
     Case("image_empty_file", _empty_file, names=f"images/{STEM}.png"),
+    Case("image_decompression_bomb", _bomb, names=f"images/{STEM}.png"),
+    Case("photos_decompression_bomb", _photos_bomb, capture="{tmp}/photos", names=f"{STEM}.png"),
     Case("image_sizes_mixed", _mixed_sizes, names=f"images/{STEM}.png"),
     Case("depth_missing_for_one", _depth_missing, names=f"{STEM}.png"),
     Case("depth_wrong_size", _depth_size, names=f"depth/{STEM}.png"),
@@ -329,6 +349,31 @@ CASES = [
     Case("set_no_equals", args=("--set", "fusion.voxel"), names="fusion.voxel"),
     Case("set_out_of_range", args=("--set", "fusion.voxel=-1"), names="fusion.voxel"),
     Case("set_unknown_impl", args=("--set", "fusion.impl=nope"), names="nope"),
+    # every numeric setting finite (a `> 0` check lets inf through): refused at config load
+    Case("set_voxel_inf", args=("--set", "fusion.voxel=.inf"), names="fusion.voxel"),
+    Case("set_lr_inf", args=("--set", "blueprint.blunf.lr=.inf"), names="blueprint.blunf.lr"),
+    Case("set_lr_nan", args=("--set", "blueprint.blunf.lr=.nan"), names="blueprint.blunf.lr"),
+    Case("set_depth_max_inf", args=("--set", "fusion.depth_max=.inf"), names="fusion.depth_max"),
+    Case("set_cell_nan", args=("--set", "project.cell=.nan"), names="project.cell"),
+    Case("set_cell_zero", args=("--set", "project.cell=0"), names="project.cell"),
+    Case("set_cell_negative", args=("--set", "project.cell=-0.02"), names="project.cell"),
+    Case("set_threads_negative", args=("--set", "run.threads=-1"), names="run.threads"),
+    # sizes that would take more memory than the machine has: refused in one line
+    Case(  # the plan field's loss turns NaN: the run fails, no all-floor plan published
+        "blunf_diverges",
+        args=("--set", "blueprint.blunf.lr=1e30"),
+        names="blueprint.blunf: the training diverged",
+    ),
+    Case(
+        "set_block_resolution_huge",
+        args=("--set", "fusion.block_resolution=1000"),
+        names="fusion.block_resolution=1000",
+    ),
+    Case(
+        "set_planes_huge",
+        args=("--set", "depth.stereo.planes=10000000"),
+        names="depth.stereo.planes=10000000",
+    ),
     Case("set_unknown_method", args=("--set", "run.methods=blunf,nope"), names="nope"),
     Case("config_missing", args=("--config", "{tmp}/nope.yaml"), names="{tmp}/nope.yaml"),
     Case("config_is_a_folder", args=("--config", "{tmp}/empty"), names="{tmp}/empty"),
@@ -375,6 +420,13 @@ CASES = [
         ),
         ("--edits", "{tmp}/edits.yaml"),
         names="edits[0].texture",
+    ),
+    Case("capture_is_a_run_folder", _run_folder, capture="{tmp}/runf", names="a run folder"),
+    Case(  # known at ingest (the class table), not after the NeRF trained
+        "edits_class_not_in_table",
+        _text("../edits.yaml", "edits:\n  - select: {class: piano}\n    op: remove\n"),
+        ("--edits", "{tmp}/edits.yaml"),
+        names="no class 'piano' in the capture's classes",
     ),
     Case("out_inside_capture", out="{cap}/run", names="{cap}/run"),
     Case("out_is_capture", out="{cap}", names="{cap}"),

@@ -138,15 +138,15 @@ def test_bad_input_subprocess(broken):
 def test_failed_stage_then_good_config_reuses_finished_stages(tiny_room, tmp_path, capsys):
     """A failure inside a stage keeps what finished before it; the fixed rerun reuses that."""
     out = tmp_path / "run"
-    bad = ["--set", "project.stride=-1"]  # refused by the project stage, after fusion
+    bad = ["--set", "blueprint.blunf.lr=1e30"]  # diverges in the blueprint stage, after project
     assert main(["run", str(tiny_room), "--out", str(out), *FAST, *bad]) == 2
-    check_error(2, capsys.readouterr().err, "project.stride", subprocess_run=False)
+    check_error(2, capsys.readouterr().err, "blueprint.blunf", subprocess_run=False)
     assert_cache_clean(out)
     assert main(["run", str(tiny_room), "--out", str(out), *FAST]) == 0
     assert_cache_clean(out)
     st = {s["name"]: s["status"] for s in json.loads((out / "report.json").read_text())["stages"]}
-    assert st["ingest"] == st["align"] == st["fusion"] == "cached"
-    assert st["project"] == "ran"
+    assert st["ingest"] == st["align"] == st["fusion"] == st["project"] == "cached"
+    assert st["blueprint"] == "ran"
 
 
 def test_set_order_does_not_matter():

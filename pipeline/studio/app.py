@@ -18,6 +18,7 @@ Saved views are volume rendered, as `blunf run` renders them. Every tab shares o
 from __future__ import annotations
 
 import logging
+import socket
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -26,6 +27,7 @@ import numpy as np
 import viser
 
 from pipeline.render import pose_wxyz
+from pipeline.studio.guard import ANY, Guard, guarded
 from pipeline.studio.panel import Panel
 from pipeline.studio.plan_view import HIGHLIGHT, STROKE, StrokeDrag, plan_extent, plan_rgba
 from pipeline.studio.state import Session
@@ -40,6 +42,7 @@ MAX_POINTS = 60000  # points of the fused surface sent to the page
 class Studio(Panel):
     def __init__(self, session: Session, server: viser.ViserServer, train_sets: Sequence[str] = ()):
         self.session, self.server = session, server
+        self.guard: Guard | None = None  # who may connect (set by `launch`)
         self.running = True
         self.clients: dict[int, ClientView] = {}
         self.views_seen: set[int] = set()
@@ -209,12 +212,24 @@ class Studio(Panel):
             cv.alive = False
 
 
+def launch(run: Path, host: str = "127.0.0.1", port: int = 8080) -> tuple[Studio, str]:
+    """Start the studio's server on `run`; returns the studio and the URL to open (with this
+    launch's token: `pipeline.studio.guard` refuses pages and sockets without it)."""
+    session = Session(Path(run))  # a folder that is not a run fails here, with one line
+    guard = Guard(host)
+    with guarded(guard):  # viser's server starts (and binds) inside ViserServer()
+        server = viser.ViserServer(host=host, port=port, verbose=False)
+    studio = Studio(session, server)
+    studio.guard = guard
+    name = socket.gethostname() if host in ANY else host
+    name = f"[{name}]" if ":" in name else name
+    return studio, f"http://{name}:{server.get_port()}/?token={guard.token}"
+
+
 def serve(run: Path, host: str = "127.0.0.1", port: int = 8080) -> int:
     """Serve the studio until interrupted."""
-    session = Session(Path(run))  # a folder that is not a run fails here, with one line
-    server = viser.ViserServer(host=host, port=port, verbose=False)
-    studio = Studio(session, server)
-    print(f"blunf studio: http://{host}:{server.get_port()}  ({run})", flush=True)
+    studio, url = launch(run, host, port)
+    print(f"blunf studio: {url}  ({run})", flush=True)
     try:
         while True:
             time.sleep(1.0)
@@ -222,5 +237,5 @@ def serve(run: Path, host: str = "127.0.0.1", port: int = 8080) -> int:
         pass
     finally:
         studio.running = False
-        server.stop()
+        studio.server.stop()
     return 0

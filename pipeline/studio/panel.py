@@ -2,7 +2,9 @@
 
 A mixin of `pipeline.studio.app.Studio` (which holds the session, the server and the scene);
 every action runs through `_do`, so that a user error becomes the page's message and
-changes nothing.
+changes nothing. A value the page sends is checked against what the server offered, never
+against the handle's `options` (viser lets a client set those too): the session checks the
+edits' values, `offered` here the input view and the full view's path.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 from pipeline.render import TRAIN_HINT
 from pipeline.studio.plan_view import plan_picture
+from pipeline.studio.state import OPS, STRENGTH, WIDTH, offered
 from pipeline.studio.train import Trainer
 from stages.common.errors import BlunfError
 
@@ -22,7 +25,6 @@ if TYPE_CHECKING:
     from pipeline.studio.state import Session
     from pipeline.studio.view import ClientView
 
-OPS = ("remove", "recolor", "retexture", "sketch", "mask")
 FULL_PATHS = ("fast", "volume")  # how the full view is rendered (the first: the default)
 PLAN_SCALE = 2  # pixels of the panel's plan picture per plan cell
 
@@ -77,12 +79,12 @@ class Panel:
         with gui.add_folder("Edit"):
             self.op = gui.add_dropdown("Operation", OPS)
             self.color = gui.add_rgb("Colour", (40, 90, 200))
-            self.strength = gui.add_slider("Strength", 0.0, 1.0, 0.05, 0.8)
-            tex = tuple(sess.shipped_textures()) or ("(none)",)
+            self.strength = gui.add_slider("Strength", *STRENGTH, 0.05, 0.8)
+            tex = tuple(sess.textures()) or ("(none)",)
             self.texture = gui.add_dropdown("Texture", tex)
             self.upload = gui.add_upload_button("Upload texture", mime_type="image/*")
             self.upload.on_upload(lambda _: self._do(self._uploaded))
-            self.width = gui.add_slider("Stroke width (m)", 0.02, 0.5, 0.01, 0.1)
+            self.width = gui.add_slider("Stroke width (m)", *WIDTH, 0.01, 0.1)
             gui.add_button("Apply").on_click(lambda _: self._do(self._apply))
             gui.add_button("Undo").on_click(lambda _: self._do(self._undo))
             gui.add_button("Redo").on_click(lambda _: self._do(self._redo))
@@ -91,12 +93,13 @@ class Panel:
             self.before = gui.add_checkbox("Before (no edits)", False)
             self.render_only = gui.add_checkbox("Render only", False)
             self.render_only.on_update(lambda _: self._layers())
-            names = [f"{i}: {f.stem}" for i, f in enumerate(sess.scene.cap.frames)]
-            self.view_pick = gui.add_dropdown("Input view", tuple(names))
+            self.view_names = tuple(f"{i}: {f.stem}" for i, f in enumerate(sess.scene.cap.frames))
+            self.view_pick = gui.add_dropdown("Input view", self.view_names)
             gui.add_button("Go to view").on_click(lambda ev: self._do(lambda: self._go(ev)))
             # the preview always takes the fast path (stages/edit/surface.py); the full
             # view too by default (measured in the README: "The fast render path")
             self.full_path = gui.add_dropdown("Full view", FULL_PATHS)
+            self.full_path.on_update(lambda _: self._do(self._full_path))
             self.timing = gui.add_markdown("render: -")
         with gui.add_folder("File"):
             gui.add_button("Save").on_click(lambda _: self._do(self._save))
@@ -142,8 +145,7 @@ class Panel:
     def _uploaded(self) -> None:
         f = self.upload.value
         name = self.session.add_texture(f.name, f.content)
-        opts = tuple(dict.fromkeys([*self.texture.options, name]))
-        self.texture.options = tuple(o for o in opts if o != "(none)")
+        self.texture.options = tuple(self.session.textures())
         self.texture.value = name  # type: ignore[misc]
         self.say(f"Texture {name} added.")
 
@@ -159,6 +161,12 @@ class Panel:
             self._stroke_changed()
         self._edits_changed(f"Applied {op}.")
 
+    def _full_path(self) -> None:
+        if self.full_path.value not in FULL_PATHS:  # a value the page was not offered
+            self.full_path.options = FULL_PATHS
+            self.full_path.value = FULL_PATHS[0]
+            raise BlunfError("full view: not one of the choices offered")
+
     def _undo(self) -> None:
         self._edits_changed("Undone." if self.session.undo() else "Nothing to undo.")
 
@@ -173,7 +181,7 @@ class Panel:
         self.say(msg)
 
     def _go(self, ev) -> None:
-        n = int(str(self.view_pick.value).split(":")[0])
+        n = int(offered(self.view_pick.value, self.view_names, "input view").split(":")[0])
         targets = [self.clients[ev.client.client_id]] if ev.client else self.clients.values()
         for cv in targets:
             cv.jump(n)

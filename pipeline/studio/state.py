@@ -4,6 +4,11 @@ Kept apart from the web page so that it can be tested without a browser. Edits a
 entries of an edit spec (`stages/edit/spec.py`, the YAML the pipeline reads) and checked by
 the same parser; a bad request (a click off the plan or on an unknown cell, a sketch with
 no stroke, an upload that is not an image) raises a one-line BlunfError and changes nothing.
+
+The page is a client like any other (viser does not check a dropdown's value against its
+options, nor a slider's against its range): every value it sends is checked here against what
+the server offered (`offered`, the ranges below), and every path is resolved and checked
+inside the studio's folder before any file is written.
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ import numpy as np
 import yaml
 from PIL import Image, UnidentifiedImageError
 
+from pipeline.publish import STUDIO
 from pipeline.render import RunFiles, Scene, run_files
 from stages.common.capture import UNKNOWN
 from stages.common.errors import BlunfError
@@ -27,6 +33,50 @@ from stages.edit.spec import Edit, Selector, load_spec, parse_spec
 SPEC_NAME = "studio.yaml"
 TEXTURES = Path(__file__).resolve().parents[2] / "configs" / "edits" / "textures"
 MAX_UPLOAD = 20_000_000  # bytes
+BOMB = Image.DecompressionBombError  # PIL's refusal of a header claiming too many pixels
+MAX_UPLOAD_PIXELS = 4096 * 4096  # an upload's pixels (a texture; a larger one: refused)
+MAX_STROKE = 10_000  # points of a sketch's stroke
+OPS = ("remove", "recolor", "retexture", "sketch", "mask")  # the page's operations
+STRENGTH = (0.0, 1.0)  # the strength slider's range
+WIDTH = (0.02, 0.5)  # the stroke width slider's range (metres)
+
+
+def offered(value: Any, options: Any, what: str) -> Any:
+    """`value` when it is one of the `options` the page was given, else a one-line error."""
+    if not isinstance(value, str | int) or isinstance(value, bool) or value not in options:
+        raise BlunfError(f"{what}: {str(value)[:80]!r} is not one of the choices offered")
+    return value
+
+
+def in_range(value: Any, lo: float, hi: float, what: str) -> float:
+    """A finite number within [lo, hi] (the slider's range), else a one-line error."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        v = float("nan")
+    if not (np.isfinite(v) and lo <= v <= hi):
+        raise BlunfError(f"{what}: must be a number in {lo}..{hi}, got {str(value)[:80]!r}")
+    return v
+
+
+def rgb(value: Any) -> list[int]:
+    """[r, g, b] with integer values in 0..255, else a one-line error."""
+    ok = isinstance(value, list | tuple) and len(value) == 3
+    if ok:
+        try:
+            return [int(in_range(c, 0, 255, "colour")) for c in value]
+        except BlunfError:
+            pass
+    raise BlunfError(f"colour: must be [r, g, b] in 0..255, got {str(value)[:80]!r}")
+
+
+def inside(folder: Path, name: str, what: str) -> Path:
+    """`folder / name` resolved, when `name` is a plain file name that stays inside `folder`."""
+    bad = not isinstance(name, str) or not name or name != Path(name).name or name[0] == "."
+    p = (folder / str(name)).resolve()
+    if bad or not p.is_relative_to(folder.resolve()):
+        raise BlunfError(f"{what} {str(name)[:80]!r}: not a file name of {folder}")
+    return p
 
 
 @dataclass(frozen=True)
@@ -55,8 +105,11 @@ class Session:
     def __init__(self, run: Path):
         self.files: RunFiles = run_files(run)
         self.scene = Scene(self.files)
-        self.folder = self.files.run / "edits"  # where the spec and its textures are kept
+        # where the spec, its textures and renders are kept: outside the published run (a
+        # rerun replaces RUN/edits), never removed by a run (pipeline/publish.py)
+        self.folder = self.files.run / STUDIO
         self.edits: list[dict] = []
+        self.uploaded: list[str] = []  # textures uploaded from the page (offered with shipped)
         self.undone: list[dict] = []
         self.selection: Selection | None = None
         self.stroke: list[tuple[float, float]] = []
@@ -111,6 +164,7 @@ class Session:
 
     def select_class(self, name: str) -> Selection:
         with self.lock:
+            offered(name, self.classes(), "class")
             s = self._select({"class": name})
             self.selection = s
             return s
@@ -125,6 +179,14 @@ class Session:
         """Add a point to the stroke (none closer than `min_step` metres to the last one);
         returns the stroke's length."""
         with self.lock:
+            try:
+                x, y = float(x), float(y)
+            except (TypeError, ValueError):
+                x = y = float("nan")
+            if not (np.isfinite(x) and np.isfinite(y)):
+                raise BlunfError("stroke: not a point on the plan")
+            if len(self.stroke) >= MAX_STROKE:
+                raise BlunfError(f"stroke: {MAX_STROKE} points at most")
             p = (round(float(x), 4), round(float(y), 4))
             last = self.stroke[-1] if self.stroke else None
             if last is None or np.hypot(p[0] - last[0], p[1] - last[1]) >= max(min_step, 1e-9):
@@ -139,6 +201,10 @@ class Session:
     def shipped_textures(self) -> list[str]:
         return sorted(p.name for p in TEXTURES.glob("*.png")) if TEXTURES.is_dir() else []
 
+    def textures(self) -> list[str]:
+        """The textures the page offers: the shipped ones and this session's uploads."""
+        return list(dict.fromkeys([*self.shipped_textures(), *self.uploaded]))
+
     def add_texture(self, name: str, content: bytes) -> str:
         """Keep an uploaded image among the spec's textures; returns its name there. Raises
         (nothing kept) when it is not a readable image."""
@@ -150,53 +216,83 @@ class Session:
             with Image.open(io.BytesIO(content)) as img:
                 img.verify()
             with Image.open(io.BytesIO(content)) as img:
-                rgb = img.convert("RGB")
-        except (UnidentifiedImageError, OSError, SyntaxError, ValueError):
+                if img.width * img.height > MAX_UPLOAD_PIXELS:
+                    raise BlunfError(
+                        f"{name}: {img.width}x{img.height} pixels, more than a texture needs "
+                        f"({MAX_UPLOAD_PIXELS} at most)"
+                    )
+                pixels = img.convert("RGB")
+        except (
+            UnidentifiedImageError,
+            OSError,
+            SyntaxError,
+            ValueError,
+            Image.DecompressionBombError,
+        ):
             raise BlunfError(f"{name}: not an image (PNG or JPEG expected)") from None
-        stem = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in Path(name).stem)
-        dst = self.folder / "textures" / f"{stem or 'upload'}.png"
+        stem = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in Path(str(name)).stem)
+        dst = inside(self.folder / "textures", f"{stem[:64] or 'upload'}.png", "upload")
         dst.parent.mkdir(parents=True, exist_ok=True)
-        rgb.save(dst)
+        pixels.save(dst)
+        with self.lock:
+            self.uploaded = list(dict.fromkeys([*self.uploaded, dst.name]))
         return dst.name
 
-    def _texture(self, name: str) -> str:
-        """The texture's path relative to the spec's folder, copied there if shipped."""
-        dst = self.folder / "textures" / name
+    def _texture(self, name: str) -> tuple[str, Path | None]:
+        """The texture's path relative to the spec's folder, and the file copied there (when
+        a shipped one was copied). Checked, before any file is touched: one of the textures
+        offered, a plain name resolving inside the spec's textures/ (and the shipped one's
+        inside the shipped folder)."""
+        offered(name, self.textures(), "texture")
+        dst = inside(self.folder / "textures", name, "texture")
+        copied = None
         if not dst.is_file():
-            src = TEXTURES / name
+            src = inside(TEXTURES, name, "texture")
             if not src.is_file():
                 raise BlunfError(f"texture {name}: not found (shipped: {self.shipped_textures()})")
             dst.parent.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(src, dst)
-        return f"textures/{name}"
+            copied = dst
+        return f"textures/{name}", copied
 
     # ---- edits ---------------------------------------------------------------------------
     def entry(self, op: str, **kw: Any) -> dict:
-        """The spec entry `op` on the selection (or on the stroke for a sketch)."""
+        """The spec entry `op` on the selection (or on the stroke for a sketch), its values
+        checked against what the page offers; a texture is not copied here (`apply`)."""
+        offered(op, OPS, "operation")
         if op == "sketch":
             if len(self.stroke) < 2:
                 raise BlunfError("sketch: draw a stroke first (two points or more on the plan)")
             select: dict = {"stroke": [list(p) for p in self.stroke]}
-            select["width"] = float(kw.pop("width", 0.1))
+            select["width"] = in_range(kw.pop("width", 0.1), *WIDTH, "stroke width")
         else:
             if self.selection is None:
                 raise BlunfError(f"{op}: select something on the plan first")
             select = dict(self.selection.select)
         e: dict = {"select": select, "op": op}
         if op in ("recolor", "sketch"):
-            e["color"] = [int(c) for c in kw["color"]]
+            e["color"] = rgb(kw.get("color"))
         if op in ("recolor", "sketch", "retexture"):
-            e["strength"] = round(float(kw.get("strength", 1.0)), 3)
+            e["strength"] = round(in_range(kw.get("strength", 1.0), *STRENGTH, "strength"), 3)
         if op == "retexture":
-            e["texture"] = self._texture(kw["texture"])
+            name = kw.get("texture")
+            offered(name, self.textures(), "texture")
+            inside(self.folder / "textures", name, "texture")
+            e["texture"] = f"textures/{name}"
         return e
 
     def apply(self, op: str, **kw: Any) -> Edit:
         """Add an edit; checked (spec and plan) before anything changes."""
         with self.lock:
             e = self.entry(op, **kw)
-            parsed = self._parse(self.edits + [e])[-1]
-            self.scene.selection(parsed)  # a selection on no known cell fails here
+            copied = self._texture(kw["texture"])[1] if op == "retexture" else None
+            try:
+                parsed = self._parse(self.edits + [e])[-1]
+                self.scene.selection(parsed)  # a selection on no known cell fails here
+            except BlunfError:
+                if copied is not None:  # not applied: nothing of it kept
+                    copied.unlink(missing_ok=True)
+                raise
             self.edits.append(e)
             self.undone = []
             if op == "sketch":
@@ -246,7 +342,7 @@ class Session:
             return {"edits": [dict(e) for e in self.edits], "views": list(views) or [0]}
 
     def save(self, views: list[int]) -> Path:
-        """Write RUN/edits/studio.yaml (views: the input views the run renders)."""
+        """Write RUN/studio/studio.yaml (views: the input views the run renders)."""
         with self.lock:
             if not self.edits:
                 raise BlunfError("save: no edits to save")

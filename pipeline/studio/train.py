@@ -2,7 +2,7 @@
 
 A run made without edits has no NeRF (the planner trains one only for an edit spec or the
 NeRF top-view baseline). The studio trains it the way the command it names would
-(`pipeline.render.TRAIN_HINT`): the session's edits saved as RUN/edits/studio.yaml, then
+(`pipeline.render.TRAIN_HINT`): the session's edits saved as RUN/studio/studio.yaml, then
 `pipeline.run.run` on the run's capture into the same run folder, with the run's own
 config (report.json) and configs/edit-fast.yaml on top. Every stage but the NeRF, the edit and
 what follows is found in the run's cache, and the same command typed later finds the NeRF

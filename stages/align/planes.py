@@ -286,7 +286,10 @@ def finish(
         g = R @ np.asarray(cap.gravity, np.float64)
         gravity = (float(g[0]), float(g[1]), float(g[2]))
     outs = AlignOutputs.at(out)
-    replace(cap.with_frames(frames), gravity=gravity).save(outs.frames)
+    # T turns about the mean camera centre and puts the floor at z = 0: a far capture's
+    # offset (ingest's recentring) stays the same in x and y, none in z
+    origin = (cap.origin[0], cap.origin[1], 0.0)
+    replace(cap.with_frames(frames), gravity=gravity, origin=origin).save(outs.frames)
     facts = {"T": T.tolist(), "floor_z_before": floor_z, **info}
     write_json(outs.align, facts)
     log.info(

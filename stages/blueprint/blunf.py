@@ -41,6 +41,7 @@ from stages.common.threads import torch_threads
 log = logging.getLogger(__name__)
 
 TRAIN_ACC_POINTS = 262_144  # points scored for the reported train accuracy
+LOW_ACCURACY = 80.0  # % of its training points a field fits under which it is flagged
 
 
 def run(cfg: BlueprintConfig, inputs: BlueprintInputs, out: Path) -> BlueprintOutputs:
@@ -103,6 +104,13 @@ def run(cfg: BlueprintConfig, inputs: BlueprintInputs, out: Path) -> BlueprintOu
         }
     )
     write_json(outs.stats, stats)
+    if stats["train_accuracy_low"]:
+        log.warning(
+            "blueprint/blunf: the field fits %.1f %% of its training points (usually > 98 %%): "
+            "the plan is not to be trusted; lower blueprint.blunf.lr (now %g) or add steps",
+            stats["train_accuracy"],
+            c.lr,
+        )
     log.info(
         "blueprint/blunf: %d steps in %.1f s, loss %.4f, train accuracy %.2f %%",
         stats["steps"],
@@ -220,6 +228,11 @@ def train(
         opt.step()
         sched.step()
         losses.append(loss.item())
+        if not math.isfinite(losses[-1]):  # diverged: every later step is NaN too
+            raise BlunfError(
+                f"blueprint.blunf: the training diverged (loss {losses[-1]} at step "
+                f"{len(losses)}); lower blueprint.blunf.lr (now {c.lr})"
+            )
     seconds = time.perf_counter() - t0
     model.eval()
     pick = torch.randperm(len(y), generator=gen)[:TRAIN_ACC_POINTS]
@@ -232,6 +245,9 @@ def train(
         "seconds": round(seconds, 3),
         "final_loss": float(np.mean(losses[-tail:])) if losses else math.nan,
         "train_accuracy": round(100.0 * acc, 3),
+        # far below the usual (98.7-99.99 % on every real and synthetic run kept): the plan
+        # is not to be trusted (report.json's facts carry the flag; the log says why)
+        "train_accuracy_low": bool(100.0 * acc < LOW_ACCURACY),
         "parameters": int(sum(p.numel() for p in model.parameters())),
     }
 

@@ -57,6 +57,11 @@ class Capture:
     depth_invalid: tuple[int, ...] = (65535,)  # PNG codes meaning "no reading"
     gt: Path | None = None  # ground-truth folder, when the capture has one
     kind: str = "blunf"  # layout it was read from
+    # metres: where the frames' world origin lies in the capture's own world (its poses were
+    # far from their origin: ingest moved them near it, float32 geometry keeps its precision
+    # there); a point x of the frames is x + origin in the capture's world (after align:
+    # its aligned world). Exports add it back.
+    origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     @property
     def has_poses(self) -> bool:
@@ -91,6 +96,7 @@ class Capture:
             "depth_scale": self.depth_scale,
             "depth_invalid": list(self.depth_invalid),
             "gt": str(self.gt) if self.gt else None,
+            **({"origin": list(self.origin)} if any(self.origin) else {}),
             "frames": [
                 {
                     "stem": f.stem,
@@ -135,6 +141,7 @@ class Capture:
             depth_invalid=tuple(d.get("depth_invalid", (65535,))),
             gt=Path(d["gt"]) if d.get("gt") else None,
             kind=d.get("kind", "blunf"),
+            origin=tuple(float(x) for x in d.get("origin", (0.0, 0.0, 0.0))),  # type: ignore[arg-type]
         )
 
     def save(self, path: Path) -> None:
@@ -375,3 +382,29 @@ def heldout_views(n: int, every: int) -> list[int]:
     """Indices of the views held out of training and scored instead (the project and NeRF
     stages share the rule): index % every == every // 2; none when every = 0 or n < 2."""
     return [i for i in range(n) if every > 0 and n > 1 and i % every == every // 2]
+
+
+RECENTRE_BEYOND = 1000.0  # metres: poses whose mean centre lies farther are moved near 0
+RECENTRE_STEP = 1000.0  # metres: the offset taken off, a whole multiple of this
+
+
+def recentred(cap: Capture) -> Capture:
+    """The capture with its poses moved near the world origin when they lie far from it
+    (georeferenced coordinates: float32 geometry at 1e6 m has 6 cm steps), the offset kept in
+    `origin`. The offset is a whole number of kilometres, so that the same room anywhere
+    gives the same frames (up to float64 rounding) and the same plan."""
+    if not cap.has_poses:
+        return cap
+    c = cap.poses()[:, :3, 3].mean(axis=0)  # [3] mean camera centre
+    if not np.all(np.isfinite(c)) or np.abs(c).max() <= RECENTRE_BEYOND:
+        return cap
+    o = np.round(c / RECENTRE_STEP) * RECENTRE_STEP  # [3]
+    frames = []
+    for f in cap.frames:
+        pose = np.array(f.pose, np.float64)
+        pose[:3, 3] -= o
+        frames.append(replace(f, pose=pose))
+    origin = np.asarray(cap.origin, np.float64) + o
+    return replace(
+        cap.with_frames(frames), origin=(float(origin[0]), float(origin[1]), float(origin[2]))
+    )

@@ -5,6 +5,7 @@ from __future__ import annotations
 import errno
 import io
 import json
+import math
 import os
 import tempfile
 import zipfile
@@ -21,6 +22,17 @@ from stages.common.errors import BlunfError
 MAX_DEPTH_RATIO = 20.0
 # PIL modes of a depth image: 16-bit integers (PNG) or 32-bit integers / floats (TIFF)
 DEPTH_MODES = ("I;16", "I;16B", "I;16L", "I;16N", "I", "F")
+
+
+# what PIL raises on a file that is not a readable image; DecompressionBombError (a header
+# claiming more pixels than PIL opens) is neither an OSError nor a ValueError
+IMAGE_ERRORS = (
+    UnidentifiedImageError,
+    OSError,
+    SyntaxError,
+    ValueError,
+    Image.DecompressionBombError,
+)
 
 
 def check_exists(path: Path, what: str) -> Path:
@@ -51,7 +63,7 @@ def _open(path: Path) -> Image.Image:
         return img
     except FileNotFoundError:
         raise BlunfError(f"{path}: file not found") from None
-    except (UnidentifiedImageError, OSError, SyntaxError) as e:
+    except IMAGE_ERRORS as e:
         raise BlunfError(f"{path}: not a readable image ({e.__class__.__name__})") from None
 
 
@@ -67,7 +79,7 @@ def image_size(path: Path) -> tuple[int, int]:
             return img.size
     except FileNotFoundError:
         raise BlunfError(f"{path}: file not found") from None
-    except (UnidentifiedImageError, OSError) as e:
+    except IMAGE_ERRORS as e:
         raise BlunfError(f"{path}: not a readable image ({e.__class__.__name__})") from None
 
 
@@ -92,7 +104,7 @@ def depth_size(path: Path) -> tuple[int, int]:
             return img.size
     except FileNotFoundError:
         raise BlunfError(f"{path}: file not found") from None
-    except (UnidentifiedImageError, OSError) as e:
+    except IMAGE_ERRORS as e:
         raise BlunfError(f"{path}: not a readable image ({e.__class__.__name__})") from None
 
 
@@ -175,8 +187,21 @@ def write_label_png(path: Path, labels: np.ndarray) -> None:
 
 
 def write_image(path: Path, rgb: np.ndarray) -> None:
-    """Write uint8 [H, W, 3] RGB."""
-    Image.fromarray(np.asarray(rgb, np.uint8)).save(path)
+    """Write uint8 [H, W, 3] RGB, atomically (a temp file beside it, then renamed): a write
+    that fails or is killed leaves no half picture. The format follows the suffix."""
+    path = Path(path)
+    fmt = Image.registered_extensions().get(path.suffix.lower())
+    if fmt is None:
+        raise BlunfError(f"{path}: not an image file name (.png, .jpg)")
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            Image.fromarray(np.asarray(rgb, np.uint8)).save(f, format=fmt)
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
 
 
 def read_yaml(path: Path, what: str) -> Any:
@@ -205,12 +230,25 @@ def read_json(path: Path) -> Any:
         raise BlunfError(f"{path}: invalid JSON at line {e.lineno}: {e.msg}") from None
 
 
+def finite_json(v: Any) -> Any:
+    """`v` with every non-finite float (NaN, inf; numpy's too) replaced by None."""
+    if isinstance(v, dict):
+        return {k: finite_json(x) for k, x in v.items()}
+    if isinstance(v, list | tuple):
+        return [finite_json(x) for x in v]
+    if isinstance(v, float | np.floating):
+        return float(v) if math.isfinite(v) else None
+    return v
+
+
 def write_json(path: Path, data: Any) -> None:
     """Write JSON atomically (temp file in the same folder, then rename), mode 0644."""
     path = Path(path)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
     with os.fdopen(fd, "w") as f:
-        json.dump(data, f, indent=1, default=_json_default)
+        # strict JSON: a NaN or inf (an undefined metric) is written as null, never as the
+        # NaN / Infinity tokens strict parsers refuse
+        json.dump(finite_json(data), f, indent=1, default=_json_default, allow_nan=False)
         f.write("\n")
     os.chmod(tmp, 0o644)
     os.replace(tmp, path)
@@ -230,9 +268,9 @@ def save_npz(path: Path, **arrays: Any) -> None:
 
 def _json_default(o: Any) -> Any:
     if isinstance(o, np.ndarray):
-        return o.tolist()
+        return finite_json(o.tolist())
     if isinstance(o, np.generic):
-        return o.item()
+        return finite_json(o.item())
     if isinstance(o, Path):
         return str(o)
     raise TypeError(f"not JSON serialisable: {type(o)}")

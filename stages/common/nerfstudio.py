@@ -71,7 +71,7 @@ def write_transforms(capture: Capture, path: Path) -> Path:
             raise BlunfError(f"{path}: frame {f.stem!r} has no pose")
         entry: dict = {
             "file_path": _rel(f.image, base),
-            "transform_matrix": (np.asarray(f.pose, np.float64) @ GL_CV).tolist(),
+            "transform_matrix": (_put_back(f.pose, capture.origin) @ GL_CV).tolist(),
         }
         if not shared:
             entry.update(_intr_json(f.intrinsics))
@@ -82,3 +82,10 @@ def write_transforms(capture: Capture, path: Path) -> Path:
     base.mkdir(parents=True, exist_ok=True)
     write_json(path, meta)
     return path
+
+
+def _put_back(pose: np.ndarray, origin: tuple[float, float, float]) -> np.ndarray:
+    """The pose in the capture's own (aligned) world: the recentring's offset added back."""
+    p = np.array(pose, np.float64)
+    p[:3, 3] += np.asarray(origin, np.float64)
+    return p

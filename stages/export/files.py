@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import shutil
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import ClassVar
 
@@ -55,10 +55,13 @@ def run(cfg: ExportConfig, inputs: ExportInputs, out: Path) -> ExportOutputs:
     bp = Blueprint.load(inputs.blueprint)
     shutil.copyfile(inputs.blueprint, out / "blueprint.npz")
     _picture(bp, inputs, out / "blueprint.png", cfg.title)
-    polys = polygons(bp, cfg.tolerance)  # traced once, written in three formats
-    write_svg(bp, out / "blueprint.svg", title=cfg.title, polys=polys)
-    write_geojson(bp, out / "blueprint.geojson", polys=polys)
-    write_dxf(bp, out / "blueprint.dxf", polys=polys)
+    # the vector plans in the capture's own (aligned) world: the offset ingest took off far
+    # poses put back (Capture.origin); the raster and the run's own files stay near 0
+    world = put_back(bp, Capture.load(inputs.frames).origin)
+    polys = polygons(world, cfg.tolerance)  # traced once, written in three formats
+    write_svg(world, out / "blueprint.svg", title=cfg.title, polys=polys)
+    write_geojson(world, out / "blueprint.geojson", polys=polys)
+    write_dxf(world, out / "blueprint.dxf", polys=polys)
     summary = plan_summary(bp, min_area_m2=cfg.min_area)
     if inputs.layout and Path(inputs.layout).is_file():  # object heights from the plan
         summary = with_heights(summary, read_json(inputs.layout).get("objects", []))
@@ -88,3 +91,12 @@ def _picture(bp: Blueprint, inputs: ExportInputs, path: Path, title: str) -> Non
     except GEOSException:
         pass  # the layout stage says why in its layout.json; the plain picture stands
     plan_png(bp, path, title=title)
+
+
+def put_back(bp: Blueprint, origin: tuple[float, float, float]) -> Blueprint:
+    """The blueprint with its grid moved by the capture's offset (x, y)."""
+    if not any(origin[:2]):
+        return bp
+    g = bp.grid
+    grid = replace(g, origin=(g.origin[0] + origin[0], g.origin[1] + origin[1]))
+    return replace(bp, grid=grid)

@@ -7,6 +7,11 @@ from pathlib import Path
 from typing import ClassVar
 
 from stages.common.errors import BlunfError
+from stages.common.memory import check_memory
+
+VOXEL_BYTES = 20  # float tsdf, weight and RGB per voxel (as fusion/tsdf.py allocates them)
+MIN_SURFACE = 50.0  # m²: a small room's surface, in blocks of side² (the 7-Scenes kitchen
+#                     touches 607 blocks of 0.32 m at the defaults: ~62 m²)
 
 
 @dataclass(frozen=True)
@@ -49,6 +54,12 @@ class FusionConfig:
             raise BlunfError(f"fusion.far_share: must be in [0, 0.5), got {self.far_share}")
         if self.block_resolution < 1:
             raise BlunfError(f"fusion.block_resolution: must be >= 1, got {self.block_resolution}")
+        side = self.block_resolution * self.voxel  # metres: a block's side
+        blocks = max(1.0, MIN_SURFACE / side**2)  # blocks a small room's surface touches
+        check_memory(
+            blocks * self.block_resolution**3 * VOXEL_BYTES,
+            f"fusion.block_resolution={self.block_resolution} (voxel {self.voxel} m)",
+        )
         if self.min_support < 0:
             raise BlunfError(f"fusion.min_support: must be >= 0, got {self.min_support}")
         if not self.support_voxels > 0:

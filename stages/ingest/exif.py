@@ -14,10 +14,11 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-from PIL import Image, UnidentifiedImageError
+from PIL import Image
 
 from stages.common.camera import Intrinsics
 from stages.common.errors import BlunfError
+from stages.common.io import IMAGE_ERRORS
 
 PRIOR_FACTOR = 1.2  # focal prior / longer image side without EXIF (COLMAP's default)
 FILM_DIAGONAL_MM = math.hypot(36.0, 24.0)  # 43.27 mm: the 35 mm frame's diagonal
@@ -105,7 +106,7 @@ def read_exif(path: Path) -> tuple[int, int, dict[int, object]]:
             tags.update(ex.get_ifd(EXIF_IFD))
     except FileNotFoundError:
         raise BlunfError(f"{path}: file not found") from None
-    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as e:
+    except IMAGE_ERRORS as e:
         raise BlunfError(f"{path}: not a readable image ({e.__class__.__name__})") from None
     return w, h, tags
 

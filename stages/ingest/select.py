@@ -18,7 +18,7 @@ from typing import ClassVar
 import numpy as np
 from PIL import Image
 
-from stages.common.capture import Capture, Frame
+from stages.common.capture import Capture, Frame, recentred
 from stages.common.checks import check_intrinsics, check_unique_stems
 from stages.common.errors import BlunfError
 from stages.common.io import (
@@ -227,6 +227,7 @@ def run(cfg: IngestConfig, inputs: IngestInputs, out: Path) -> IngestOutputs:
 
     log.debug("ingest: %s on %s", cfg, inputs.capture)
     _check_config(cfg)
+    check_not_a_run(Path(inputs.capture))
     out = Path(out)
     work = out / "import"
     t0 = time.perf_counter()
@@ -254,6 +255,7 @@ def run(cfg: IngestConfig, inputs: IngestInputs, out: Path) -> IngestOutputs:
         )
     t_resize = time.perf_counter() - t0
 
+    cap = recentred(cap)  # poses far from the origin: moved near it, the offset kept
     outputs = IngestOutputs.at(out)
     cap.save(outputs.frames)
     f0 = cap.frames[0].intrinsics
@@ -288,3 +290,11 @@ def run(cfg: IngestConfig, inputs: IngestInputs, out: Path) -> IngestOutputs:
         cap.has_poses,
     )
     return outputs
+
+
+def check_not_a_run(folder: Path) -> None:
+    """A run folder given as a capture (its report.json and .runs/): one line saying so."""
+    if (folder / ".runs").is_dir() and (folder / "report.json").exists():
+        raise BlunfError(
+            f"{folder}: a run folder, not a capture (its capture: the 'capture' of its report.json)"
+        )

@@ -142,7 +142,8 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
     outs = PosesOutputs.at(out)
     # The SfM world is not the capture's: a gravity vector given in the capture's frame means
     # nothing here, so alignment must find the floor itself.
-    replace(cap, gravity=None).with_frames(frames).save(outs.frames)
+    # SfM's own frame: nothing of the capture's world (its gravity, its offset) holds in it
+    replace(cap, gravity=None, origin=(0.0, 0.0, 0.0)).with_frames(frames).save(outs.frames)
     (out / "sparse").mkdir()
     rec.write(out / "sparse")
     rec.export_PLY(out / "sparse.ply")

@@ -6,6 +6,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar
 
+from stages.common.errors import BlunfError
+
+LABELLINGS = ("auto", "labels", "height")
+OCCLUSIONS = ("top", "none")
+
 
 @dataclass(frozen=True)
 class ProjectConfig:
@@ -44,6 +49,9 @@ class ProjectConfig:
     # heldout_pacc) when the frames carry labels; 0 = none (1 is refused: nothing left)
     holdout_every: int = 8
 
+    def __post_init__(self) -> None:
+        check_config(self)
+
 
 @dataclass(frozen=True)
 class ProjectInputs:
@@ -81,3 +89,46 @@ class ProjectOutputs:
     def classes(self) -> Path:
         """classes.json beside the points: {"classes": {id: name}, "labelling": ...}."""
         return self.points.parent / "classes.json"
+
+
+def check_config(cfg: ProjectConfig) -> None:
+    """Every setting in range (at config load: before any stage runs)."""
+    if cfg.holdout_every < 0 or cfg.holdout_every == 1:
+        raise BlunfError(f"project.holdout_every must be 0 (off) or >= 2, got {cfg.holdout_every}")
+    if cfg.stride < 0:
+        raise BlunfError(f"project.stride must be >= 1, or 0 (auto), got {cfg.stride}")
+    if not cfg.cell > 0:
+        raise BlunfError(f"project.cell must be > 0 metres, got {cfg.cell}")
+    if not 0 <= cfg.bounds_pct < 50:
+        raise BlunfError(f"project.bounds_pct must be in [0, 50), got {cfg.bounds_pct}")
+    if cfg.pad < 0:
+        raise BlunfError(f"project.pad must be >= 0 metres, got {cfg.pad}")
+    if (
+        not (cfg.seen_radius > 0 and cfg.fill_radius > 0)
+        or cfg.inside_close < 0
+        or cfg.ray_every < 0
+    ):
+        raise BlunfError(
+            f"project.seen_radius ({cfg.seen_radius}) and fill_radius ({cfg.fill_radius}) must "
+            f"be > 0 metres, project.inside_close "
+            f"({cfg.inside_close}) >= 0 and project.ray_every ({cfg.ray_every}) >= 0"
+        )
+    if cfg.labelling not in LABELLINGS:
+        raise BlunfError(f"project.labelling must be one of {LABELLINGS}, got {cfg.labelling!r}")
+    if cfg.occlusion not in OCCLUSIONS:
+        raise BlunfError(f"project.occlusion must be one of {OCCLUSIONS}, got {cfg.occlusion!r}")
+    if cfg.occlusion_cell < 0 or cfg.top_band < 0:
+        raise BlunfError(
+            f"project.occlusion_cell ({cfg.occlusion_cell}) and project.top_band "
+            f"({cfg.top_band}) must be >= 0 metres"
+        )
+    if cfg.top_min_points < 1 or cfg.occlusion_shifts < 1:
+        raise BlunfError(
+            f"project.top_min_points ({cfg.top_min_points}) and project.occlusion_shifts "
+            f"({cfg.occlusion_shifts}) must be >= 1"
+        )
+    if not cfg.floor_band < cfg.ceiling_cut:
+        raise BlunfError(
+            f"project.floor_band ({cfg.floor_band}) must be below "
+            f"project.ceiling_cut ({cfg.ceiling_cut})"
+        )

@@ -37,14 +37,10 @@ from stages.project.topview import top_view_keep
 
 log = logging.getLogger(__name__)
 
-LABELLINGS = ("auto", "labels", "height")
-OCCLUSIONS = ("top", "none")
-
 
 def run(cfg: ProjectConfig, inputs: ProjectInputs, out: Path) -> ProjectOutputs:
     """Project every labelled pixel with depth of every frame into the world."""
     t0 = time.perf_counter()
-    _check(cfg)
     log.debug("project: %s", cfg)  # the full config: meta.json
     cap = Capture.load(inputs.frames)
     if not cap.frames:
@@ -310,45 +306,3 @@ def _label_classes(cap: Capture, label: np.ndarray) -> dict[int, str]:
     for c in np.unique(label).tolist():
         classes.setdefault(int(c), f"class {c}")
     return dict(sorted(classes.items()))
-
-
-def _check(cfg: ProjectConfig) -> None:
-    if cfg.holdout_every < 0 or cfg.holdout_every == 1:
-        raise BlunfError(f"project.holdout_every must be 0 (off) or >= 2, got {cfg.holdout_every}")
-    if cfg.stride < 0:
-        raise BlunfError(f"project.stride must be >= 1, or 0 (auto), got {cfg.stride}")
-    if not cfg.cell > 0:
-        raise BlunfError(f"project.cell must be > 0 metres, got {cfg.cell}")
-    if not 0 <= cfg.bounds_pct < 50:
-        raise BlunfError(f"project.bounds_pct must be in [0, 50), got {cfg.bounds_pct}")
-    if cfg.pad < 0:
-        raise BlunfError(f"project.pad must be >= 0 metres, got {cfg.pad}")
-    if (
-        not (cfg.seen_radius > 0 and cfg.fill_radius > 0)
-        or cfg.inside_close < 0
-        or cfg.ray_every < 0
-    ):
-        raise BlunfError(
-            f"project.seen_radius ({cfg.seen_radius}) and fill_radius ({cfg.fill_radius}) must "
-            f"be > 0 metres, project.inside_close "
-            f"({cfg.inside_close}) >= 0 and project.ray_every ({cfg.ray_every}) >= 0"
-        )
-    if cfg.labelling not in LABELLINGS:
-        raise BlunfError(f"project.labelling must be one of {LABELLINGS}, got {cfg.labelling!r}")
-    if cfg.occlusion not in OCCLUSIONS:
-        raise BlunfError(f"project.occlusion must be one of {OCCLUSIONS}, got {cfg.occlusion!r}")
-    if cfg.occlusion_cell < 0 or cfg.top_band < 0:
-        raise BlunfError(
-            f"project.occlusion_cell ({cfg.occlusion_cell}) and project.top_band "
-            f"({cfg.top_band}) must be >= 0 metres"
-        )
-    if cfg.top_min_points < 1 or cfg.occlusion_shifts < 1:
-        raise BlunfError(
-            f"project.top_min_points ({cfg.top_min_points}) and project.occlusion_shifts "
-            f"({cfg.occlusion_shifts}) must be >= 1"
-        )
-    if not cfg.floor_band < cfg.ceiling_cut:
-        raise BlunfError(
-            f"project.floor_band ({cfg.floor_band}) must be below "
-            f"project.ceiling_cut ({cfg.ceiling_cut})"
-        )

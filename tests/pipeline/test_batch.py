@@ -280,11 +280,22 @@ def test_bad_arguments_fail_before_any_cluster(rooms, tmp_path, capsys):
     out = tmp_path / "batch"
     twin = tmp_path / "twin" / "room1"
     shutil.copytree(rooms["room1"], twin)
+    bad_spec = tmp_path / "edits.yaml"
+    bad_spec.write_text("edits:\n  - select: {class: chair}\n    op: explode\n")
     cases = {
         "missing": ([str(tmp_path / "nowhere")], "nowhere: capture folder not found"),
-        "twins": ([str(rooms["room1"]), str(twin)], "a second capture named 'room1'"),
+        "twins": ([str(rooms["room1"]), str(twin)], "would collide with capture"),
         "bad set": ([str(rooms["room1"]), "--set", "fusion.nope=1"], "fusion.nope"),
+        "bad edits": ([str(rooms["room1"]), "--edits", str(bad_spec)], "edits[0].op"),
     }
+    # capture folders whose names collide with the batch's own files, or one's folder with
+    # another's log (`a` beside `a.log`)
+    for n in ("index.html", "summary.csv", "batch.json"):
+        (tmp_path / n).mkdir()
+        cases[n] = ([str(rooms["room1"]), str(tmp_path / n)], "the batch's own file")
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a.log").mkdir()
+    cases["a.log"] = ([str(tmp_path / "a"), str(tmp_path / "a.log")], "a.log would collide")
     for name, (args, msg) in cases.items():
         assert main(["batch", *args, "--out", str(out)]) == 2, name
         err = capsys.readouterr().err

@@ -81,6 +81,7 @@ def _valid_other(cfg, name, value):
         "surface",
         "sqrt",
         "rays",
+        "height",
     ):
         if cand == value:
             continue

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 import torch
 import trimesh
-from stages.common.radiance.scene import build_model
 
 from stages.common.camera import Intrinsics
 from stages.common.components import component_map
 from stages.common.errors import BlunfError
+from stages.common.radiance.scene import build_model
 from stages.edit.config import EditConfig
 from stages.edit.render import look_at
 from stages.edit.spec import Edit, Selector

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import trimesh
 
+from stages.common.classes import OBJECT
 from stages.common.components import with_heights
 from stages.layout.openings import scene_of
 from stages.layout.walls import object_heights
 from stages.semantics import SemanticsConfig
-from stages.common.classes import OBJECT
 from stages.semantics.pieces import split_by_top
 from stages.semantics.segment import segment, triangles
 from stages.synth.furniture import box_mesh, build_chair, build_table

@@ -101,3 +101,29 @@ def test_plan_view_click_and_drag(studio) -> None:
     st.sketching.value = False
     st._sketch_mode()
     assert not st.plan._impl.drag_cb  # drags on the plan orbit the camera again
+
+
+def test_forged_dropdowns_are_refused(studio) -> None:
+    # viser lets a client set a dropdown's value and even its options: the panel checks the
+    # values against the server's own offer, and nothing is written
+    from tests.test_bad_input import snapshot
+
+    _, st = studio
+    run = st.session.files.run
+    st.cls.value = "sofa"
+    st._do(st._select_class)
+    forged = "../../../pipeline/cli.py"
+    st.texture._impl.props.options = (*st.texture.options, forged)  # as a client's update
+    st.texture._impl.value = forged
+    st.op._impl.value = "retexture"
+    n = len(st.session.edits)
+    before = snapshot(run.parent)
+    st._do(st._apply)
+    assert "Not applied" in st.message.content and "texture" in st.message.content
+    assert snapshot(run.parent) == before and len(st.session.edits) == n
+    st.view_pick._impl.value = "999: nowhere"
+    st._do(lambda: st._go(SimpleNamespace(client=None)))
+    assert "Not applied" in st.message.content and "input view" in st.message.content
+    st.full_path._impl.value = "../x"
+    st._do(st._full_path)
+    assert st.full_path.value == "fast" and "Not applied" in st.message.content

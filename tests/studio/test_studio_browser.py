@@ -3,7 +3,7 @@
 On a tiny synthetic room with a trained NeRF: go to an input view, click a chair's cell on the
 floor, apply remove, and check from screenshots of the page that the view changed inside the
 chair's ground-truth mask and not outside it; recolour the sofa, save, and check that
-`blunf run --edits RUN/edits/studio.yaml` renders what the studio rendered; no console errors.
+`blunf run --edits RUN/studio/studio.yaml` renders what the studio rendered; no console errors.
 """
 
 from __future__ import annotations
@@ -185,11 +185,14 @@ def test_studio_remove_recolour_save(tiny_run, tmp_path) -> None:
     )  # fmt: skip
     driver = None
     try:
-        line = proc.stdout.readline() if proc.stdout else ""
-        assert f":{port}" in line, line
+        line = ""  # the studio's line (websockets and viser print theirs before it)
+        while proc.stdout and not line.startswith("blunf studio:"):
+            line = proc.stdout.readline()
+            assert line, "the studio ended before printing its URL"
+        assert f":{port}/?token=" in line, line
         driver = _driver()
         page = Page(driver)
-        driver.get(f"http://127.0.0.1:{port}")
+        driver.get(line.split()[2])  # the URL printed, with the launch's token
         _wait(lambda: "Go to view" in page.text(), 60, "the studio's panel")
         page.checkbox("Render only")
         page.choose("Input view", f"{view}: {stem}")
@@ -233,7 +236,7 @@ def test_studio_remove_recolour_save(tiny_run, tmp_path) -> None:
         shot2 = _settled(page, n)
         page.button("Save")
         _wait(lambda: "Saved" in page.text(), 120, "the save")
-        studio = read_image(run / "edits" / "studio_views" / f"{stem}.png")
+        studio = read_image(run / "studio" / "studio_views" / f"{stem}.png")
         driver.save_screenshot(str(tmp_path / "studio.png"))
         # the page shows the studio's render (up to the canvas's scaling, which blurs it):
         # close to it, and closer than the unedited view
@@ -250,14 +253,14 @@ def test_studio_remove_recolour_save(tiny_run, tmp_path) -> None:
             driver.quit()
         proc.terminate()
         proc.wait(timeout=20)
-    saved = run / "edits" / "studio.yaml"
+    saved = run / "studio" / "studio.yaml"
     keep = tmp_path / "studio.yaml"
     shutil.copyfile(saved, keep)
     assert main(["run", str(cap), "--out", str(run), *RUN_ARGS, "--edits", str(saved)]) == 0
     pair = read_image(run / "edits" / f"{stem}.png")  # before | 4 px | after
     after = pair[:, -w:]
     assert _psnr(after, studio) >= 50.0
-    assert (run / "edits" / "studio.yaml").read_text() == keep.read_text()  # kept by the run
+    assert saved.read_text() == keep.read_text()  # the studio's save, left alone by the run
 
 
 def _plan_view_click_and_drag(page: Page, run: Path, target) -> None:

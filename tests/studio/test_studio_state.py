@@ -97,11 +97,11 @@ def test_edits_save_and_load_round_trip(run) -> None:
     s.apply("sketch", color=(255, 0, 0), width=0.1)
     assert s.undo() and len(s.edits) == 3 and s.redo() and len(s.edits) == 4
     path = s.save([0, 2])
-    assert path == out / "edits" / SPEC_NAME
+    assert path == out / "studio" / SPEC_NAME
     spec = load_spec(path)  # the pipeline's own parser reads it
     assert [e.op for e in spec.edits] == ["remove", "recolor", "retexture", "sketch"]
     assert spec.views == (0, 2) and spec.edits[1].color == (40.0, 90.0, 200.0)
-    assert spec.textures == ((out / "edits" / "textures" / "tiles.png").resolve(),)
+    assert spec.textures == ((out / "studio" / "textures" / "tiles.png").resolve(),)
     s2 = Session(out)
     assert s2.load() == 4 and s2.edits == s.edits
 
@@ -115,7 +115,7 @@ def test_bad_input_changes_nothing(run, tmp_path) -> None:
         s.apply("sketch", color=(255, 0, 0))  # a sketch with no stroke
     with pytest.raises(BlunfError, match="notes.txt: not an image"):
         s.add_texture("notes.txt", b"these are not pixels")
-    assert not (out / "edits" / "textures" / "notes.png").exists()
+    assert not (out / "studio" / "textures" / "notes.png").exists()
     assert s.edits == [] and s.version == 0
     with pytest.raises(BlunfError, match="not a run folder"):
         Session(tmp_path)

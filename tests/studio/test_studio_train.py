@@ -49,7 +49,7 @@ def trained(tmp_path_factory) -> tuple[Path, Path, Session, list[str]]:
         s.apply("recolor", color=(40, 90, 200), strength=0.8)
         st._do(st._train)  # the button
         assert st.trainer.running, st.message.content
-        assert (base / "run" / "edits" / SPEC_NAME).is_file()
+        assert (base / "run" / "studio" / SPEC_NAME).is_file()
         lines = []
         while st.trainer.running:
             lines.append(st.train_info.content)
@@ -81,7 +81,7 @@ def test_train_from_the_studio(trained) -> None:
     assert report["config"]["nerf"]["train"]["edge_batch"] == 0.5  # configs/edit-fast.yaml's
     assert any("nerf" in ln and "running" in ln for ln in lines), lines  # the page's line
     assert lines[-1].startswith("NeRF trained")
-    assert (run / "edits" / SPEC_NAME).is_file()  # kept by the run, as blunf run keeps it
+    assert (run / "studio" / SPEC_NAME).is_file()  # the run left the studio's save alone
     # a second training is refused: the run has its NeRF
     with pytest.raises(Exception, match="has a NeRF already"):
         Trainer(s).start()
