@@ -31,7 +31,7 @@ from hypothesis.extra import numpy as hnp
 
 from pipeline.config import stage_configs
 from stages.common.blueprint import Blueprint, Grid
-from stages.common.capture import UNKNOWN, read_layout
+from stages.common.capture import UNKNOWN, Capture, read_layout
 from stages.common.io import read_depth, write_json
 from tests.runs import VOXEL, assert_finite_outputs, run_ok, small_room
 
@@ -141,6 +141,13 @@ def _align_T(out: Path) -> np.ndarray:
     return np.asarray(json.loads(next(out.glob("align/*/align.json")).read_text())["T"])
 
 
+def _origin(out: Path) -> np.ndarray:
+    """The offset ingest took off far poses (Capture.origin: 0 near the origin): the run's
+    own files live in the capture world less it."""
+    cap = Capture.load(next(out.glob("align/*/frames.json")))
+    return np.asarray(cap.origin, np.float64)
+
+
 def read_through(
     ref_out: Path, out: Path, s: float, o, method: str
 ) -> tuple[Blueprint, np.ndarray]:
@@ -150,7 +157,8 @@ def read_through(
     c = ref.grid.centers().reshape(-1, 2)  # [N, 2]
     p = np.c_[c, np.zeros(len(c)), np.ones(len(c))].T  # [4, N] floor points, aligned world
     x = np.linalg.solve(_align_T(ref_out), p)  # [4, N] capture world
-    x[:3] = s * x[:3] + np.asarray(o, np.float64)[:, None]
+    x[:3] = x[:3] + _origin(ref_out)[:, None]
+    x[:3] = s * x[:3] + np.asarray(o, np.float64)[:, None] - _origin(out)[:, None]
     q = (_align_T(out) @ x)[:2].T  # [N, 2] in the other run's aligned world
     return ref, other.sample(q).reshape(ref.grid.shape)
 

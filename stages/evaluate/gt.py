@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import ClassVar
 
@@ -61,11 +61,19 @@ def run(cfg: EvaluateConfig, inputs: EvaluateInputs, out: Path) -> EvaluateOutpu
     gt_poses = gt_dir / "poses.json" if gt_dir is not None else None
     est: dict[str, np.ndarray] = {}
     gtp: dict[str, np.ndarray] = {}
+    # ground truth is in the capture's world; the frames are that world less the offset
+    # ingest took off far poses (Capture.origin): ground truth is moved by it too
+    origin = np.asarray(Capture.load(inputs.frames).origin, np.float64)
     if gt_poses is not None and gt_poses.is_file() and (inputs.poses_estimated or cfg.plan):
         est, gtp = pose_pairs(inputs.frames, gt_poses)
+        gtp = {k: _moved(T, -origin) for k, T in gtp.items()}
     gt_plan = gt_dir / "blueprint.npz" if gt_dir is not None else None
     if gt_plan is not None and gt_plan.is_file() and cfg.plan:
         gt = Blueprint.load(gt_plan)
+        if origin[:2].any():
+            g = gt.grid
+            o = (g.origin[0] - origin[0], g.origin[1] - origin[1])
+            gt = replace(gt, grid=replace(g, origin=o))
         pred_to_gt, frame = plan_frame(inputs.poses_estimated, est, gtp, gt.grid)
         if frame == FRAME_ALIGNED:  # how well the shared poses fix that frame
             common = [k for k in gtp if k in est]
@@ -94,3 +102,10 @@ def run(cfg: EvaluateConfig, inputs: EvaluateInputs, out: Path) -> EvaluateOutpu
         metrics["observation"] = observation(inputs.blueprints[0], inputs.points, inputs.layout)
     write_json(out / "metrics.json", metrics)
     return EvaluateOutputs.at(out)
+
+
+def _moved(T: np.ndarray, by: np.ndarray) -> np.ndarray:
+    """A camera-to-world pose with its centre moved by `by` (metres)."""
+    T = np.array(T, np.float64)
+    T[:3, 3] += by
+    return T

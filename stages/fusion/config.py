@@ -10,8 +10,9 @@ from stages.common.errors import BlunfError
 from stages.common.memory import check_memory
 
 VOXEL_BYTES = 20  # float tsdf, weight and RGB per voxel (as fusion/tsdf.py allocates them)
-MIN_SURFACE = 50.0  # m²: a small room's surface, in blocks of side² (the 7-Scenes kitchen
-#                     touches 607 blocks of 0.32 m at the defaults: ~62 m²)
+MIN_BLOCKS = 64  # blocks any fused scene touches at least (the 7-Scenes kitchen touches 607
+#                 blocks of 0.32 m at the defaults). Counted in blocks, not in square metres of
+#                 surface, so that the check holds for a world in any unit (tests/test_stability)
 
 
 @dataclass(frozen=True)
@@ -54,10 +55,8 @@ class FusionConfig:
             raise BlunfError(f"fusion.far_share: must be in [0, 0.5), got {self.far_share}")
         if self.block_resolution < 1:
             raise BlunfError(f"fusion.block_resolution: must be >= 1, got {self.block_resolution}")
-        side = self.block_resolution * self.voxel  # metres: a block's side
-        blocks = max(1.0, MIN_SURFACE / side**2)  # blocks a small room's surface touches
         check_memory(
-            blocks * self.block_resolution**3 * VOXEL_BYTES,
+            MIN_BLOCKS * self.block_resolution**3 * VOXEL_BYTES,
             f"fusion.block_resolution={self.block_resolution} (voxel {self.voxel} m)",
         )
         if self.min_support < 0:
