@@ -384,7 +384,10 @@ def heldout_views(n: int, every: int) -> list[int]:
     return [i for i in range(n) if every > 0 and n > 1 and i % every == every // 2]
 
 
-RECENTRE_BEYOND = 1000.0  # metres: poses whose mean centre lies farther are moved near 0
+RECENTRE_BEYOND = 1000.0  # metres: poses whose mean centre lies farther, and farther than
+#                          RECENTRE_SPREAD times the cameras' spread, are moved near 0 (a
+#                          room in kilometre units is a large world, not a far one)
+RECENTRE_SPREAD = 100.0
 RECENTRE_STEP = 1000.0  # metres: the offset taken off, a whole multiple of this
 
 
@@ -395,8 +398,12 @@ def recentred(cap: Capture) -> Capture:
     gives the same frames (up to float64 rounding) and the same plan."""
     if not cap.has_poses:
         return cap
-    c = cap.poses()[:, :3, 3].mean(axis=0)  # [3] mean camera centre
-    if not np.all(np.isfinite(c)) or np.abs(c).max() <= RECENTRE_BEYOND:
+    centres = cap.poses()[:, :3, 3]
+    c = centres.mean(axis=0)  # [3] mean camera centre
+    far = np.abs(c).max()
+    if not np.all(np.isfinite(c)) or far <= RECENTRE_BEYOND:
+        return cap
+    if far <= RECENTRE_SPREAD * float(np.abs(centres - c).max()):
         return cap
     o = np.round(c / RECENTRE_STEP) * RECENTRE_STEP  # [3]
     frames = []
