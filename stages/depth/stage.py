@@ -89,10 +89,14 @@ def _run(cfg: DepthConfig, inputs: DepthInputs, out: Path, sweep: bool) -> Depth
             # planes: where stereo read nothing, the room's own planes (planes/); its facts
             # go under "plane_fill" ("planes" is the sweep's plane count)
             c0 = time.process_time()
-            depths, sources, facts["plane_fill"] = planes.fill(
-                images, Ks, poses, sparse, depths, cfg.planes, max(1, cfg.threads)
-            )
-            parts["planes"] = _part(sources, time.process_time() - c0, ran=cfg.planes.enabled)
+            need = cfg.planes.enabled and facts["kept"] < cfg.planes.below
+            if need:
+                depths, sources, facts["plane_fill"] = planes.fill(
+                    images, Ks, poses, sparse, depths, cfg.planes, max(1, cfg.threads)
+                )
+            facts["plane_fill_reason"] = _planes_reason(cfg.planes, facts["kept"])
+            log.info("depth: %s", facts["plane_fill_reason"])
+            parts["planes"] = _part(sources, time.process_time() - c0, ran=need)
 
         fill = _fill_needed(cfg.field, parts, sweep)
         facts["field_fill"] = fill
@@ -182,6 +186,21 @@ def _field_sources(
             src = np.where(keep, s, src).astype(np.uint8)
         out.append(np.where(d > 0, src, NONE).astype(np.uint8))
     return out
+
+
+def _planes_reason(pc: planes.PlanesConfig, kept: float) -> str:
+    """Whether the plane fill ran, and why (a line for the log and the report)."""
+    if not pc.enabled:
+        return "no plane fill (depth.planes.enabled off)"
+    if kept < pc.below:
+        return (
+            f"plane fill: stereo covers {100 * kept:.0f} % of the pixels, under "
+            f"depth.planes.below {100 * pc.below:.0f} %"
+        )
+    return (
+        f"no plane fill: stereo covers {100 * kept:.0f} % of the pixels "
+        f"(depth.planes.below {100 * pc.below:.0f} %)"
+    )
 
 
 def _fill_needed(fc: FieldFillConfig, parts: dict, swept: bool) -> str:

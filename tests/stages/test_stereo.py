@@ -241,6 +241,55 @@ def test_stereo_stage_writes_depth_for_fusion_without_a_field(tiny_room, tmp_pat
     assert facts["parts"]["sweep"]["cpu_seconds"] > 0 and facts["cpu_seconds"] > 0
 
 
+def test_stereo_stage_runs_the_plane_fill_where_stereo_covers_too_little(tiny_room, tmp_path, room):
+    # depth.planes on: under `below` the room's planes fill stereo's holes (sources 2, more
+    # coverage than the sweep, every stereo reading kept where no plane overrode it); at or
+    # over it the fill is skipped and says why
+    from dataclasses import replace
+
+    from stages.common.capture import Capture
+    from stages.common.io import read_json, write_depth_npy
+    from stages.depth import DepthConfig, DepthInputs
+    from stages.depth.config import FieldFillConfig
+    from stages.depth.planes import PlanesConfig
+    from stages.depth.stage import run_stereo
+
+    _, _, _, tracks, gt = room
+    cap = read_layout(tiny_room)
+    (tmp_path / "tracks").mkdir()
+    frames = []
+    for f, t in zip(cap.frames, tracks, strict=True):
+        write_depth_npy(tmp_path / "tracks" / f"{f.stem}.npy", t)
+        frames.append(replace(f, depth=tmp_path / "tracks" / f"{f.stem}.npy"))
+    replace(cap.with_frames(frames), depth_scale=1.0, depth_invalid=()).save(
+        tmp_path / "frames.json"
+    )
+    facts = {}
+    for below in (1.0, 0.0):
+        out = tmp_path / f"out{below}"
+        out.mkdir()
+        cfg = DepthConfig(
+            field=FieldFillConfig(fill=False),
+            planes=PlanesConfig(enabled=True, below=below, width=96, superpixels=150),
+        )
+        outs = run_stereo(cfg, DepthInputs(tmp_path / "frames.json"), out)
+        facts[below] = read_json(outs.stats)
+        srcs = [
+            read_label(outs.sources / f"{f.stem}.png") for f in Capture.load(outs.frames).frames
+        ]
+        if below == 1.0:
+            assert any((s == 2).any() for s in srcs)
+        else:
+            assert all(set(np.unique(s)) <= {0, 1} for s in srcs)
+    ran, skipped = facts[1.0], facts[0.0]
+    assert ran["parts"]["planes"]["ran"] and not skipped["parts"]["planes"]["ran"]
+    assert ran["coverage"]["planes"] > ran["coverage"]["sweep"]
+    assert skipped["coverage"]["planes"] == skipped["coverage"]["sweep"]
+    assert ran["plane_fill_reason"].startswith("plane fill: stereo covers")
+    assert skipped["plane_fill_reason"].startswith("no plane fill")
+    assert "plane_fill" in ran and "plane_fill" not in skipped
+
+
 def test_smallest_mean_is_the_mean_of_the_k_lowest():
     # the neighbours' costs are merged as they come; the result is topk's, ties included
     g = torch.Generator().manual_seed(0)

@@ -19,6 +19,9 @@ class PlanesConfig:
 
     enabled: bool = False  # fill stereo's holes with plane depth (false: the maps pass through).
     #                       Off by default: see docs/depth.md for what it measured
+    below: float = 0.6  # runs only when stereo covers fewer than this share of the pixels:
+    #                     the real kitchen (37 %) and office (32 %) gain from it (docs/depth.md);
+    #                     the textured demo room (81 %) plans 84.6 with it and skips its CPU-s
     # hypotheses (hypotheses.py)
     voxel: float = 0.02  # metres: points are thinned to one per voxel before voting
     bin: float = 0.01  # metres: offset histogram bin along each room axis
@@ -78,6 +81,8 @@ class PlanesConfig:
     check_views: int = 6  # views each fill is checked against (those overlapping it most)
 
     def __post_init__(self) -> None:
+        if not 0.0 <= self.below <= 1.0:
+            raise BlunfError(f"depth.planes.below must be in [0, 1], got {self.below}")
         pos = ("voxel", "bin", "band", "tol", "tex_std", "check_tol")
         for k in pos:
             if not getattr(self, k) > 0:
