@@ -197,19 +197,13 @@ def test_coarse_needs_the_refinement():
         StereoConfig(coarse=2, refine=0)
 
 
-def test_stereo_stage_writes_depth_for_fusion_without_a_field(tiny_room, tmp_path, room):
-    # the depth stage's `stereo` implementation: every view swept, frames.json pointing at the
-    # checked maps (metres), sources/ saying stereo where there is depth, no field trained
+def _tracks_frames(capture, tracks, tmp_path) -> None:
+    """tmp_path/frames.json: the capture with the SfM-like track depths as its depth."""
     from dataclasses import replace
 
-    from stages.common.capture import Capture
-    from stages.common.io import read_json, write_depth_npy
-    from stages.depth import DepthConfig, DepthInputs
-    from stages.depth.config import FieldFillConfig
-    from stages.depth.stage import run_stereo
+    from stages.common.io import write_depth_npy
 
-    _, _, _, tracks, gt = room
-    cap = read_layout(tiny_room)
+    cap = read_layout(capture)
     (tmp_path / "tracks").mkdir()
     frames = []
     for f, t in zip(cap.frames, tracks, strict=True):
@@ -218,6 +212,20 @@ def test_stereo_stage_writes_depth_for_fusion_without_a_field(tiny_room, tmp_pat
     replace(cap.with_frames(frames), depth_scale=1.0, depth_invalid=()).save(
         tmp_path / "frames.json"
     )
+
+
+def test_stereo_stage_writes_depth_for_fusion_without_a_field(tiny_room, tmp_path, room):
+    # the depth stage's `stereo` implementation: every view swept, frames.json pointing at the
+    # checked maps (metres), sources/ saying stereo where there is depth, no field trained
+
+    from stages.common.capture import Capture
+    from stages.common.io import read_json
+    from stages.depth import DepthConfig, DepthInputs
+    from stages.depth.config import FieldFillConfig
+    from stages.depth.stage import run_stereo
+
+    _, _, _, tracks, gt = room
+    _tracks_frames(tiny_room, tracks, tmp_path)
     (tmp_path / "out").mkdir()
     # fill off: at 96x72 stereo covers ~15-20 %, and the default (auto) would train a field
     cfg = DepthConfig(field=FieldFillConfig(fill=False))
@@ -245,25 +253,16 @@ def test_stereo_stage_runs_the_plane_fill_where_stereo_covers_too_little(tiny_ro
     # depth.planes on: under `below` the room's planes fill stereo's holes (sources 2, more
     # coverage than the sweep, every stereo reading kept where no plane overrode it); at or
     # over it the fill is skipped and says why
-    from dataclasses import replace
 
     from stages.common.capture import Capture
-    from stages.common.io import read_json, write_depth_npy
+    from stages.common.io import read_json
     from stages.depth import DepthConfig, DepthInputs
     from stages.depth.config import FieldFillConfig
     from stages.depth.planes import PlanesConfig
     from stages.depth.stage import run_stereo
 
     _, _, _, tracks, gt = room
-    cap = read_layout(tiny_room)
-    (tmp_path / "tracks").mkdir()
-    frames = []
-    for f, t in zip(cap.frames, tracks, strict=True):
-        write_depth_npy(tmp_path / "tracks" / f"{f.stem}.npy", t)
-        frames.append(replace(f, depth=tmp_path / "tracks" / f"{f.stem}.npy"))
-    replace(cap.with_frames(frames), depth_scale=1.0, depth_invalid=()).save(
-        tmp_path / "frames.json"
-    )
+    _tracks_frames(tiny_room, tracks, tmp_path)
     facts = {}
     for below in (1.0, 0.0):
         out = tmp_path / f"out{below}"
