@@ -262,9 +262,9 @@ def summary(res: dict) -> str:
         per = " ".join(f"{c} {p['per_class'].get(c, float('nan')):.1f}" for c in CLASSES)
         lines.append(
             f"{name}: fwIoU {p['fwiou']:.1f} pAcc {p['pacc']:.1f} | IoU {per} | registered "
-            f"{q['registered']}/{q['total']} rot {q.get('rot_err_deg_median') or float('nan'):.2f}"
-            f" deg ATE {q.get('ate_rmse_m') or float('nan'):.3f} m | scale "
-            f"x{q.get('align_scale') or float('nan'):.3f} ({r['scale'].get('method', '?')})"
+            f"{q['registered']}/{q['total']} rot {_num(q.get('rot_err_deg_median')):.2f}"
+            f" deg ATE {_num(q.get('ate_rmse_m')):.3f} m | scale "
+            f"x{_num(q.get('align_scale')):.3f} ({r['scale'].get('method', '?')})"
         )
     d = res.get("depth")
     if d:
@@ -302,6 +302,11 @@ def main(argv: list[str] | None = None) -> int:
     print(summary(res))
     print(json.dumps(res["seconds"]))
     return 0
+
+
+def _num(x: float | None) -> float:
+    """A figure for printing: NaN only when it is missing (0.0 is a figure)."""
+    return float("nan") if x is None else float(x)
 
 
 if __name__ == "__main__":
