@@ -29,6 +29,22 @@ def tiny_room(tmp_path_factory) -> Path:
     return make_room(tmp_path_factory.mktemp("room") / "capture", views=16, seed=3, size=(96, 72))
 
 
+# A small radiance field (2^14 x 8 hash entries, up to 128 cells across; a 64-cell occupancy
+# grid) and small batches, no held-out evaluation: ~0.05 CPU-s a step on one thread. For
+# tune() on any config holding the field's sections (NerfConfig, FieldFillConfig).
+SMALL_FIELD = dict(
+    train__time_budget=0.0,
+    train__eval_every=0,
+    field__hash_log2_size=14,
+    field__hash_max_res=128,
+    occupancy__res=64,
+    train__batch_rays=128,
+    losses__surface_rays=512,
+    losses__geo_rays=512,
+    losses__edge_rays=512,
+)
+
+
 def tune(cfg, **changes):
     """A copy of a (nested) config dataclass with `section__field=value` changes applied,
     e.g. tune(NerfConfig(), train__max_steps=10, seed=1)."""

@@ -20,23 +20,12 @@ from stages.depth.config import FIELD, STEREO, FieldFillConfig
 from stages.depth.render import upsample_depth
 from stages.depth.stage import run_field, run_stereo
 from stages.synth import make_room
-from tests.conftest import tune
+from tests.conftest import SMALL_FIELD, tune
 
 # the small field of tests/stages/test_nerf.py: ~0.05 CPU-s a step on one thread
 FAST = DepthConfig(
     threads=1,
-    field=tune(
-        FieldFillConfig(),
-        train__time_budget=0.0,
-        train__eval_every=0,
-        field__hash_log2_size=14,
-        field__hash_max_res=128,
-        occupancy__res=64,
-        train__batch_rays=128,
-        losses__surface_rays=512,
-        losses__geo_rays=512,
-        losses__edge_rays=512,
-    ),
+    field=tune(FieldFillConfig(), **SMALL_FIELD),
 )
 DENSE_STEPS = 80
 

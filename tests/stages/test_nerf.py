@@ -29,27 +29,14 @@ from stages.common.radiance.views import Views, binned
 from stages.nerf import IMPLS, NerfConfig, NerfInputs, NerfOutputs
 from stages.synth import make_room
 from stages.synth.room import FLOOR
-from tests.conftest import tune
+from tests.conftest import SMALL_FIELD, tune
 
 torch.set_num_threads(1)
 
 # A small field (2^14 x 8 hash entries, up to 128 cells across; a 64 x 61 x 23 occupancy grid;
 # 256 samples across the box) and small batches: ~0.05 CPU-s a step on one thread. max_steps
 # makes runs reproducible (a time budget would not be).
-FAST = tune(
-    NerfConfig(),
-    threads=1,
-    train__time_budget=0.0,
-    train__eval_every=0,
-    field__hash_log2_size=14,
-    field__hash_max_res=128,
-    occupancy__res=64,
-    train__batch_rays=128,
-    losses__surface_rays=512,
-    losses__geo_rays=512,
-    losses__edge_rays=512,
-    sampling__samples_across=256,
-)
+FAST = tune(NerfConfig(), threads=1, sampling__samples_across=256, **SMALL_FIELD)
 DENSE_STEPS = 80
 
 
