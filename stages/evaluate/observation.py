@@ -23,6 +23,7 @@ from stages.common.blueprint import Blueprint
 from stages.common.capture import UNKNOWN
 from stages.common.io import read_json
 from stages.common.points import read_points
+from stages.common.rows import unique_rows
 
 INVENTED_RADIUS = 0.25  # metres
 SUPPORT_RADIUS = 0.10  # metres
@@ -57,7 +58,7 @@ def vertical_points(xyz: np.ndarray) -> np.ndarray:
     if len(up) == 0:
         return np.zeros((0, 2))
     ij = np.floor(up[:, :2] / VERTICAL_CELL).astype(np.int64)
-    _, col = np.unique(ij, axis=0, return_inverse=True)
+    _, _, col = unique_rows(ij)
     col = col.reshape(-1)
     lo = np.full(col.max() + 1, np.inf)
     hi = np.full(col.max() + 1, -np.inf)

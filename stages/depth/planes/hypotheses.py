@@ -19,6 +19,7 @@ from scipy.ndimage import gaussian_filter1d
 from scipy.signal import find_peaks
 
 from stages.common.camera import pixel_grid, unproject
+from stages.common.rows import unique_rows
 from stages.depth.planes.config import PlanesConfig
 
 KINDS = ("floor", "ceiling", "wall", "top", "front")
@@ -86,7 +87,7 @@ def thin(points: np.ndarray, normals: np.ndarray, voxel: float) -> tuple[np.ndar
     if not len(points):
         return points, normals
     keys = np.floor(points / voxel).astype(np.int64)
-    _, first = np.unique(keys, axis=0, return_index=True)
+    _, first, _ = unique_rows(keys)
     return points[first], normals[first]
 
 
