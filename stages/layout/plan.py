@@ -4,7 +4,8 @@ plan.json: {"units": "m", "angle_deg": the room's direction, "rooms": [{name, po
 (counter-clockwise interior outline), area, continues (an inferred wall closes it: the room
 goes on beyond)}], "walls": [{start, end (interior face, room on the left), length,
 thickness, room, seen (false: inferred, the outline closes over space no view saw as a wall
-surface)}], "openings": [{kind door|passage, wall, start, end, width}], "objects": [{instance,
+surface)}], "openings": [{kind door|passage, wall, start, end, width, rooms ([i, j]: the two
+rooms it joins; [i]: room i to the outside)}], "objects": [{instance,
 class, name, polygon, center, width, depth, angle_deg, height (its highest point) and top (its
 upper surface: a counter's top, a chair's seat), metres above the floor, None without a mesh,
 shape rect|polygon}], "objects_outside": how many object footprints lay outside every room
@@ -35,6 +36,7 @@ from stages.layout.extract import (
     frame_of,
     outline,
 )
+from stages.layout.rooms import cut_openings, split
 
 SEEN_NEAR = 0.1  # metres: a face is seen where a seen wall cell lies this close to its band
 SEEN_SHARE = 0.5  # a wall is seen (not inferred) when this share of its face is
@@ -107,7 +109,10 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
     if fid is not None and cfg.max_passage > cfg.max_opening:
         floor_ = fr.labels == fid
         closed |= close_passages(wall, floor_, int(round(cfg.max_passage / cell)), run, across)
-    region, n = ndi.label((fr.labels != UNKNOWN) & ~closed)
+    region, cuts = split(
+        (fr.labels != UNKNOWN) & ~closed, cell, cfg.room_split_h, cfg.door_max, cfg.min_room_area
+    )
+    n = int(region.max())
     area = ndi.sum_labels(np.ones_like(region), region, np.arange(1, n + 1)) * cell**2
     # a room has floor: a closed space of objects (stereo's noise behind a photos-only plan's
     # walls, labelled object there) with specks of floor is none
@@ -117,6 +122,7 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
         else ndi.sum_labels(fr.labels == fid, region, np.arange(1, n + 1)) * cell**2
     )
     faces: list[tuple[int, np.ndarray, np.ndarray]] = []
+    room_of: dict[int, int] = {}  # region label -> room index
     for k in np.argsort(-area):
         if area[k] < cfg.min_room_area:
             break
@@ -148,6 +154,7 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
             if grown.geom_type == "Polygon" and len(grown.exterior.coords) - 1 == len(poly):
                 poly = np.asarray(orient(grown, 1.0).exterior.coords)[:-1]
         ri = len(out["rooms"])
+        room_of[int(k) + 1] = ri
         world = fr.to_world(poly)
         out["rooms"].append(
             {"name": f"room {ri + 1}", "polygon": _r(world), "area": round(Polygon(world).area, 4)}
@@ -174,6 +181,8 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
         out["openings"] = _openings(
             fr, closed & ~wall & (fr.labels == fid), faces, out["walls"], cfg
         )
+    if faces:
+        out["openings"] += cut_openings(fr, cuts, room_of, faces, out["walls"], cfg.door_max)
     return out
 
 

@@ -1,0 +1,174 @@
+"""Rooms of a home: the inside region split where it narrows to a door, and the rooms each
+opening joins.
+
+The split is the distance-transform segmentation of Bormann et al. (ICRA 2016): the distance
+of each inside cell to the nearest cell outside (wall, unknown) has one regional maximum per
+room (h-maxima: a maximum standing less than `h` over the saddle to a higher one is that
+one's); a watershed of the negated distance from those markers grows the rooms until they
+meet, at the narrowest point between them. Neighbours whose shared boundary is wider than a
+door are one room (an L's two arms, a room's bay); a basin smaller than a room joins the
+neighbour it shares most boundary with. The wall lines closed over doorways (extract.py)
+separate most rooms already; this splits those whose doorway has no wall run beside it to
+close it (a door flush with the corner, a wall the views saw only in pieces).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage as ndi
+from shapely.geometry import Point, Polygon
+from skimage.morphology import h_maxima
+from skimage.segmentation import watershed
+
+from stages.common.rows import unique_rows
+from stages.layout.extract import Frame
+
+OTHER_SIDE = 0.15  # metres beyond a wall's back where the room an opening leads to is looked for
+
+
+def _boundaries(lab: np.ndarray) -> dict[tuple[int, int], np.ndarray]:
+    """(i, j) with i < j -> the cells [K, 2] (row, col) of label i or j next to the other
+    label (4-neighbours)."""
+    keys, cells = [], []
+    for axis in (0, 1):
+        a = lab[:-1] if axis == 0 else lab[:, :-1]
+        b = lab[1:] if axis == 0 else lab[:, 1:]
+        rows, cols = np.nonzero((a != b) & (a > 0) & (b > 0))
+        i, j = a[rows, cols], b[rows, cols]
+        key = np.minimum(i, j).astype(np.int64) * (lab.max() + 1) + np.maximum(i, j)
+        step = (1, 0) if axis == 0 else (0, 1)
+        keys += [key, key]
+        cells += [np.stack([rows, cols], 1), np.stack([rows + step[0], cols + step[1]], 1)]
+    key, rc = np.concatenate(keys), np.concatenate(cells)
+    if len(key) == 0:
+        return {}
+    order = np.argsort(key, kind="stable")
+    key, rc = key[order], rc[order]
+    uniq, first = np.unique(key, return_index=True)
+    m = lab.max() + 1
+    return {
+        (int(k // m), int(k % m)): unique_rows(part)[0]
+        for k, part in zip(uniq, np.split(rc, first[1:]), strict=True)
+    }
+
+
+def _width(cells: np.ndarray) -> float:
+    """The length (cells) of a boundary: the extent of its cells along their main axis."""
+    if len(cells) < 2:
+        return float(len(cells))
+    c = cells - cells.mean(0)
+    u = np.linalg.svd(c, full_matrices=False)[2][0]
+    t = c @ u
+    return float(t.max() - t.min() + 1)
+
+
+def split(
+    inside: np.ndarray, cell: float, h: float, door: float, min_area: float
+) -> tuple[np.ndarray, list[tuple[int, int, np.ndarray]]]:
+    """Rooms of the inside cells [H, W] bool: a label per cell (0 outside, 1..n) and the cuts
+    between rooms (label i, label j, the cells [K, 2] along the cut). `h` (metres): the least
+    height of a room's distance maximum over its saddle; `door` (metres): neighbours sharing a
+    wider boundary are one room; `min_area` (m²): a smaller basin is no room of its own."""
+    pieces, n = ndi.label(inside)
+    if h <= 0 or n == 0:
+        return pieces, []
+    # unseen holes inside a room (under a table) are no obstacle for the distance
+    dist = ndi.distance_transform_edt(np.pad(ndi.binary_fill_holes(inside), 1))[1:-1, 1:-1]
+    dist = np.where(inside, dist * cell, 0.0)
+    peaks = h_maxima(dist, h)
+    markers, _ = ndi.label(peaks & inside)
+    # a piece without a marker of its own (narrower than 2 h everywhere) keeps one
+    missing = np.setdiff1d(np.arange(1, n + 1), np.unique(pieces[markers > 0]))
+    start = markers.max()
+    for k, p in enumerate(missing, start=1):
+        markers[pieces == p] = start + k
+    lab = watershed(-dist, markers, mask=inside)
+    area = np.bincount(lab.ravel(), minlength=lab.max() + 1) * cell**2
+    # merge: wide boundaries first, then basins too small for a room into their best neighbour
+    while True:
+        bounds = _boundaries(lab)
+        widths = {k: _width(v) * cell for k, v in bounds.items()}
+        wide = [k for k, w in widths.items() if w > door]
+        small = [k for k in widths if min(area[k[0]], area[k[1]]) < min_area and k not in wide]
+        if wide:
+            i, j = max(wide, key=lambda k: widths[k])
+        elif small:
+            i, j = max(small, key=lambda k: widths[k])
+        else:
+            break
+        lab[lab == j] = i
+        area[i] += area[j]
+        area[j] = 0
+    # labels 1..n in the order of their first cell
+    ids = np.unique(lab[lab > 0])
+    remap = np.zeros(lab.max() + 1, np.int64)
+    remap[ids] = np.arange(1, len(ids) + 1)
+    lab = remap[lab]
+    cuts = [(i, j, c) for (i, j), c in _boundaries(lab).items()]
+    return lab.astype(np.int32), cuts
+
+
+def join_rooms(plan: dict) -> dict:
+    """The plan with each opening's `rooms`: the indices of the rooms it joins, [i, j] with
+    i < j between two rooms, [i] for one to the outside (or to space no room covers): its
+    wall's room, and the room that holds the point OTHER_SIDE beyond the wall's back at the
+    opening's middle."""
+    polys = [Polygon(r["polygon"]) for r in plan["rooms"]]
+    walls = plan["walls"]
+    out = []
+    for o in plan.get("openings", []):
+        w = walls[o["wall"]] if 0 <= o.get("wall", -1) < len(walls) else None
+        if w is None:
+            out.append(o)
+            continue
+        a, b = np.asarray(w["start"], np.float64), np.asarray(w["end"], np.float64)
+        d = (b - a) / max(float(np.linalg.norm(b - a)), 1e-9)
+        n = np.array([d[1], -d[0]])  # outwards of the wall's room
+        mid = (np.asarray(o["start"], np.float64) + np.asarray(o["end"], np.float64)) / 2
+        p = Point(*(mid + n * (float(w["thickness"]) + OTHER_SIDE)))
+        here = int(w["room"])
+        other = [k for k, q in enumerate(polys) if k != here and q.buffer(0.05).contains(p)]
+        out.append({**o, "rooms": sorted({here, *other[:1]})})
+    return {**plan, "openings": out}
+
+
+def cut_openings(
+    fr: Frame, cuts: list, room_of: dict[int, int], faces: list, walls: list[dict], door_max: float
+) -> list[dict]:
+    """An opening for each cut between two rooms (split's cuts; room_of: region label -> room
+    index): on the face of the first room that runs along the cut nearest its middle, from the
+    cut's first to its last cell along that face."""
+    cell = fr.grid.cell
+    out = []
+    for i, j, rc in cuts:
+        if i not in room_of or j not in room_of:
+            continue
+        xy = fr.xy(rc)
+        mid = xy.mean(0)
+        best = None
+        for wi, (ri, a, b) in enumerate(faces):
+            if ri != room_of[i]:
+                continue
+            length = float(np.linalg.norm(b - a))
+            d = (b - a) / length
+            t = (xy - a) @ d
+            off = abs(float((mid - a) @ np.array([d[1], -d[0]])))
+            spread = float(t.max() - t.min())  # a cut runs along the face it crosses
+            if t.min() > -cell and t.max() < length + cell and (best is None or off < best[0]):
+                best = (off, wi, a, d, t, spread)
+        if best is None or best[0] > walls[best[1]]["thickness"] + 2 * cell:
+            continue
+        _, wi, a, d, t, _ = best
+        t0, t1 = float(t.min() - cell / 2), float(t.max() + cell / 2)
+        p, q = fr.to_world(np.array([a + t0 * d, a + t1 * d]))
+        width = t1 - t0
+        out.append(
+            {
+                "kind": "door" if width <= door_max else "passage",
+                "wall": wi,
+                "start": np.round(p, 4).tolist(),
+                "end": np.round(q, 4).tolist(),
+                "width": round(width, 4),
+            }
+        )
+    return out

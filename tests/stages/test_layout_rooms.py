@@ -1,0 +1,120 @@
+"""Plans of several rooms: hand-built plans of two and three rooms joined by 0.9 m doors (in
+the middle of a wall, where the closed wall line splits them, and flush with a corner, where
+only the distance-transform split does), an L room that stays one, and a room with an open
+side; each room's polygon, area and name, and the rooms each opening joins, scored against
+the exact layout."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from shapely.geometry import Polygon, box
+
+from stages.evaluate.layout import score_layout
+from stages.layout import LayoutConfig
+from stages.layout.rooms import split
+from stages.layout.walls import build_plan
+from tests.stages.test_layout import GT_PLAN, _raster, _turn
+
+T = 0.12  # wall thickness
+A, B, C = box(0, 0, 4, 3), box(4 + T, 0, 7, 3), box(0, 3 + T, 7, 6)
+MID_AB = box(3.9, 1.0, 4.2, 1.9)  # 0.9 m in the middle of the wall between a and b
+CORNER_AB = box(3.9, 0, 4.2, 0.9)  # 0.9 m flush with the south wall
+# (rooms, door gaps, ground-truth doors: (start, end on the first room's face), rooms joined)
+CASES = {
+    "two rooms": ([A, B], [MID_AB], [((4, 1.0), (4, 1.9), (0, 1))]),
+    "three rooms": (
+        [A, B, C],
+        [MID_AB, box(1, 2.9, 1.9, 3.2), box(5, 2.9, 5.9, 3.2)],
+        [((4, 1.0), (4, 1.9), (0, 1)), ((1, 3), (1.9, 3), (0, 2)), ((5, 3), (5.9, 3), (1, 2))],
+    ),
+    "three rooms, doors at the corners": (
+        [A, B, C],
+        [CORNER_AB, box(0, 2.9, 0.9, 3.2), box(6.1, 2.9, 7, 3.2)],
+        [((4, 0), (4, 0.9), (0, 1)), ((0, 3), (0.9, 3), (0, 2)), ((6.1, 3), (7, 3), (1, 2))],
+    ),
+    "L room": (
+        [Polygon([(0, 0), (5, 0), (5, 2.5), (2.4, 2.5), (2.4, 4.5), (0, 4.5)])],
+        [],
+        [],
+    ),
+}
+
+
+def _gt(rooms: list[Polygon], doors: list, angle: float) -> dict:
+    return {
+        "rooms": [{"polygon": _turn(r.exterior.coords[:-1], angle)} for r in rooms],
+        "openings": [
+            {
+                "kind": "door",
+                "start": _turn([p], angle)[0],
+                "end": _turn([q], angle)[0],
+                "width": math.dist(p, q),
+                "rooms": list(pair),
+            }
+            for p, q, pair in doors
+        ],
+    }
+
+
+@pytest.mark.parametrize("angle", [0.0, 23.0])
+@pytest.mark.parametrize("case", list(CASES))
+def test_rooms_joined_by_doors_each_get_their_polygon_and_doors_their_rooms(case, angle):
+    rooms, gaps, doors = CASES[case]
+    plan = build_plan(_raster(rooms, T, gaps, angle), GT_PLAN)
+    s = score_layout(plan, _gt(rooms, doors, angle))
+    assert len(plan["rooms"]) == len(rooms), plan["rooms"]
+    assert s["room_f1"] == 1.0 and s["corner_f1"] == 1.0 and s["angle_f1"] == 1.0, s
+    assert s["doors_found"] == s["doors_total"] == len(doors), (s, plan["openings"])
+    assert [o["kind"] for o in plan["openings"]] == ["door"] * len(doors)
+    if doors:
+        assert s["door_width_err_m"] <= 0.05, s
+        # each door joins the rooms it lies between (the predicted rooms matched to the truth)
+        assert s["openings_rooms_right"] == s["openings_rooms_total"] == len(doors), (
+            s,
+            plan["openings"],
+        )
+    else:
+        assert s["openings_rooms_right"] is None
+    # named in order of area, largest first; each area within 2 % of the truth
+    assert [r["name"] for r in plan["rooms"]] == [f"room {i + 1}" for i in range(len(rooms))]
+    areas = [r["area"] for r in plan["rooms"]]
+    assert areas == sorted(areas, reverse=True)
+    for r, g in zip(areas, sorted((g.area for g in rooms), reverse=True), strict=True):
+        assert r == pytest.approx(g, rel=0.02)
+
+
+def test_the_corner_doors_are_split_only_by_the_distance_transform():
+    # without the split the rooms a corner door joins are one (no wall run beside the door on
+    # the corner's side to close the wall line over)
+    rooms, gaps, _ = CASES["three rooms, doors at the corners"]
+    off = build_plan(_raster(rooms, T, gaps, 0.0), LayoutConfig(face_offset=0.0, room_split_h=0))
+    assert len(off["rooms"]) == 1 and off["openings"] == []
+
+
+def test_split_by_hand():
+    cell = 0.05
+    inside = np.zeros((60, 120), bool)
+    inside[:, :58] = True  # a 2.9 x 3 m room
+    inside[:, 62:] = True  # and a 2.9 x 3 m room, 0.2 m of wall between them
+    inside[10:28, 58:62] = True  # a 0.9 m door through it
+    lab, cuts = split(inside, cell, 0.3, 1.2, 1.0)
+    assert lab.max() == 2 and (lab[:, :58] == lab[0, 0]).all() and (lab[:, 62:] == lab[0, -1]).all()
+    assert len(cuts) == 1
+    i, j, rc = cuts[0]
+    assert {i, j} == {1, 2} and set(rc[:, 0]) == set(range(10, 28))  # the cut spans the door
+    # a doorway as wide as 1.3 m is wider than a door: one room
+    inside[10:36, 58:62] = True
+    lab, cuts = split(inside, cell, 0.3, 1.2, 1.0)
+    assert lab.max() == 1 and cuts == []
+    # an L: its arms meet over their whole width, one room
+    ell = np.zeros((80, 80), bool)
+    ell[:40] = True
+    ell[:, :40] = True
+    lab, cuts = split(ell, cell, 0.3, 1.2, 1.0)
+    assert lab.max() == 1 and cuts == []
+    # off (h = 0): the connected pieces
+    lab, cuts = split(inside, cell, 0.0, 1.2, 1.0)
+    assert lab.max() == 1 and cuts == []
