@@ -36,7 +36,7 @@ from stages.layout.extract import (
     frame_of,
     outline,
 )
-from stages.layout.rooms import cut_openings, split
+from stages.layout.rooms import cut_openings, seen_pieces, split
 
 SEEN_NEAR = 0.1  # metres: a face is seen where a seen wall cell lies this close to its band
 SEEN_SHARE = 0.5  # a wall is seen (not inferred) when this share of its face is
@@ -52,23 +52,24 @@ def _seen_walls(bp: Blueprint, wid: int) -> Blueprint:
     return Blueprint(((bp.labels == wid) & (bp.seen > 0)).astype(np.uint8), bp.grid)
 
 
-def _seen_share(
+def _seen_along(
     fr: Frame, seen_wall: np.ndarray, a: np.ndarray, b: np.ndarray, thickness: float
-) -> float:
-    """The share of the face a->b (frame xy) with a seen wall cell behind it, within its
-    thickness plus SEEN_NEAR metres along its outward normal (or SEEN_NEAR in front of it)."""
+) -> np.ndarray:
+    """bool [T]: at each cell along the face a->b (frame xy), whether a seen wall cell lies
+    behind it, within its thickness plus SEEN_NEAR metres along its outward normal (or
+    SEEN_NEAR in front of it)."""
     cell = fr.grid.cell
     length = float(np.linalg.norm(b - a))
     d = (b - a) / max(length, 1e-9)
     n = np.array([d[1], -d[0]])  # outside a counter-clockwise outline
     ts = np.arange(0.5 * cell, length, cell)
     if len(ts) == 0:
-        return 0.0
+        return np.zeros(0, bool)
     steps = np.arange(-SEEN_NEAR, thickness + SEEN_NEAR + cell / 2, cell / 2)
     pts = a + ts[:, None, None] * d + steps[None, :, None] * n  # [T, S, 2]
     row, col, inside = fr.grid.cell_of(pts.reshape(-1, 2))
     hit = (seen_wall[row, col] & inside).reshape(len(ts), len(steps))
-    return float(hit.any(axis=1).mean())
+    return hit.any(axis=1)
 
 
 def _thickness(
@@ -164,7 +165,8 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
             t = _thickness(fr, closed, a, b, cfg)
             faces.append((ri, a, b))
             w = fr.to_world(np.array([a, b]))
-            seen = _seen_share(fr, seen_wall, a, b, t) >= SEEN_SHARE
+            along = _seen_along(fr, seen_wall, a, b, t)
+            seen = len(along) > 0 and along.mean() >= SEEN_SHARE
             out["walls"].append(
                 {
                     "start": _r(w[0]),
@@ -175,6 +177,9 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
                     "seen": bool(seen),
                 }
             )
+            pieces = seen_pieces(along, cell)
+            if len(pieces) > 1:  # split later (rooms.split_seen), once the faces have moved
+                out["walls"][-1]["pieces"] = pieces
         # an outline closed over space no view saw as a surface: the room goes on beyond it
         out["rooms"][-1]["continues"] = not all(w["seen"] for w in out["walls"] if w["room"] == ri)
     if fid is not None and faces:

@@ -23,6 +23,9 @@ from skimage.segmentation import watershed
 from stages.common.rows import unique_rows
 from stages.layout.extract import Frame
 
+MIN_PIECE = 0.5  # metres: a wall splits into seen and inferred pieces no shorter than this
+SEEN_GAP = 0.2  # metres: unseen stretches of a seen wall up to this long are seen (a socket,
+#                 a picture frame the views saw as no wall)
 OTHER_SIDE = 0.15  # metres beyond a wall's back where the room an opening leads to is looked for
 
 
@@ -172,3 +175,79 @@ def cut_openings(
             }
         )
     return out
+
+
+def seen_pieces(along: np.ndarray, cell: float) -> list[list]:
+    """The pieces of a wall along its face from where it was seen (`along`: bool per cell,
+    plan.py's _seen_along): [[start, end (fractions of its length), seen], ...]. Gaps up to
+    SEEN_GAP in either are closed; a piece shorter than MIN_PIECE joins its neighbours. One
+    piece: the wall is not split."""
+    if len(along) == 0:
+        return []
+    g = max(1, int(round(SEEN_GAP / cell)))
+    pad = np.pad(along, g, mode="edge")
+    smooth = ndi.binary_opening(ndi.binary_closing(pad, np.ones(g, bool)), np.ones(g, bool))
+    smooth = smooth[g:-g]
+    # runs of equal values: [start, stop, value]
+    edges = np.nonzero(np.diff(smooth.astype(np.int8)))[0] + 1
+    bounds = np.concatenate([[0], edges, [len(smooth)]])
+    runs = [[int(a), int(b), bool(smooth[a])] for a, b in zip(bounds[:-1], bounds[1:])]
+    least = MIN_PIECE / cell
+    while len(runs) > 1:
+        k = min(range(len(runs)), key=lambda i: runs[i][1] - runs[i][0])
+        if runs[k][1] - runs[k][0] >= least:
+            break
+        # the short run takes its neighbours' value, and they join round it
+        lo, hi = max(0, k - 1), min(len(runs), k + 2)
+        value = runs[k - 1][2] if k > 0 else runs[k + 1][2]
+        runs[lo:hi] = [[runs[lo][0], runs[hi - 1][1], value]]
+    n = len(along)
+    return [[round(a / n, 4), round(b / n, 4), v] for a, b, v in runs] if len(runs) > 1 else []
+
+
+def split_seen(plan: dict) -> dict:
+    """The plan with each wall that carries `pieces` (seen_pieces) split into its pieces along
+    its length, each with its own `seen`; openings on it move to the piece that holds their
+    middle; a room with an inferred piece continues beyond it."""
+    walls, index = [], []  # index[w] = [(new index, start fraction, end fraction), ...]
+    for w in plan["walls"]:
+        pieces = w.get("pieces")
+        w = {k: v for k, v in w.items() if k != "pieces"}
+        if not pieces:
+            index.append([(len(walls), 0.0, 1.0)])
+            walls.append(w)
+            continue
+        a, b = np.asarray(w["start"], np.float64), np.asarray(w["end"], np.float64)
+        mine = []
+        for f0, f1, seen in pieces:
+            p, q = a + f0 * (b - a), a + f1 * (b - a)
+            mine.append((len(walls), f0, f1))
+            walls.append(
+                {
+                    **w,
+                    "start": np.round(p, 4).tolist(),
+                    "end": np.round(q, 4).tolist(),
+                    "length": round(float(np.linalg.norm(q - p)), 4),
+                    "seen": bool(seen),
+                }
+            )
+        index.append(mine)
+    openings = []
+    for o in plan.get("openings", []):
+        wi = o.get("wall", -1)
+        if not 0 <= wi < len(index) or len(index[wi]) == 1:
+            openings.append({**o, "wall": index[wi][0][0]} if 0 <= wi < len(index) else o)
+            continue
+        w = plan["walls"][wi]
+        a, b = np.asarray(w["start"], np.float64), np.asarray(w["end"], np.float64)
+        mid = (np.asarray(o["start"], np.float64) + np.asarray(o["end"], np.float64)) / 2
+        f = float((mid - a) @ (b - a) / max(float((b - a) @ (b - a)), 1e-12))
+        new = next((k for k, f0, f1 in index[wi] if f0 <= f <= f1), index[wi][-1][0])
+        openings.append({**o, "wall": new})
+    rooms = [
+        {**r, "continues": not all(w["seen"] for w in walls if w["room"] == ri)}
+        if "continues" in r
+        else r
+        for ri, r in enumerate(plan["rooms"])
+    ]
+    return {**plan, "rooms": rooms, "walls": walls, "openings": openings}

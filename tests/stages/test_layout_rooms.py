@@ -2,18 +2,23 @@
 the middle of a wall, where the closed wall line splits them, and flush with a corner, where
 only the distance-transform split does), an L room that stays one, and a room with an open
 side; each room's polygon, area and name, and the rooms each opening joins, scored against
-the exact layout."""
+the exact layout; walls the views saw in part split into seen and inferred pieces."""
 
 from __future__ import annotations
 
 import math
 
+import ezdxf
 import numpy as np
 import pytest
+from shapely import contains_xy
 from shapely.geometry import Polygon, box
 
+from stages.common.blueprint import Blueprint, Grid
+from stages.common.capture import UNKNOWN
 from stages.evaluate.layout import score_layout
 from stages.layout import LayoutConfig
+from stages.layout.draw import write_dxf, write_svg
 from stages.layout.rooms import split
 from stages.layout.walls import build_plan
 from tests.stages.test_layout import GT_PLAN, _raster, _turn
@@ -118,3 +123,46 @@ def test_split_by_hand():
     # off (h = 0): the connected pieces
     lab, cuts = split(inside, cell, 0.0, 1.2, 1.0)
     assert lab.max() == 1 and cuts == []
+
+
+def _half_seen_room(open_north: bool) -> Blueprint:
+    """A 4 x 3 m room with 0.12 m walls all round; the views saw the walls except the east
+    wall's northern half (y > 1.5), whose cells the plan's field filled in. With open_north
+    the north side has no wall at all: the floor stops at y = 3 where the views stopped."""
+    grid = Grid.covering(np.array([-0.3, -0.3]), np.array([4.3, 3.3]), 0.02)
+    c = grid.centers()
+    x, y = c[..., 0], c[..., 1]
+    labels = np.full(grid.shape, UNKNOWN, np.uint8)
+    labels[contains_xy(box(0, 0, 4, 3), x, y)] = 0
+    outer = box(-0.12, -0.12, 4.12, 3 if open_north else 3.12)
+    labels[contains_xy(outer.difference(box(0, 0, 4, 3)), x, y)] = 1
+    seen = (labels != UNKNOWN).astype(np.uint8)
+    seen[(x > 4) & (y > 1.5)] = 0
+    return Blueprint(labels, grid, {0: "floor", 1: "wall"}, None, seen, labels != UNKNOWN)
+
+
+@pytest.mark.parametrize("open_north", [False, True])
+def test_a_wall_seen_in_part_splits_into_a_seen_and_an_inferred_piece(open_north, tmp_path):
+    plan = build_plan(_half_seen_room(open_north), GT_PLAN)
+    assert len(plan["rooms"]) == 1 and plan["rooms"][0]["continues"]
+    assert plan["rooms"][0]["area"] == pytest.approx(12.0, rel=0.02)
+    east = sorted(
+        (w for w in plan["walls"] if min(w["start"][0], w["end"][0]) > 3.9),
+        key=lambda w: min(w["start"][1], w["end"][1]),
+    )
+    assert [w["seen"] for w in east] == [True, False], east
+    assert [w["length"] for w in east] == pytest.approx([1.5, 1.5], abs=0.05)
+    north = [w for w in plan["walls"] if min(w["start"][1], w["end"][1]) > 2.9]
+    # the open side: no view saw a surface there, its wall is inferred; the rest were seen
+    assert [w["seen"] for w in north] == [not open_north], north
+    rest = [w for w in plan["walls"] if w not in east and w not in north]
+    assert len(rest) == 2 and all(w["seen"] for w in rest), rest
+    assert sum(w["length"] for w in plan["walls"]) == pytest.approx(14.0, abs=0.05)
+    # drawn: the inferred pieces dashed, on their own DXF layer
+    write_svg(plan, tmp_path / "plan.svg")
+    assert (tmp_path / "plan.svg").read_text().count("wall-inferred") == 1  # one band
+    write_dxf(plan, tmp_path / "plan.dxf")
+    msp = ezdxf.readfile(tmp_path / "plan.dxf").modelspace()
+    inferred = msp.query('LWPOLYLINE[layer=="WALLS_INFERRED"]')
+    ys = [p[1] for e in inferred for p in e.get_points()]
+    assert len(inferred) >= 1 and min(ys) >= 1.45  # none south of the east wall's seen half
