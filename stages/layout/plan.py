@@ -55,8 +55,8 @@ def _seen_walls(bp: Blueprint, wid: int) -> Blueprint:
 def _seen_along(
     fr: Frame, seen_wall: np.ndarray, a: np.ndarray, b: np.ndarray, thickness: float
 ) -> np.ndarray:
-    """bool [T]: at each cell along the face a->b (frame xy), whether a seen wall cell lies
-    behind it, within its thickness plus SEEN_NEAR metres along its outward normal (or
+    """bool [T]: at each cell along the face a->b (frame xy), whether a seen wall cell
+    (`seen_wall`: or an opening seen through) lies behind it, within its thickness plus SEEN_NEAR metres along its outward normal (or
     SEEN_NEAR in front of it)."""
     cell = fr.grid.cell
     length = float(np.linalg.norm(b - a))
@@ -114,6 +114,14 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
         (fr.labels != UNKNOWN) & ~closed, cell, cfg.room_split_h, cfg.door_max, cfg.min_room_area
     )
     n = int(region.max())
+    # a face is seen where a seen wall lies behind it, or an opening (a gap in the wall line,
+    # a cut between rooms) some view saw through
+    gap = closed & ~wall
+    for _, _, rc in cuts:
+        gap[rc[:, 0], rc[:, 1]] = True
+    if bp.seen is not None:
+        gap &= frame_of(Blueprint(bp.seen.astype(np.uint8), bp.grid), angle).labels == 1
+    seen_face = seen_wall | gap
     area = ndi.sum_labels(np.ones_like(region), region, np.arange(1, n + 1)) * cell**2
     # a room has floor: a closed space of objects (stereo's noise behind a photos-only plan's
     # walls, labelled object there) with specks of floor is none
@@ -165,7 +173,7 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
             t = _thickness(fr, closed, a, b, cfg)
             faces.append((ri, a, b))
             w = fr.to_world(np.array([a, b]))
-            along = _seen_along(fr, seen_wall, a, b, t)
+            along = _seen_along(fr, seen_face, a, b, t)
             seen = len(along) > 0 and along.mean() >= SEEN_SHARE
             out["walls"].append(
                 {

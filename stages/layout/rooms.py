@@ -191,7 +191,7 @@ def seen_pieces(along: np.ndarray, cell: float) -> list[list]:
     # runs of equal values: [start, stop, value]
     edges = np.nonzero(np.diff(smooth.astype(np.int8)))[0] + 1
     bounds = np.concatenate([[0], edges, [len(smooth)]])
-    runs = [[int(a), int(b), bool(smooth[a])] for a, b in zip(bounds[:-1], bounds[1:])]
+    runs = [[int(a), int(b), bool(smooth[a])] for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
     least = MIN_PIECE / cell
     while len(runs) > 1:
         k = min(range(len(runs)), key=lambda i: runs[i][1] - runs[i][0])

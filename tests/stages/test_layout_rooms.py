@@ -74,6 +74,8 @@ def test_rooms_joined_by_doors_each_get_their_polygon_and_doors_their_rooms(case
     assert s["room_f1"] == 1.0 and s["corner_f1"] == 1.0 and s["angle_f1"] == 1.0, s
     assert s["doors_found"] == s["doors_total"] == len(doors), (s, plan["openings"])
     assert [o["kind"] for o in plan["openings"]] == ["door"] * len(doors)
+    # every wall was seen (the plan says nothing else): a doorway is no inferred piece
+    assert all(w["seen"] for w in plan["walls"]), plan["walls"]
     if doors:
         assert s["door_width_err_m"] <= 0.05, s
         # each door joins the rooms it lies between (the predicted rooms matched to the truth)
