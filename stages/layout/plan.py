@@ -56,8 +56,8 @@ def _seen_along(
     fr: Frame, seen_wall: np.ndarray, a: np.ndarray, b: np.ndarray, thickness: float
 ) -> np.ndarray:
     """bool [T]: at each cell along the face a->b (frame xy), whether a seen wall cell
-    (`seen_wall`: or an opening seen through) lies behind it, within its thickness plus SEEN_NEAR metres along its outward normal (or
-    SEEN_NEAR in front of it)."""
+    (`seen_wall`: or an opening seen through) lies behind it, within its thickness plus
+    SEEN_NEAR metres along its outward normal (or SEEN_NEAR in front of it)."""
     cell = fr.grid.cell
     length = float(np.linalg.norm(b - a))
     d = (b - a) / max(length, 1e-9)
