@@ -168,3 +168,41 @@ def test_a_wall_seen_in_part_splits_into_a_seen_and_an_inferred_piece(open_north
     inferred = msp.query('LWPOLYLINE[layer=="WALLS_INFERRED"]')
     ys = [p[1] for e in inferred for p in e.get_points()]
     assert len(inferred) >= 1 and min(ys) >= 1.45  # none south of the east wall's seen half
+
+
+def _open_corner_room(seen: bool) -> Blueprint:
+    """A 4 x 3 m room with walls on its west and north sides only; the views saw its floor
+    but for a rounded corner in the south-east (an ellipse's quarter, 1.8 x 1.5 m, round
+    (4, 0)): unknown there, as beyond the open east and south sides."""
+    grid = Grid.covering(np.array([-0.3, -0.3]), np.array([4.3, 3.3]), 0.02)
+    c = grid.centers()
+    x, y = c[..., 0], c[..., 1]
+    labels = np.full(grid.shape, UNKNOWN, np.uint8)
+    corner = ((x - 4) / 1.8) ** 2 + (y / 1.5) ** 2 < 1
+    labels[contains_xy(box(0, 0, 4, 3), x, y) & ~corner] = 0
+    labels[contains_xy(box(-0.12, 0, 4, 3.12).difference(box(0, 0, 4, 3)), x, y)] = 1
+    lab = (labels != UNKNOWN).astype(np.uint8)
+    return Blueprint(labels, grid, {0: "floor", 1: "wall"}, None, lab if seen else None, lab)
+
+
+def test_an_open_corner_is_cut_back_to_what_the_views_saw():
+    plan = build_plan(_open_corner_room(seen=True), GT_PLAN)
+    assert len(plan["rooms"]) == 1 and plan["rooms"][0]["continues"]
+    poly = Polygon(plan["rooms"][0]["polygon"])
+    # six corners, all right angles: the south-east corner cut back by a rectangle
+    assert len(plan["rooms"][0]["polygon"]) == 6
+    xs, ys = zip(*plan["rooms"][0]["polygon"], strict=True)
+    assert set(np.round(xs, 1)) >= {0.0, 4.0} and set(np.round(ys, 1)) >= {0.0, 3.0}
+    cut = box(0, 0, 4, 3).difference(poly)
+    floor = 12 - math.pi * 1.8 * 1.5 / 4
+    assert cut.area >= 0.5 * (12 - floor)  # at least half the unseen corner is cut off
+    assert poly.area >= floor - 0.1 * cut.area  # at most 10 % of the cut was seen floor
+    # west and north seen; the open sides and the cut inferred
+    for w in plan["walls"]:
+        a, b = np.asarray(w["start"]), np.asarray(w["end"])
+        west_or_north = max(a[0], b[0]) < 0.1 or min(a[1], b[1]) > 2.9
+        assert w["seen"] == west_or_north, w
+    # a plan that does not say what was seen keeps its box (the rounded corner's short
+    # edges merge away)
+    box_plan = build_plan(_open_corner_room(seen=False), GT_PLAN)
+    assert len(box_plan["rooms"][0]["polygon"]) == 4
