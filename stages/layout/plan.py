@@ -132,7 +132,7 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
     )
     faces: list[tuple[int, np.ndarray, np.ndarray]] = []
     room_of: dict[int, int] = {}  # region label -> room index
-    for k in np.argsort(-area):
+    for k in np.argsort(-area, kind="stable"):  # largest first, ties in label order
         if area[k] < cfg.min_room_area:
             break
         if floor[k] < cfg.min_room_area:

@@ -6,6 +6,7 @@ the exact layout; walls the views saw in part split into seen and inferred piece
 
 from __future__ import annotations
 
+import json
 import math
 
 import ezdxf
@@ -21,6 +22,7 @@ from stages.layout import LayoutConfig
 from stages.layout.draw import write_dxf, write_svg
 from stages.layout.rooms import split
 from stages.layout.walls import build_plan
+from stages.synth import make_room
 from tests.stages.test_layout import GT_PLAN, _raster, _turn
 
 T = 0.12  # wall thickness
@@ -206,3 +208,39 @@ def test_an_open_corner_is_cut_back_to_what_the_views_saw():
     # edges merge away)
     box_plan = build_plan(_open_corner_room(seen=False), GT_PLAN)
     assert len(box_plan["rooms"][0]["polygon"]) == 4
+
+
+def test_a_home_of_two_procedural_rooms_back_to_back(tmp_path):
+    # the procedural room of seed 0 (6.669 x 4.893 m, a 0.92 m door in its east wall, one in
+    # its south wall) beside its mirror image, the two east walls back to back (0.22 m): the
+    # east doors line up into one door between the rooms
+    cap = make_room(tmp_path / "cap", views=1, seed=0, size=(16, 12), doors=2)
+    bp = Blueprint.load(cap / "gt" / "blueprint.npz")
+    gt_one = json.loads((cap / "gt" / "layout.json").read_text())
+    (ox, oy), cell = bp.grid.origin, bp.grid.cell
+    east = next(w for w in gt_one["walls"] if w["name"] == "wall_east")
+    k = int(math.ceil((east["start"][0] + east["thickness"] - ox) / cell))  # past its band
+    x_m = ox + k * cell  # the mirror line
+    labels = np.concatenate([bp.labels[:, :k], bp.labels[:, :k][:, ::-1]], axis=1)
+    home = Blueprint(labels, Grid((ox, oy), cell, labels.shape), bp.classes)
+    plan = build_plan(home, GT_PLAN)
+
+    def mirror(pts: list) -> list:
+        return [[2 * x_m - x, y] for x, y in pts]
+
+    room = gt_one["rooms"][0]["polygon"]
+    gt = {"rooms": [{"polygon": room}, {"polygon": mirror(room)}], "openings": []}
+    for o in gt_one["openings"]:
+        wall = gt_one["walls"][o["wall"]]["name"]
+        gt["openings"].append({**o, "rooms": [0, 1] if wall == "wall_east" else [0]})
+        if wall != "wall_east":
+            gt["openings"].append(
+                {**o, "start": mirror([o["start"]])[0], "end": mirror([o["end"]])[0], "rooms": [1]}
+            )
+    s = score_layout(plan, gt)
+    assert len(plan["rooms"]) == 2, plan["rooms"]
+    assert s["room_f1"] == 1.0 and s["corner_f1"] == 1.0, s
+    assert s["doors_found"] == s["doors_total"] == 3, (s, plan["openings"])
+    assert s["openings_rooms_right"] == s["openings_rooms_total"] == 3, (s, plan["openings"])
+    for r in plan["rooms"]:
+        assert r["area"] == pytest.approx(gt_one["rooms"][0]["area"], rel=0.02)
