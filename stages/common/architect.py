@@ -37,6 +37,14 @@ def dashes(a: np.ndarray, b: np.ndarray, on: float, off: float) -> list[np.ndarr
     return out
 
 
+def _reach(d: np.ndarray, v: dict) -> float:
+    """How far a wall along d is lengthened at its end next to wall v: v's thickness, 0
+    when v runs along the same line."""
+    e = np.asarray(v["end"], np.float64) - np.asarray(v["start"], np.float64)
+    e = e / max(float(np.linalg.norm(e)), 1e-12)
+    return 0.0 if abs(float(d[0] * e[1] - d[1] * e[0])) < 0.05 else float(v["thickness"])
+
+
 def wall_shapes(plan: dict, seen: bool | None = None) -> Polygon:
     """The walls as one (multi)polygon: each wall a band from its face outwards by its
     thickness, lengthened at both ends by its neighbours' thickness, openings cut out.
@@ -51,7 +59,9 @@ def wall_shapes(plan: dict, seen: bool | None = None) -> Polygon:
         n = np.array([d[1], -d[0]])
         same = [v for v in walls if v["room"] == w["room"]]
         k = same.index(w)
-        tp, tn = same[k - 1]["thickness"], same[(k + 1) % len(same)]["thickness"]
+        # lengthened by the neighbours round a corner; a piece of the same face (the seen and
+        # the inferred pieces of one wall) meets its neighbour end to end
+        tp, tn = (_reach(d, same[i]) for i in (k - 1, (k + 1) % len(same)))
         a2, b2 = a - d * tp, b + d * tn
         bands.append(Polygon([a2, b2, b2 + n * t, a2 + n * t]))
     for o in plan.get("openings", []):

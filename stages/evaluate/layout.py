@@ -8,7 +8,8 @@ degrees. Precision divides by all predicted rooms / corners, recall by all groun
 A wall's length error compares each ground-truth wall of a matched room with the predicted
 wall of that room whose ends lie nearest its ends; a door (a passage) is found when a
 predicted opening of its kind has its centre within `door_tol` metres of its centre (an
-opening without a kind is a door).
+opening without a kind is a door), and joins the right rooms when the rooms its `rooms` names
+are the ground truth's (through the room matching).
 """
 
 from __future__ import annotations
@@ -104,18 +105,32 @@ def score_layout(
             round(f_, 4),
         )
     out["wall_length_err_m"] = round(float(np.median(len_err)), 4) if len_err else None
+    to_gt = dict(pairs)
+    joined: list[bool] = []
     for kind, name in (("door", "doors"), ("passage", "passages")):
         pk = [o for o in pred.get("openings", []) if o.get("kind", "door") == kind]
         gk = [o for o in gt.get("openings", []) if o.get("kind", "door") == kind]
-        found, werr = _found(pk, gk, door_tol)
+        matched: list[tuple[int, int]] = []
+        found, werr = _found(pk, gk, door_tol, matched)
         out[f"{name}_found"], out[f"{name}_total"] = found, len(gk)
         out[f"{kind}_width_err_m"] = round(max(werr), 4) if werr else None
+        for i, j in matched:
+            if "rooms" in gk[j]:
+                mine = {to_gt.get(int(r), -1 - int(r)) for r in pk[i].get("rooms", [])}
+                joined.append(mine == {int(r) for r in gk[j]["rooms"]})
+    # of the openings found whose ground truth names its rooms: how many join the same rooms
+    # (the predicted rooms through the room matching); None when none names them
+    out["openings_rooms_right"] = sum(joined) if joined else None
+    out["openings_rooms_total"] = len(joined) if joined else None
     return out
 
 
-def _found(pred: list[dict], gt: list[dict], tol: float) -> tuple[int, list[float]]:
+def _found(
+    pred: list[dict], gt: list[dict], tol: float, matched: list | None = None
+) -> tuple[int, list[float]]:
     """Ground-truth openings matched one to one to predicted ones by centre distance: how
-    many within `tol`, and their width errors."""
+    many within `tol`, and their width errors; the (pred, gt) index pairs found are appended
+    to `matched`."""
     found, werr = 0, []
     if pred and gt:
         pc = np.array([(np.add(o["start"], o["end"]) / 2) for o in pred])
@@ -125,6 +140,8 @@ def _found(pred: list[dict], gt: list[dict], tol: float) -> tuple[int, list[floa
         for i, j in zip(rows, cols, strict=True):
             if dist[i, j] <= tol:
                 found += 1
+                if matched is not None:
+                    matched.append((int(i), int(j)))
                 werr.append(abs(float(pred[i]["width"]) - float(gt[j]["width"])))
     return found, werr
 

@@ -36,6 +36,9 @@ class LayoutConfig:
     #                           plan (BluNF, MVR) labels wall the cell the wall's surface falls
     #                           in, whose centre is the face on average: 0.5; a plan of
     #                           vertical rays through the cell centres (gt/blueprint.npz): 0
+    room_split_h: float = 0.3  # metres: the inside splits into rooms where it narrows to a
+    #                            door (rooms.py): a room's widest point stands this much over
+    #                            the narrowing (its distance maximum over the saddle); 0 = off
     min_room_area: float = 1.0  # m²: a closed space smaller than this is no room
     min_object_area: float = 0.02  # m²: smaller object footprints are left out
     box_slack: float = 0.15  # an object leaving less than this share of its oriented
@@ -62,7 +65,13 @@ class LayoutConfig:
             raise BlunfError(f"layout.snap_deg: must be in [0, 45), got {self.snap_deg}")
         if not 0 <= self.box_slack < 1:
             raise BlunfError(f"layout.box_slack: must be in [0, 1), got {self.box_slack}")
-        for name in ("min_room_area", "min_object_area", "face_offset", "max_passage"):
+        for name in (
+            "min_room_area",
+            "min_object_area",
+            "face_offset",
+            "max_passage",
+            "room_split_h",
+        ):
             if not getattr(self, name) >= 0:
                 raise BlunfError(f"layout.{name}: must be >= 0, got {getattr(self, name)}")
 

@@ -1,11 +1,12 @@
 """Rooms, walls and openings read off the blueprint raster.
 
 The wall cells are closed along the room's two directions over gaps up to `max_opening`
-(the wall line runs through a doorway); each closed space left is a room, its outline traced
-on cell edges (skimage's marching squares), simplified, each edge snapped to the room's
-directions and refitted on the traced points, short edges merged away and neighbouring edges
-intersected at the corners. A wall is an outline edge (its interior face) with the thickness
-of the wall cells behind it; an opening is floor inside the closed wall line.
+(the wall line runs through a doorway); each closed space left is a room (split further where
+it narrows to a door: rooms.py), its outline traced on cell edges (skimage's marching
+squares), simplified, each edge snapped to the room's directions and refitted on the traced
+points, short edges merged away and neighbouring edges intersected at the corners. A wall is
+an outline edge (its interior face) with the thickness of the wall cells behind it; an
+opening is floor inside the closed wall line.
 """
 
 from __future__ import annotations

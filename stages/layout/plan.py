@@ -4,7 +4,8 @@ plan.json: {"units": "m", "angle_deg": the room's direction, "rooms": [{name, po
 (counter-clockwise interior outline), area, continues (an inferred wall closes it: the room
 goes on beyond)}], "walls": [{start, end (interior face, room on the left), length,
 thickness, room, seen (false: inferred, the outline closes over space no view saw as a wall
-surface)}], "openings": [{kind door|passage, wall, start, end, width}], "objects": [{instance,
+surface)}], "openings": [{kind door|passage, wall, start, end, width, rooms ([i, j]: the two
+rooms it joins; [i]: room i to the outside)}], "objects": [{instance,
 class, name, polygon, center, width, depth, angle_deg, height (its highest point) and top (its
 upper surface: a counter's top, a chair's seat), metres above the floor, None without a mesh,
 shape rect|polygon}], "objects_outside": how many object footprints lay outside every room
@@ -35,6 +36,7 @@ from stages.layout.extract import (
     frame_of,
     outline,
 )
+from stages.layout.rooms import cut_openings, notched, seen_pieces, split
 
 SEEN_NEAR = 0.1  # metres: a face is seen where a seen wall cell lies this close to its band
 SEEN_SHARE = 0.5  # a wall is seen (not inferred) when this share of its face is
@@ -50,23 +52,24 @@ def _seen_walls(bp: Blueprint, wid: int) -> Blueprint:
     return Blueprint(((bp.labels == wid) & (bp.seen > 0)).astype(np.uint8), bp.grid)
 
 
-def _seen_share(
+def _seen_along(
     fr: Frame, seen_wall: np.ndarray, a: np.ndarray, b: np.ndarray, thickness: float
-) -> float:
-    """The share of the face a->b (frame xy) with a seen wall cell behind it, within its
-    thickness plus SEEN_NEAR metres along its outward normal (or SEEN_NEAR in front of it)."""
+) -> np.ndarray:
+    """bool [T]: at each cell along the face a->b (frame xy), whether a seen wall cell
+    (`seen_wall`: or an opening seen through) lies behind it, within its thickness plus
+    SEEN_NEAR metres along its outward normal (or SEEN_NEAR in front of it)."""
     cell = fr.grid.cell
     length = float(np.linalg.norm(b - a))
     d = (b - a) / max(length, 1e-9)
     n = np.array([d[1], -d[0]])  # outside a counter-clockwise outline
     ts = np.arange(0.5 * cell, length, cell)
     if len(ts) == 0:
-        return 0.0
+        return np.zeros(0, bool)
     steps = np.arange(-SEEN_NEAR, thickness + SEEN_NEAR + cell / 2, cell / 2)
     pts = a + ts[:, None, None] * d + steps[None, :, None] * n  # [T, S, 2]
     row, col, inside = fr.grid.cell_of(pts.reshape(-1, 2))
     hit = (seen_wall[row, col] & inside).reshape(len(ts), len(steps))
-    return float(hit.any(axis=1).mean())
+    return hit.any(axis=1)
 
 
 def _thickness(
@@ -107,7 +110,18 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
     if fid is not None and cfg.max_passage > cfg.max_opening:
         floor_ = fr.labels == fid
         closed |= close_passages(wall, floor_, int(round(cfg.max_passage / cell)), run, across)
-    region, n = ndi.label((fr.labels != UNKNOWN) & ~closed)
+    region, cuts = split(
+        (fr.labels != UNKNOWN) & ~closed, cell, cfg.room_split_h, cfg.door_max, cfg.min_room_area
+    )
+    n = int(region.max())
+    # a face is seen where a seen wall lies behind it, or an opening (a gap in the wall line,
+    # a cut between rooms) some view saw through
+    gap = closed & ~wall
+    for _, _, rc in cuts:
+        gap[rc[:, 0], rc[:, 1]] = True
+    if bp.seen is not None:
+        gap &= frame_of(Blueprint(bp.seen.astype(np.uint8), bp.grid), angle).labels == 1
+    seen_face = seen_wall | gap
     area = ndi.sum_labels(np.ones_like(region), region, np.arange(1, n + 1)) * cell**2
     # a room has floor: a closed space of objects (stereo's noise behind a photos-only plan's
     # walls, labelled object there) with specks of floor is none
@@ -117,7 +131,8 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
         else ndi.sum_labels(fr.labels == fid, region, np.arange(1, n + 1)) * cell**2
     )
     faces: list[tuple[int, np.ndarray, np.ndarray]] = []
-    for k in np.argsort(-area):
+    room_of: dict[int, int] = {}  # region label -> room index
+    for k in np.argsort(-area, kind="stable"):  # largest first, ties in label order
         if area[k] < cfg.min_room_area:
             break
         if floor[k] < cfg.min_room_area:
@@ -142,12 +157,20 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
         poly = outline(mask, fr, cfg)
         if poly is None:
             continue
+        if bp.seen is not None:  # corners closed over space no view saw follow what they saw
+
+            def seen_edge(a: np.ndarray, b: np.ndarray) -> bool:
+                along = _seen_along(fr, seen_face, a, b, _thickness(fr, closed, a, b, cfg))
+                return len(along) > 0 and along.mean() >= SEEN_SHARE
+
+            poly = notched(poly, mask, fr, seen_edge)
         if cfg.face_offset > 0:
             grown = Polygon(poly).buffer(cfg.face_offset * cell, join_style="mitre", mitre_limit=10)
             # kept as traced where the offset would change the outline's corners
             if grown.geom_type == "Polygon" and len(grown.exterior.coords) - 1 == len(poly):
                 poly = np.asarray(orient(grown, 1.0).exterior.coords)[:-1]
         ri = len(out["rooms"])
+        room_of[int(k) + 1] = ri
         world = fr.to_world(poly)
         out["rooms"].append(
             {"name": f"room {ri + 1}", "polygon": _r(world), "area": round(Polygon(world).area, 4)}
@@ -157,7 +180,8 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
             t = _thickness(fr, closed, a, b, cfg)
             faces.append((ri, a, b))
             w = fr.to_world(np.array([a, b]))
-            seen = _seen_share(fr, seen_wall, a, b, t) >= SEEN_SHARE
+            along = _seen_along(fr, seen_face, a, b, t)
+            seen = len(along) > 0 and along.mean() >= SEEN_SHARE
             out["walls"].append(
                 {
                     "start": _r(w[0]),
@@ -168,12 +192,17 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
                     "seen": bool(seen),
                 }
             )
+            pieces = seen_pieces(along, cell)
+            if len(pieces) > 1:  # split later (rooms.split_seen), once the faces have moved
+                out["walls"][-1]["pieces"] = pieces
         # an outline closed over space no view saw as a surface: the room goes on beyond it
         out["rooms"][-1]["continues"] = not all(w["seen"] for w in out["walls"] if w["room"] == ri)
     if fid is not None and faces:
         out["openings"] = _openings(
             fr, closed & ~wall & (fr.labels == fid), faces, out["walls"], cfg
         )
+    if faces:
+        out["openings"] += cut_openings(fr, cuts, room_of, faces, out["walls"], cfg.door_max)
     return out
 
 

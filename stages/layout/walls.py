@@ -34,6 +34,7 @@ from stages.layout.openings import (
     scene_of,
 )
 from stages.layout.plan import architecture, in_rooms, objects
+from stages.layout.rooms import join_rooms, split_seen
 
 log = logging.getLogger(__name__)
 
@@ -73,7 +74,7 @@ def build_plan(bp: Blueprint, cfg: LayoutConfig, mesh: Path | None = None) -> di
     plan["objects"], plan["objects_outside"] = in_rooms(
         plan["objects"], plan["rooms"], 2 * bp.grid.cell
     )
-    return plan
+    return join_rooms(split_seen(plan))
 
 
 def object_heights(

@@ -129,6 +129,9 @@ def test_exact_room_with_doors_meets_the_targets(tmp_path, seed, shape, passages
     _meets_targets(score_layout(plan, gt), doors=2, passages=passages)
     kinds = sorted(o["kind"] for o in plan["openings"])
     assert kinds == ["door"] * 2 + ["passage"] * passages
+    # one room, named; its doors and passages lead outside it
+    assert [r["name"] for r in plan["rooms"]] == ["room 1"]
+    assert all(o["rooms"] == [0] for o in plan["openings"]), plan["openings"]
     assert all(abs(w["thickness"] - gt["walls"][0]["thickness"]) <= 0.02 for w in plan["walls"])
     inst = json.loads((cap / "gt" / "instances.json").read_text())
     assert len(plan["objects"]) == len(inst)

@@ -1,0 +1,307 @@
+"""Rooms of a home: the inside region split where it narrows to a door, and the rooms each
+opening joins.
+
+The split is the distance-transform segmentation of Bormann et al. (ICRA 2016): the distance
+of each inside cell to the nearest cell outside (wall, unknown) has one regional maximum per
+room (h-maxima: a maximum standing less than `h` over the saddle to a higher one is that
+one's); a watershed of the negated distance from those markers grows the rooms until they
+meet, at the narrowest point between them. Neighbours whose shared boundary is wider than a
+door are one room (an L's two arms, a room's bay); a basin smaller than a room joins the
+neighbour it shares most boundary with. The wall lines closed over doorways (extract.py)
+separate most rooms already; this splits those whose doorway has no wall run beside it to
+close it (a door flush with the corner, a wall the views saw only in pieces).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+from scipy import ndimage as ndi
+from shapely.geometry import Point, Polygon
+from skimage.morphology import h_maxima
+from skimage.segmentation import watershed
+
+from stages.common.rows import unique_rows
+from stages.layout.extract import Frame
+
+MIN_PIECE = 0.5  # metres: a wall splits into seen and inferred pieces no shorter than this
+SEEN_GAP = 0.2  # metres: unseen stretches of a seen wall up to this long are seen (a socket,
+#                 a picture frame the views saw as no wall)
+NOTCH_MIN = 0.5  # metres: the least side of a corner cut off an outline over unseen space
+NOTCH_EMPTY = 0.9  # share of a cut-off corner that must lie outside the room's cells
+OTHER_SIDE = 0.15  # metres beyond a wall's back where the room an opening leads to is looked for
+
+
+def _boundaries(lab: np.ndarray) -> dict[tuple[int, int], np.ndarray]:
+    """(i, j) with i < j -> the cells [K, 2] (row, col) of label i or j next to the other
+    label (4-neighbours)."""
+    keys, cells = [], []
+    for axis in (0, 1):
+        a = lab[:-1] if axis == 0 else lab[:, :-1]
+        b = lab[1:] if axis == 0 else lab[:, 1:]
+        rows, cols = np.nonzero((a != b) & (a > 0) & (b > 0))
+        i, j = a[rows, cols], b[rows, cols]
+        key = np.minimum(i, j).astype(np.int64) * (lab.max() + 1) + np.maximum(i, j)
+        step = (1, 0) if axis == 0 else (0, 1)
+        keys += [key, key]
+        cells += [np.stack([rows, cols], 1), np.stack([rows + step[0], cols + step[1]], 1)]
+    key, rc = np.concatenate(keys), np.concatenate(cells)
+    if len(key) == 0:
+        return {}
+    order = np.argsort(key, kind="stable")
+    key, rc = key[order], rc[order]
+    uniq, first = np.unique(key, return_index=True)
+    m = lab.max() + 1
+    return {
+        (int(k // m), int(k % m)): unique_rows(part)[0]
+        for k, part in zip(uniq, np.split(rc, first[1:]), strict=True)
+    }
+
+
+def _width(cells: np.ndarray) -> float:
+    """The length (cells) of a boundary: the extent of its cells along their main axis."""
+    if len(cells) < 2:
+        return float(len(cells))
+    c = cells - cells.mean(0)
+    u = np.linalg.svd(c, full_matrices=False)[2][0]
+    t = c @ u
+    return float(t.max() - t.min() + 1)
+
+
+def split(
+    inside: np.ndarray, cell: float, h: float, door: float, min_area: float
+) -> tuple[np.ndarray, list[tuple[int, int, np.ndarray]]]:
+    """Rooms of the inside cells [H, W] bool: a label per cell (0 outside, 1..n) and the cuts
+    between rooms (label i, label j, the cells [K, 2] along the cut). `h` (metres): the least
+    height of a room's distance maximum over its saddle; `door` (metres): neighbours sharing a
+    wider boundary are one room; `min_area` (m²): a smaller basin is no room of its own."""
+    pieces, n = ndi.label(inside)
+    if h <= 0 or n == 0:
+        return pieces, []
+    # unseen holes inside a room (under a table) are no obstacle for the distance
+    dist = ndi.distance_transform_edt(np.pad(ndi.binary_fill_holes(inside), 1))[1:-1, 1:-1]
+    dist = np.where(inside, dist * cell, 0.0)
+    peaks = h_maxima(dist, h)
+    markers, _ = ndi.label(peaks & inside)
+    # a piece without a marker of its own (narrower than 2 h everywhere) keeps one
+    missing = np.setdiff1d(np.arange(1, n + 1), np.unique(pieces[markers > 0]))
+    start = markers.max()
+    for k, p in enumerate(missing, start=1):
+        markers[pieces == p] = start + k
+    lab = watershed(-dist, markers, mask=inside)
+    area = np.bincount(lab.ravel(), minlength=lab.max() + 1) * cell**2
+    # merge: wide boundaries first, then basins too small for a room into their best neighbour
+    while True:
+        bounds = _boundaries(lab)
+        widths = {k: _width(v) * cell for k, v in bounds.items()}
+        wide = [k for k, w in widths.items() if w > door]
+        small = [k for k in widths if min(area[k[0]], area[k[1]]) < min_area and k not in wide]
+        if wide:
+            i, j = max(wide, key=lambda k: widths[k])
+        elif small:
+            i, j = max(small, key=lambda k: widths[k])
+        else:
+            break
+        lab[lab == j] = i
+        area[i] += area[j]
+        area[j] = 0
+    # labels 1..n in the order of their first cell
+    ids = np.unique(lab[lab > 0])
+    remap = np.zeros(lab.max() + 1, np.int64)
+    remap[ids] = np.arange(1, len(ids) + 1)
+    lab = remap[lab]
+    cuts = [(i, j, c) for (i, j), c in _boundaries(lab).items()]
+    return lab.astype(np.int32), cuts
+
+
+def join_rooms(plan: dict) -> dict:
+    """The plan with each opening's `rooms`: the indices of the rooms it joins, [i, j] with
+    i < j between two rooms, [i] for one to the outside (or to space no room covers): its
+    wall's room, and the room that holds the point OTHER_SIDE beyond the wall's back at the
+    opening's middle."""
+    polys = [Polygon(r["polygon"]) for r in plan["rooms"]]
+    walls = plan["walls"]
+    out = []
+    for o in plan.get("openings", []):
+        w = walls[o["wall"]] if 0 <= o.get("wall", -1) < len(walls) else None
+        if w is None:
+            out.append(o)
+            continue
+        a, b = np.asarray(w["start"], np.float64), np.asarray(w["end"], np.float64)
+        d = (b - a) / max(float(np.linalg.norm(b - a)), 1e-9)
+        n = np.array([d[1], -d[0]])  # outwards of the wall's room
+        mid = (np.asarray(o["start"], np.float64) + np.asarray(o["end"], np.float64)) / 2
+        p = Point(*(mid + n * (float(w["thickness"]) + OTHER_SIDE)))
+        here = int(w["room"])
+        other = [k for k, q in enumerate(polys) if k != here and q.buffer(0.05).contains(p)]
+        out.append({**o, "rooms": sorted({here, *other[:1]})})
+    return {**plan, "openings": out}
+
+
+def cut_openings(
+    fr: Frame, cuts: list, room_of: dict[int, int], faces: list, walls: list[dict], door_max: float
+) -> list[dict]:
+    """An opening for each cut between two rooms (split's cuts; room_of: region label -> room
+    index): on the face of the first room that runs along the cut nearest its middle, from the
+    cut's first to its last cell along that face."""
+    cell = fr.grid.cell
+    out = []
+    for i, j, rc in cuts:
+        if i not in room_of or j not in room_of:
+            continue
+        xy = fr.xy(rc)
+        mid = xy.mean(0)
+        best = None
+        for wi, (ri, a, b) in enumerate(faces):
+            if ri != room_of[i]:
+                continue
+            length = float(np.linalg.norm(b - a))
+            d = (b - a) / length
+            t = (xy - a) @ d
+            off = abs(float((mid - a) @ np.array([d[1], -d[0]])))
+            spread = float(t.max() - t.min())  # a cut runs along the face it crosses
+            if t.min() > -cell and t.max() < length + cell and (best is None or off < best[0]):
+                best = (off, wi, a, d, t, spread)
+        if best is None or best[0] > walls[best[1]]["thickness"] + 2 * cell:
+            continue
+        _, wi, a, d, t, _ = best
+        t0, t1 = float(t.min() - cell / 2), float(t.max() + cell / 2)
+        p, q = fr.to_world(np.array([a + t0 * d, a + t1 * d]))
+        width = t1 - t0
+        out.append(
+            {
+                "kind": "door" if width <= door_max else "passage",
+                "wall": wi,
+                "start": np.round(p, 4).tolist(),
+                "end": np.round(q, 4).tolist(),
+                "width": round(width, 4),
+            }
+        )
+    return out
+
+
+def seen_pieces(along: np.ndarray, cell: float) -> list[list]:
+    """The pieces of a wall along its face from where it was seen (`along`: bool per cell,
+    plan.py's _seen_along): [[start, end (fractions of its length), seen], ...]. Gaps up to
+    SEEN_GAP in either are closed; a piece shorter than MIN_PIECE joins its neighbours. One
+    piece: the wall is not split."""
+    if len(along) == 0:
+        return []
+    g = max(1, int(round(SEEN_GAP / cell)))
+    pad = np.pad(along, g, mode="edge")
+    smooth = ndi.binary_opening(ndi.binary_closing(pad, np.ones(g, bool)), np.ones(g, bool))
+    smooth = smooth[g:-g]
+    # runs of equal values: [start, stop, value]
+    edges = np.nonzero(np.diff(smooth.astype(np.int8)))[0] + 1
+    bounds = np.concatenate([[0], edges, [len(smooth)]])
+    runs = [[int(a), int(b), bool(smooth[a])] for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+    least = MIN_PIECE / cell
+    while len(runs) > 1:
+        k = min(range(len(runs)), key=lambda i: runs[i][1] - runs[i][0])
+        if runs[k][1] - runs[k][0] >= least:
+            break
+        # the short run takes its neighbours' value, and they join round it
+        lo, hi = max(0, k - 1), min(len(runs), k + 2)
+        value = runs[k - 1][2] if k > 0 else runs[k + 1][2]
+        runs[lo:hi] = [[runs[lo][0], runs[hi - 1][1], value]]
+    n = len(along)
+    return [[round(a / n, 4), round(b / n, 4), v] for a, b, v in runs] if len(runs) > 1 else []
+
+
+def split_seen(plan: dict) -> dict:
+    """The plan with each wall that carries `pieces` (seen_pieces) split into its pieces along
+    its length, each with its own `seen`; openings on it move to the piece that holds their
+    middle; a room with an inferred piece continues beyond it."""
+    walls, index = [], []  # index[w] = [(new index, start fraction, end fraction), ...]
+    for w in plan["walls"]:
+        pieces = w.get("pieces")
+        w = {k: v for k, v in w.items() if k != "pieces"}
+        if not pieces:
+            index.append([(len(walls), 0.0, 1.0)])
+            walls.append(w)
+            continue
+        a, b = np.asarray(w["start"], np.float64), np.asarray(w["end"], np.float64)
+        mine = []
+        for f0, f1, seen in pieces:
+            p, q = a + f0 * (b - a), a + f1 * (b - a)
+            mine.append((len(walls), f0, f1))
+            walls.append(
+                {
+                    **w,
+                    "start": np.round(p, 4).tolist(),
+                    "end": np.round(q, 4).tolist(),
+                    "length": round(float(np.linalg.norm(q - p)), 4),
+                    "seen": bool(seen),
+                }
+            )
+        index.append(mine)
+    openings = []
+    for o in plan.get("openings", []):
+        wi = o.get("wall", -1)
+        if not 0 <= wi < len(index) or len(index[wi]) == 1:
+            openings.append({**o, "wall": index[wi][0][0]} if 0 <= wi < len(index) else o)
+            continue
+        w = plan["walls"][wi]
+        a, b = np.asarray(w["start"], np.float64), np.asarray(w["end"], np.float64)
+        mid = (np.asarray(o["start"], np.float64) + np.asarray(o["end"], np.float64)) / 2
+        f = float((mid - a) @ (b - a) / max(float((b - a) @ (b - a)), 1e-12))
+        new = next((k for k, f0, f1 in index[wi] if f0 <= f <= f1), index[wi][-1][0])
+        openings.append({**o, "wall": new})
+    rooms = [
+        {**r, "continues": not all(w["seen"] for w in walls if w["room"] == ri)}
+        if "continues" in r
+        else r
+        for ri, r in enumerate(plan["rooms"])
+    ]
+    return {**plan, "rooms": rooms, "walls": walls, "openings": openings}
+
+
+def notched(
+    poly: np.ndarray, mask: np.ndarray, fr: Frame, seen: Callable[[np.ndarray, np.ndarray], bool]
+) -> np.ndarray:
+    """The outline poly (frame xy, counter-clockwise, edges along the frame's axes) with each
+    convex corner between two edges no view saw as a surface (`seen`(a, b) false for both)
+    cut back to the room's cells (`mask`, the frame's grid): the largest rectangle at the
+    corner, at least NOTCH_MIN on each side and at most 90 % of either edge, with at least
+    NOTCH_EMPTY of it outside the mask, is cut off: three corners for one. An outline closed
+    over open sides is a Manhattan polygon round what the views saw, not the box of it."""
+    cell = fr.grid.cell
+    flags = [seen(poly[i], poly[(i + 1) % len(poly)]) for i in range(len(poly))]
+    least = int(np.ceil(NOTCH_MIN / cell))
+    i = 0
+    while i < len(poly):
+        c, prev, nxt = poly[i], poly[i - 1], poly[(i + 1) % len(poly)]
+        e0, e1 = c - prev, nxt - c
+        l0, l1 = float(np.linalg.norm(e0)), float(np.linalg.norm(e1))
+        convex = e0[0] * e1[1] - e0[1] * e1[0] > 0
+        axis = abs(e0 @ e1) < 1e-6 * l0 * l1  # a right angle
+        if flags[i - 1] or flags[i] or not convex or not axis:
+            i += 1
+            continue
+        u, v = e1 / l1, -e0 / l0  # along the next edge, back along the previous one
+        nw, nh = int(0.9 * l1 / cell), int(0.9 * l0 / cell)
+        if min(nw, nh) < least:
+            i += 1
+            continue
+        jw, jh = np.meshgrid(np.arange(nw) + 0.5, np.arange(nh) + 0.5)
+        pts = c + (jw[..., None] * u + jh[..., None] * v) * cell  # [nh, nw, 2]
+        row, col, ok = fr.grid.cell_of(pts.reshape(-1, 2))
+        full = (mask[row, col] & ok).reshape(nh, nw).astype(np.int64)
+        count = full.cumsum(0).cumsum(1)  # room cells in the rectangle of (h + 1, w + 1)
+        size = np.outer(np.arange(1, nh + 1), np.arange(1, nw + 1))
+        good = (1 - count / size >= NOTCH_EMPTY) & (size > 0)
+        good[: least - 1] = False
+        good[:, : least - 1] = False
+        if not good.any():
+            i += 1
+            continue
+        h, w = np.unravel_index(np.argmax(np.where(good, size, 0)), size.shape)
+        h, w = (h + 1) * cell, (w + 1) * cell
+        step = [c + h * v, c + h * v + w * u, c + w * u]
+        poly = (
+            np.concatenate([poly[:i], step, poly[i + 1 :]]) if i else np.array([*step, *poly[1:]])
+        )
+        flags = flags[:i] + [False, False] + flags[i:]
+        i += 3
+    return poly
