@@ -7,10 +7,17 @@ corrects):
   coverage     percent of the view's pixels with a reading,
   within_5cm   percent of the readings with a sensor reading that lie within 5 cm of it,
   absrel       mean |depth - sensor| / sensor over those readings,
+  median_ratio median of depth / sensor over them: 1 when the run's scale is right; a
+               ratio that drifts with depth is the geometry's (wrong intrinsics), not noise,
 pooled over all views, and again per source (`sources/<stem>.png` beside the depth maps:
 1 stereo, 2 planes, 3 field; without it every reading counts as stereo; a source's coverage
 is its share of all pixels) and per class of the reference run's labels (the sensor-depth
-run's semantics: floor, wall, object; coverage: share of that class's pixels).
+run's semantics: floor, wall, object; coverage: share of that class's pixels), and per
+sensor depth band (`bands`, metres: where the errors lie). `tracks`: the SfM track depths
+the depth stage started from (the align stage's frames.json), scored the same way: the
+agreement of the run's own geometry with the sensor, which no depth method on those poses
+and intrinsics can beat (the 7-Scenes kitchen's colour camera at its stated focal: its
+tracks lie within 5 cm of the sensor no more often than its stereo does).
 Sensor readings next to a depth edge or a hole are left out within `erode_px` pixels (the
 7-Scenes Kinect's colour and depth are not registered: its edges sit a few pixels off the
 colour's).
@@ -39,6 +46,7 @@ from stages.common.io import read_depth, read_json, read_label
 SOURCES = {1: "stereo", 2: "planes", 3: "field"}  # sources/<stem>.png codes (0: none)
 CLASSES = ("floor", "wall", "object")
 NEAR_M = 0.05  # within_5cm
+BANDS = (0.0, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0, float("inf"))  # metres of sensor depth
 DEPTH_STAGES = ("depth", "nerf")  # the stage that writes a photos-only run's depth maps
 
 
@@ -107,6 +115,7 @@ class _Tally:
     def __init__(self) -> None:
         self.pixels = self.read = self.compared = self.near = 0
         self.rel = 0.0
+        self.ratios: list[np.ndarray] = []
 
     def add(self, sel: np.ndarray, got: np.ndarray, ref: np.ndarray) -> None:
         """sel: the group's pixels; got: the run's depth (0 = none); ref: the sensor's."""
@@ -118,6 +127,7 @@ class _Tally:
         self.compared += int(both.sum())
         self.near += int((err < NEAR_M).sum())
         self.rel += float((err / ref[both]).sum())
+        self.ratios.append((got[both] / ref[both]).astype(np.float32))
 
     def result(self) -> dict:
         def pct(a: int, b: int) -> float | None:
@@ -127,6 +137,9 @@ class _Tally:
             "coverage": pct(self.read, self.pixels),
             "within_5cm": pct(self.near, self.compared),
             "absrel": round(self.rel / self.compared, 4) if self.compared else None,
+            "median_ratio": (
+                round(float(np.median(np.concatenate(self.ratios))), 4) if self.compared else None
+            ),
             "pixels": self.pixels,
             "compared": self.compared,
         }
@@ -169,6 +182,33 @@ def _sources(folder: Path, stem: str, used: Path, got: np.ndarray) -> np.ndarray
     return code
 
 
+def track_maps(run: Path) -> tuple[Capture, dict[str, Path]] | None:
+    """(the capture the depth stage read, stem -> its SfM track depth map) of a photos-only
+    run: the align stage's frames.json that report.json names (else the newest); None when
+    there is none."""
+    run = Path(run)
+    found = []
+    report = run / "report.json"
+    if report.is_file():
+        for s in read_json(report).get("stages", []):
+            if s.get("name") == "align" and s.get("key"):
+                found.append(run / "align" / s["key"] / "frames.json")
+    found = [p for p in found if p.is_file()] or sorted(
+        (Path(p) for p in glob.glob(str(run / "align" / "*" / "frames.json"))),
+        key=lambda p: p.stat().st_mtime,
+    )
+    if not found:
+        return None
+    cap = Capture.load(found[-1])
+    return cap, {f.stem: Path(f.depth) for f in cap.frames if f.depth is not None}
+
+
+def _bands(tally: dict, sel: np.ndarray, got: np.ndarray, ref: np.ndarray) -> None:
+    """Add one view's readings to the per sensor-depth band tallies."""
+    for a, b in zip(BANDS[:-1], BANDS[1:], strict=True):
+        tally.setdefault(f"{a:g}-{b:g}", _Tally()).add(sel & (ref >= a) & (ref < b), got, ref)
+
+
 def depth_metrics(
     photos_run: Path, ref_run: Path, erode_px: int = 0, scale: float | None = None
 ) -> dict:
@@ -194,6 +234,9 @@ def depth_metrics(
         raise BlunfError(f"{folder / 'depth'}: no depth map of a view of {cap.root}")
     total, by_source = _Tally(), {n: _Tally() for n in SOURCES.values()}
     by_class = {n: _Tally() for n in CLASSES}
+    bands: dict[str, _Tally] = {}
+    tracks, by_track_band = _Tally(), {}
+    sfm = track_maps(photos_run)
     per_view = {}
     has_sources = (folder / "sources").is_dir()
     for stem, path in maps:
@@ -202,6 +245,13 @@ def depth_metrics(
         code = _sources(folder, stem, path, got)
         everything = np.ones(got.shape, bool)
         total.add(everything, got, ref)
+        _bands(bands, everything, got, ref)
+        if sfm is not None and stem in sfm[1]:
+            t = read_depth(sfm[1][stem], sfm[0].depth_scale, sfm[0].depth_invalid)
+            t = np.where(np.isfinite(t) & (t > 0), t.astype(np.float64) * s, 0.0)
+            tref = at_centres(sensor_depth(cap, stem, erode_px), t.shape)
+            tracks.add(np.ones(t.shape, bool), t, tref)
+            _bands(by_track_band, np.ones(t.shape, bool), t, tref)
         view = _Tally()
         view.add(everything, got, ref)
         per_view[stem] = view.result()
@@ -215,6 +265,15 @@ def depth_metrics(
     out = total.result()
     out["sources"] = {n: t.result() for n, t in by_source.items()}
     out["classes"] = {n: t.result() for n, t in by_class.items()}
+    out["bands"] = {n: t.result() for n, t in bands.items() if t.compared}
+    out["tracks"] = None
+    if tracks.compared:  # coverage is not a track map's point: left out
+        out["tracks"] = {k: v for k, v in tracks.result().items() if k != "coverage"}
+        out["tracks"]["bands"] = {
+            n: {k: v for k, v in t.result().items() if k != "coverage"}
+            for n, t in by_track_band.items()
+            if t.compared
+        }
     out.update(
         views=len(maps),
         sources_from="sources/"

@@ -277,6 +277,12 @@ def summary(res: dict) -> str:
             f"depth: coverage {d['coverage']:.1f} % within 5 cm {d['within_5cm']:.1f} % AbsRel "
             f"{d['absrel']:.3f} (coverage/within 5 cm: {per}; erode {d['erode_px']} px)"
         )
+        t = d.get("tracks")
+        if t:  # the run's own geometry against the sensor: what no depth method can beat
+            lines.append(
+                f"SfM tracks vs sensor: within 5 cm {t['within_5cm']:.1f} % AbsRel "
+                f"{t['absrel']:.3f} median ratio {t['median_ratio']:.3f} ({t['compared']} tracks)"
+            )
     return "\n".join(lines)
 
 

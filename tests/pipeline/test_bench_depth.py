@@ -43,14 +43,22 @@ def _runs(tmp: Path, with_sources: bool) -> tuple[Path, Path, dict]:
         labelled.append(replace(f, label=sem / f"{f.stem}.png"))
     classes = {0: "floor", 1: "wall", 3: "object"}
     replace(cap.with_frames(tuple(labelled)), classes=classes).save(sem / "frames.json")
-    # the photos-only run: poses at half scale, maps at half size and in half-metres
+    # the photos-only run: poses at half scale, maps at half size and in half-metres; its
+    # SfM tracks every 4th pixel of the full-size maps, those of the lower half 10 cm off
     moved = []
+    tracks = _stage(photos, "align") / "tracks"
+    tracks.mkdir()
     for f in cap.frames:
         p = np.asarray(f.pose, np.float64).copy()
         p[:3, 3] /= S
-        moved.append(replace(f, pose=p))
-    _stage(photos, "align")
-    cap.with_frames(tuple(moved)).save(photos / "align" / "k" / "frames.json")
+        exact = sensor_depth(cap, f.stem)
+        t = np.zeros_like(exact)
+        t[::4, ::4] = exact[::4, ::4]
+        t[24:] = np.where(t[24:] > 0, t[24:] + 0.10, 0.0)
+        np.save(tracks / f"{f.stem}.npy", (t / S).astype(np.float32))
+        moved.append(replace(f, pose=p, depth=tracks / f"{f.stem}.npy"))
+    moved_cap = replace(cap.with_frames(tuple(moved)), depth_scale=1.0, depth_invalid=())
+    moved_cap.save(photos / "align" / "k" / "frames.json")
     dep = _stage(photos, "depth")
     (dep / "depth").mkdir()
     (dep / "sources").mkdir()
@@ -109,3 +117,20 @@ def test_depth_metrics_against_exact_depth(tmp_path, with_sources):
     assert m["classes"]["wall"]["within_5cm"] == 100.0  # the errors lie in rows 12-
     # floor rows: columns 8-15 of the 24 read are 10 cm off, 16-19 2 cm (within)
     assert m["classes"]["floor"]["within_5cm"] == pytest.approx(100.0 * 16 / 24, abs=0.01)
+
+
+def test_depth_metrics_ratio_bands_and_tracks(tmp_path):
+    """median_ratio is 1 where the readings are exact and above 1 where they lie beyond the
+    sensor; the bands split the readings by sensor depth; the SfM tracks (the align stage's
+    depth maps) are scored on their own: half of them planted 10 cm off."""
+    photos, ref, _ = _runs(tmp_path, True)
+    m = depth_metrics(photos, ref)
+    assert m["sources"]["field"]["median_ratio"] == pytest.approx(1.0, abs=1e-4)  # untouched
+    # stereo: half of its readings 10 cm beyond (the median between 1 and those)
+    assert m["sources"]["stereo"]["median_ratio"] > 1.0
+    assert sum(b["compared"] for b in m["bands"].values()) == m["compared"]
+    t = m["tracks"]
+    assert t is not None and t["compared"] > 0
+    assert t["within_5cm"] == pytest.approx(50.0, abs=0.01)  # every track read; half off
+    assert t["median_ratio"] >= 1.0
+    assert sum(b["compared"] for b in t["bands"].values()) == t["compared"]

@@ -3,7 +3,8 @@
     python -m stages.depth.planes.evaluate RUN --sensor CAPTURE [--every K] [--json OUT]
 
 RUN is a photos-only run folder (align/<key>/frames.json: aligned SfM poses, images and
-track depth; nerf/<key>/depth/<stem>.npy: the sweep's checked depth). CAPTURE holds the
+track depth; depth/<key>/depth/<stem>.npy with sources/<stem>.png: the sweep's checked
+depth is the readings whose source is stereo; the keys report.json names). CAPTURE holds the
 same frames' sensor depth (frames/<stem>.depth.png or depth/<stem>.png, millimetres). The
 run's world is metric only up to SfM's scale: one factor (median of sensor / stereo over
 all stereo readings) maps it to the sensor's, and is printed. Sensor pixels near a depth
@@ -25,18 +26,32 @@ from scipy.ndimage import maximum_filter, minimum_filter
 from stages.common.camera import pixel_grid
 from stages.common.capture import Capture
 from stages.common.errors import BlunfError
-from stages.common.io import read_depth, read_image
+from stages.common.io import read_depth, read_image, read_label
+from stages.depth.config import STEREO
 from stages.depth.planes import PlanesConfig, fill
 from stages.depth.planes.geometry import plane_depth, rays, scale_K
 from stages.depth.planes.hypotheses import KINDS, Plane
 
 
 def load_run(run: Path, every: int = 1) -> tuple[list, list, list, list, list, list[str]]:
-    """(images, Ks, poses, sparse, depths, stems) of a photos-only run's cached inputs."""
-    fr = sorted(run.glob("align/*/frames.json"))
-    dd = sorted(run.glob("nerf/*/depth"))
+    """(images, Ks, poses, sparse, depths, stems) of a photos-only run's cached inputs: the
+    sweep's checked depth (the depth stage's readings whose source is stereo)."""
+    keys = {}
+    report = run / "report.json"
+    if report.is_file():
+        keys = {
+            s["name"]: s["key"]
+            for s in json.loads(report.read_text()).get("stages", [])
+            if s.get("key")
+        }
+    fr = [run / "align" / keys["align"] / "frames.json"] if "align" in keys else []
+    dd = [run / "depth" / keys["depth"]] if "depth" in keys else []
+    fr = [p for p in fr if p.is_file()] or sorted(run.glob("align/*/frames.json"))
+    dd = [p for p in dd if (p / "depth").is_dir()] or sorted(
+        p.parent for p in run.glob("depth/*/depth")
+    )
     if not fr or not dd:
-        raise BlunfError(f"{run}: no align/*/frames.json or nerf/*/depth (a photos-only run?)")
+        raise BlunfError(f"{run}: no align/*/frames.json or depth/*/depth (a photos-only run?)")
     cap = Capture.load(fr[-1])
     frames = [f for f in cap.frames if f.pose is not None][:: max(1, every)]
     images, Ks, poses, sparse, depths, stems = [], [], [], [], [], []
@@ -47,7 +62,11 @@ def load_run(run: Path, every: int = 1) -> tuple[list, list, list, list, list, l
         h, w = f.intrinsics.height, f.intrinsics.width
         s = read_depth(f.depth, cap.depth_scale, cap.depth_invalid) if f.depth else None
         sparse.append(s if s is not None else np.zeros((h, w), np.float32))
-        depths.append(np.load(dd[-1] / f"{f.stem}.npy").astype(np.float32))
+        d = np.load(dd[-1] / "depth" / f"{f.stem}.npy").astype(np.float32)
+        src = dd[-1] / "sources" / f"{f.stem}.png"
+        if src.is_file():
+            d = np.where(read_label(src) == STEREO, d, 0.0).astype(np.float32)
+        depths.append(d)
         stems.append(f.stem)
     return images, Ks, poses, sparse, depths, stems
 
