@@ -149,6 +149,7 @@ def _recipe(r: Runner, pub: Publication, capture: Path, cfg: Config, spec: EditS
             heldout=pts.heldout if plan.heldout else None,
             layout=lay.plan_json,
             points=pts.points,
+            observed=pts.observed,
         ),
     )
     if ev is not None:
