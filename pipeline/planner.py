@@ -171,6 +171,7 @@ def make_plan(cap: Capture, cfg: Config, edits: Path | None = None) -> Plan:
     if held:
         scores.append("held-out views")
     # metrics.observation needs no ground truth: the stage runs on every capture
-    s.append(Step("evaluate", "gt", True, "; ".join(scores) or "observation only (no ground truth)"))
+    why = "; ".join(scores) or "observation only (no ground truth)"
+    s.append(Step("evaluate", "gt", True, why))
     s.append(Step("export", "files", True))
     return Plan(tuple(s), held)
