@@ -38,6 +38,12 @@ class SemanticsConfig:
     #                           Replica office0 (sensor depth): its blinds, 0.31 m before the
     #                           window wall, were a wall (fwIoU against its own classes,
     #                           padded, 84.4 -> 84.5 with what hangs left unknown)
+    # what lies within hanger_slab metres of a surface that hangs before a wall (see
+    # wall_behind), inside its extent, at any height, is its frame or stand (a whiteboard's
+    # legs and bottom bar): unknown, as the surface is, not object. Replica office0 (sensor
+    # depth): a whiteboard on a stand 0.31 m before the wall painted that depth object along
+    # its 2.3 m. 0 = off
+    hanger_slab: float = 0.1
     max_planes: int = 24  # at most this many planes are fitted per kind (floor, ceiling, wall)
     cluster_eps: float = 0.08  # metres: DBSCAN radius joining object surfaces (run on voxels
     #                            of cluster_eps / 2, one point per occupied voxel)
@@ -179,6 +185,7 @@ class SemanticsConfig:
             "table_max_top",
             "table_min_top",
             "wall_behind",
+            "hanger_slab",
         ):
             if not getattr(self, name) >= 0:
                 raise BlunfError(f"semantics.{name}: must be >= 0, got {getattr(self, name)}")

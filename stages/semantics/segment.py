@@ -13,7 +13,8 @@ id (0 = none), from its centre, unit normal and area:
    plane stands behind it within `wall_behind` (blinds before a window wall, cubicle panels,
    tall cabinets against a wall: the wall is the outermost surface). Planes that fail stay
    in the object pool, except one before a wall that hangs clear of the floor (blinds, a
-   curtain: unknown).
+   curtain, a whiteboard: unknown), and with it what lies within `hanger_slab` of it
+   (its frame, legs and stand).
 3. Unlabelled triangles within `plane_dist` of an accepted plane, inside its extent, join it
    whatever their normal: the rounded seams of the TSDF surface where a wall meets the
    floor would otherwise form thin "objects" along every wall.
@@ -72,6 +73,7 @@ class Segmentation:
     noise_clusters: int = 0  # clusters below object_min_area (unknown)
     noise_triangles: int = 0  # triangles DBSCAN calls noise (unknown)
     floating_clusters: int = 0  # clusters above object_max_gap (unknown)
+    hanger_triangles: int = 0  # by a surface hanging before a wall, its frame (unknown)
     outside_triangles: int = 0  # object triangles outside the room (outside_unknown)
     floor_z: float = 0.0  # median height of the floor triangles (0 when no floor was found)
     object_base_z: float = 0.0  # height object clusters' lowest points are measured from
@@ -138,6 +140,7 @@ def segment(
             log.debug("semantics: not a wall %s", seg.rejected[-1])
     outer = _outermost(found, c, n, cfg.wall_behind)
     hung = np.zeros(t, bool)  # surfaces hanging before a wall: in no object
+    hangers: list[tuple[np.ndarray, float, float]] = []  # their planes and extents along
     for (plane, inl), is_outer in zip(found, outer, strict=True):
         if is_outer:
             _accept(seg, plane, inl, WALL_NAME, WALL, c, area)
@@ -149,13 +152,17 @@ def segment(
         log.debug("semantics: in front of a wall %s", seg.rejected[-1])
         if np.percentile(c[inl, 2], SPAN_PCT[0]) - seg.floor_z > HANGS:
             hung[inl] = True
+            along = c[inl] @ _axes(plane)
+            hangers.append((plane, float(along.min()), float(along.max())))
     if more_walls is not None:
         for w in more_walls(c, n, area, seg.floor_z):
             if not any(_same_wall(w, p) for p in seg.planes if p["kind"] == WALL_NAME):
                 seg.planes.append(w)
                 log.debug("semantics: wall from points %s", w)
     _absorb(seg, c, cfg)
-    _objects(seg, c, n, area, ok & ~hung, cfg)
+    by = _by_hangers(c, hangers, cfg.hanger_slab) & (seg.cls == UNKNOWN) & ~hung
+    seg.hanger_triangles = int(by.sum())
+    _objects(seg, c, n, area, ok & ~hung & ~by, cfg)
     return seg
 
 
@@ -343,6 +350,22 @@ def _table_top(
     if cfg.table_max_top <= 0 or a_up < cfg.table_min_top or a_up < float(area.sum()) / 3:
         return False
     return bool(np.median(c[up, 2]) - base <= cfg.table_max_top)
+
+
+def _by_hangers(
+    c: np.ndarray, hangers: list[tuple[np.ndarray, float, float]], slab: float
+) -> np.ndarray:
+    """bool [T]: triangle centres c [T, 3] within `slab` metres of a surface hanging before a
+    wall (plane [4], extent along it), inside that extent grown by `slab`, at any height: its
+    frame, legs and stand (a whiteboard's, a screen's), which hang with it (unknown) and
+    would otherwise paint its whole depth object on the plan. slab 0: none."""
+    out = np.zeros(len(c), bool)
+    if slab <= 0:
+        return out
+    for plane, lo, hi in hangers:
+        s = c @ _axes(plane)
+        out |= (np.abs(c @ plane[:3] + plane[3]) <= slab) & (s >= lo - slab) & (s <= hi + slab)
+    return out
 
 
 def _objects(

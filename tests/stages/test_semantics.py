@@ -448,3 +448,36 @@ def test_a_wall_is_the_outermost_surface_not_the_blinds_before_it():
             assert not (seg.cls[blinds] == WALL).any()
     assert walls[0.6] == pytest.approx([Y], abs=0.01)
     assert walls[0.0] == pytest.approx([Y - 0.3, Y], abs=0.01)  # the rule off: both
+
+
+def test_the_stand_of_a_board_before_a_wall_hangs_with_it():
+    # a whiteboard 0.3 m before the wall at y = 3 (0.7 to 1.9 m up, 1.8 m long) on two legs
+    # from the floor at its ends: the board is no wall and hangs (unknown); its legs lie
+    # within hanger_slab of it and go with it, not into an object that paints the board's
+    # depth on the plan. A box elsewhere stays an object. hanger_slab 0: the legs are objects
+    yb = Y - 0.3
+    parts = [
+        trimesh.creation.box(bounds=[(1.0, 0.5, 0.0), (1.6, 1.0, 0.7)]),
+        trimesh.creation.box(bounds=[(1.0, yb - 0.03, 0.0), (1.05, yb + 0.03, 0.7)]),
+        trimesh.creation.box(bounds=[(2.75, yb - 0.03, 0.0), (2.8, yb + 0.03, 0.7)]),
+    ]
+    parts = [(np.asarray(b.vertices), np.asarray(b.faces)) for b in parts] + [
+        _quad([(0, 0, 0), (X, 0, 0), (X, Y, 0), (0, Y, 0)], (0, 0, 1)),
+        _quad([(0, Y, 0), (X, Y, 0), (X, Y, Z), (0, Y, Z)], (0, -1, 0)),
+        _quad([(1.0, yb, 0.7), (2.8, yb, 0.7), (2.8, yb, 1.9), (1.0, yb, 1.9)], (0, -1, 0)),
+    ]
+    verts, tris, n = [], [], 0
+    for v, f in parts:
+        v, f = trimesh.remesh.subdivide_to_size(v, f, max_edge=EDGE)
+        verts.append(v)
+        tris.append(f + n)
+        n += len(v)
+    verts, tris = np.concatenate(verts), np.concatenate(tris)
+    c, _, _ = triangles(verts, tris)
+    legs = (c[:, 2] > 0.05) & (c[:, 2] < 0.69) & (np.abs(c[:, 1] - yb) < 0.04)
+    box = (c[:, 2] > 0.05) & (c[:, 1] < 1.01)
+    seg = segment(verts, tris, SemanticsConfig())
+    assert (seg.cls[legs] == UNKNOWN).all() and seg.hanger_triangles > 0
+    assert (seg.cls[box] == OBJECT).all() and seg.instance.max() == 1
+    off = segment(verts, tris, SemanticsConfig(hanger_slab=0.0))
+    assert (off.cls[legs] == OBJECT).any() and off.instance.max() == 3
