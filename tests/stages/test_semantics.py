@@ -20,6 +20,7 @@ from stages.common.io import read_label, write_image
 from stages.fusion import IMPLS as FUSION
 from stages.fusion import FusionConfig, FusionInputs
 from stages.semantics import IMPLS, SemanticsConfig, SemanticsInputs
+from stages.semantics.config import FloorFillConfig, PlanesConfig, WallsConfig
 from stages.semantics.floorfill import Footprint
 from stages.semantics.segment import segment, triangles
 from tests.conftest import shared_capture
@@ -221,7 +222,9 @@ def test_floor_is_seen_through_a_hole_in_the_surface_but_not_beyond_the_room(tmp
     for fill in (False, True):
         out = tmp_path / f"out{int(fill)}"
         out.mkdir()
-        outs = IMPLS["geometry"](SemanticsConfig(floor_fill=fill), inputs, out)
+        outs = IMPLS["geometry"](
+            SemanticsConfig(floor_fill=FloorFillConfig(enabled=fill)), inputs, out
+        )
         runs[fill] = (outs, Capture.load(outs.frames))
     (plain, plain_cap), (filled, cap) = runs[False], runs[True]
     assert all(f.depth is None for f in plain_cap.frames)  # no depth of its own without fill
@@ -290,9 +293,9 @@ def test_config_checks():
     with pytest.raises(BlunfError, match="semantics.impl"):
         SemanticsConfig(impl="magic")
     with pytest.raises(BlunfError, match="floor_max_z"):
-        SemanticsConfig(floor_max_z=2.0, ceiling_min_z=1.5)
-    with pytest.raises(BlunfError, match="floor_fill_cell"):
-        SemanticsConfig(floor_fill_cell=0.0)
+        PlanesConfig(floor_max_z=2.0, ceiling_min_z=1.5)
+    with pytest.raises(BlunfError, match="semantics.floor_fill.cell"):
+        FloorFillConfig(cell=0.0)
 
 
 # GT classes of the procedural room: 0 floor, 1 wall, 2 ceiling, 3.. furniture -> object.
@@ -439,7 +442,7 @@ def test_a_wall_is_the_outermost_surface_not_the_blinds_before_it():
     blinds = np.abs(c[:, 1] - (Y - 0.3)) < 1e-6
     walls = {}
     for behind in (0.6, 0.0):
-        seg = segment(verts, tris, SemanticsConfig(wall_behind=behind))
+        seg = segment(verts, tris, SemanticsConfig(walls=WallsConfig(behind=behind)))
         walls[behind] = sorted(-p["d"] * np.sign(p["normal"][1]) for p in seg.planes
                                if p["kind"] == "wall")  # fmt: skip
         box = (c[:, 2] > 0.05) & (c[:, 1] < 1.01)
@@ -479,5 +482,5 @@ def test_the_stand_of_a_board_before_a_wall_hangs_with_it():
     seg = segment(verts, tris, SemanticsConfig())
     assert (seg.cls[legs] == UNKNOWN).all() and seg.hanger_triangles > 0
     assert (seg.cls[box] == OBJECT).all() and seg.instance.max() == 1
-    off = segment(verts, tris, SemanticsConfig(hanger_slab=0.0))
+    off = segment(verts, tris, SemanticsConfig(walls=WallsConfig(hanger_slab=0.0)))
     assert (off.cls[legs] == OBJECT).any() and off.instance.max() == 3
