@@ -91,7 +91,12 @@ class ObjectsConfig:
     min_area: float = 0.01  # m²: smaller clusters are noise, labelled unknown (255)
     max_gap: float = 0.3  # metres: a cluster whose lowest point is higher above the floor
     #                       does not stand on it (wall cabinet, lamp, fused noise) and is
-    #                       labelled unknown (255)
+    #                       labelled unknown (255), unless it rests on an object that does,
+    #                       as high above its top (a plant on its stand, a lamp on a desk).
+    #                       Replica office0 (sensor depth), geometry classes against its own
+    #                       (padded): fwIoU 85.7 -> 88.0, floor 86.0 -> 89.0, object 84.7 ->
+    #                       87.2; the 7-Scenes kitchen: two wall cabinets over appliances
+    #                       became objects, its plan's observation figures the same
     # a cluster above max_gap that faces up over at least table_min_top m² and a third its
     # area, at a median height of at most table_max_top, is an object all the same: a table
     # whose legs or pedestal no view fused. Replica office0 (sensor depth, its 81 frames):

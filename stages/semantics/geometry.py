@@ -101,6 +101,7 @@ def run(cfg: SemanticsConfig, inputs: SemanticsInputs, out: Path) -> SemanticsOu
         "noise_clusters": seg.noise_clusters,  # labelled unknown
         "noise_triangles": seg.noise_triangles,  # labelled unknown
         "floating_clusters": seg.floating_clusters,  # labelled unknown
+        "resting_clusters": seg.resting_clusters,  # on a standing object: objects
         "hanger_triangles": seg.hanger_triangles,  # by what hangs before a wall: unknown
         "object_base_z": round(seg.object_base_z, 3),  # clusters stand within objects.max_gap of it
         "outside_triangles": seg.outside_triangles,  # objects outside the room: unknown

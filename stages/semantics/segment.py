@@ -73,6 +73,7 @@ class Segmentation:
     noise_clusters: int = 0  # clusters below object_min_area (unknown)
     noise_triangles: int = 0  # triangles DBSCAN calls noise (unknown)
     floating_clusters: int = 0  # clusters above object_max_gap (unknown)
+    resting_clusters: int = 0  # clusters above it that rest on a standing object (objects)
     hanger_triangles: int = 0  # by a surface hanging before a wall, its frame (unknown)
     outside_triangles: int = 0  # object triangles outside the room (outside_unknown)
     floor_z: float = 0.0  # median height of the floor triangles (0 when no floor was found)
@@ -379,6 +380,29 @@ def _by_hangers(
     return out
 
 
+def _rests_on(
+    c: np.ndarray, members: np.ndarray, standing: list[np.ndarray], cell: float, gap: float
+) -> bool:
+    """Whether a cluster that does not reach the floor rests on an object that does: below
+    its lowest point, within `gap` metres, lies the top of a standing object on one of the
+    `cell`-metre plan cells it covers (a plant on its stand, a lamp on a desk). A wall
+    cabinet hangs higher above the counter than that; a screen on a wall has no object
+    under it."""
+    if not standing:
+        return False
+    low = c[members, 2].min()
+
+    def key(p: np.ndarray) -> np.ndarray:  # [N] packed plan cell of centres p [N, 3]
+        ij = np.floor(p[:, :2] / cell).astype(np.int64) + (1 << 20)
+        return ij[:, 0] * (1 << 21) + ij[:, 1]
+
+    mine = np.unique(key(c[members]))
+    other = np.concatenate(standing)
+    p = c[other[c[other, 2] <= low + 1e-6]]  # standing surfaces below the cluster
+    z = p[np.isin(key(p), mine), 2]
+    return bool(len(z) and low - float(z.max()) <= gap)
+
+
 def _objects(
     seg: Segmentation,
     c: np.ndarray,
@@ -409,7 +433,24 @@ def _objects(
     if not seg.has_floor:
         base = max(base, float(np.percentile(c[rest, 2], 1)))
     seg.object_base_z = base
-    found = []
+    found: list[tuple[float, int, np.ndarray]] = []
+    floating = []
+
+    def place(members: np.ndarray) -> None:
+        if cfg.objects.piece_step <= 0:
+            found.append((float(area[members].sum()), int(members.min()), members))
+            return
+        piece = split_by_top(
+            c[members],
+            cfg.objects.piece_cell,
+            cfg.objects.piece_step,
+            cfg.objects.piece_min_width,
+            base + cfg.objects.max_gap,
+        )
+        for k in range(int(piece.max()) + 1):
+            part = members[piece == k]
+            found.append((float(area[part].sum()), int(part.min()), part))
+
     for k in np.unique(lab[lab >= 0]):
         members = rest[lab == k]
         a = float(area[members].sum())
@@ -418,20 +459,16 @@ def _objects(
         elif c[members, 2].min() - base > cfg.objects.max_gap and not _table_top(
             c[members], n[members], area[members], base, cfg
         ):
-            seg.floating_clusters += 1
-        elif cfg.objects.piece_step > 0:
-            piece = split_by_top(
-                c[members],
-                cfg.objects.piece_cell,
-                cfg.objects.piece_step,
-                cfg.objects.piece_min_width,
-                base + cfg.objects.max_gap,
-            )
-            for k in range(int(piece.max()) + 1):
-                part = members[piece == k]
-                found.append((float(area[part].sum()), int(part.min()), part))
+            floating.append(members)
         else:
-            found.append((a, int(members.min()), members))
+            place(members)
+    standing = [m for _, _, m in found]
+    for members in floating:
+        if _rests_on(c, members, standing, cfg.objects.cluster_eps, cfg.objects.max_gap):
+            seg.resting_clusters += 1
+            place(members)
+        else:
+            seg.floating_clusters += 1
     found.sort(key=lambda x: (-x[0], x[1]))  # by area, then position in the mesh: deterministic
     for i, (_, _, members) in enumerate(found, start=1):
         seg.cls[members] = OBJECT

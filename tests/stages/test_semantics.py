@@ -484,3 +484,39 @@ def test_the_stand_of_a_board_before_a_wall_hangs_with_it():
     assert (seg.cls[box] == OBJECT).all() and seg.instance.max() == 1
     off = segment(verts, tris, SemanticsConfig(walls=WallsConfig(hanger_slab=0.0)))
     assert (off.cls[legs] == OBJECT).any() and off.instance.max() == 3
+
+
+def test_a_plant_resting_on_its_stand_is_an_object_a_cabinet_above_a_counter_is_not():
+    # a plant (a box 0.75-1.2 m up) 15 cm above its stand (0.6 m tall) rests on it: an object
+    # though it does not reach the floor; a wall cabinet 0.6 m above a counter and a screen
+    # with nothing under it hang (unknown)
+    boxes = [
+        ((0.5, 0.5, 0.0), (0.9, 0.9, 0.6)),  # stand
+        ((0.3, 0.3, 0.75), (1.1, 1.1, 1.2)),  # plant
+        ((2.0, 2.4, 0.0), (3.6, 3.0, 0.9)),  # counter
+        ((2.0, 2.65, 1.5), (3.6, 3.0, 2.1)),  # wall cabinet
+        ((1.5, 0.1, 1.0), (2.5, 0.2, 1.6)),  # screen
+    ]
+    parts = [trimesh.creation.box(bounds=b) for b in boxes]
+    parts = [(np.asarray(b.vertices), np.asarray(b.faces)) for b in parts]
+    parts.append(_quad([(0, 0, 0), (X, 0, 0), (X, Y, 0), (0, Y, 0)], (0, 0, 1)))
+    parts.append(_quad([(0, Y, 0), (X, Y, 0), (X, Y, Z), (0, Y, Z)], (0, -1, 0)))
+    verts, tris, n = [], [], 0
+    for v, f in parts:
+        v, f = trimesh.remesh.subdivide_to_size(v, f, max_edge=EDGE)
+        verts.append(v)
+        tris.append(f + n)
+        n += len(v)
+    verts, tris = np.concatenate(verts), np.concatenate(tris)
+    c, _, _ = triangles(verts, tris)
+
+    def inside(b: tuple) -> np.ndarray:  # its faces off the floor and the wall
+        lo, hi = np.asarray(b[0]), np.asarray(b[1])
+        box = ((c >= lo - 1e-6) & (c <= hi + 1e-6)).all(axis=1)
+        return box & (c[:, 2] > 0.05) & (c[:, 1] < Y - 0.05)
+
+    seg = segment(verts, tris, SemanticsConfig())
+    plant, cabinet, screen = inside(boxes[1]), inside(boxes[3]), inside(boxes[4])
+    assert (seg.cls[plant] == OBJECT).all() and seg.resting_clusters == 1
+    assert (seg.cls[cabinet] == UNKNOWN).all() and (seg.cls[screen] == UNKNOWN).all()
+    assert seg.floating_clusters == 2
