@@ -97,6 +97,9 @@ class ObjectsConfig:
     #                       (padded): fwIoU 85.7 -> 88.0, floor 86.0 -> 89.0, object 84.7 ->
     #                       87.2; the 7-Scenes kitchen: two wall cabinets over appliances
     #                       became objects, its plan's observation figures the same
+    rest_min_area: float = 0.05  # m²: a cluster resting on an object covers at least this
+    #                              (photos-only stereo leaves fragments of 0.01-0.03 m² over
+    #                              furniture: the demo room from its photos has two)
     # a cluster above max_gap that faces up over at least table_min_top m² and a third its
     # area, at a median height of at most table_max_top, is an object all the same: a table
     # whose legs or pedestal no view fused. Replica office0 (sensor depth, its 81 frames):
@@ -123,9 +126,8 @@ class ObjectsConfig:
     def __post_init__(self) -> None:
         _positive(self, "objects", ("cluster_eps", "piece_cell", "piece_min_width"))
         _at_least_one(self, "objects", ("cluster_min_points",))
-        _non_negative(
-            self, "objects", ("min_area", "max_gap", "piece_step", "table_max_top", "table_min_top")
-        )
+        sizes = ("min_area", "max_gap", "rest_min_area", "piece_step")
+        _non_negative(self, "objects", (*sizes, "table_max_top", "table_min_top"))
 
 
 @dataclass(frozen=True)

@@ -464,7 +464,8 @@ def _objects(
             place(members)
     standing = [m for _, _, m in found]
     for members in floating:
-        if _rests_on(c, members, standing, cfg.objects.cluster_eps, cfg.objects.max_gap):
+        big = float(area[members].sum()) >= cfg.objects.rest_min_area
+        if big and _rests_on(c, members, standing, cfg.objects.cluster_eps, cfg.objects.max_gap):
             seg.resting_clusters += 1
             place(members)
         else:
