@@ -219,8 +219,13 @@ def edited_plan(
     cfg: EditConfig, bp: Blueprint, spec: EditSpec, cells: list[np.ndarray]
 ) -> tuple[Blueprint, int]:
     """The plan with removed selections relabelled (floor or unknown; no instance). Returns
-    it and the number of cells changed."""
+    it and the number of cells changed.
+
+    `seen` and `inside` describe the capture, not the labels: they are kept as they are. A
+    removed object's cells become floor only inside the room's outline (when the plan knows
+    it); outside it they stay unknown, as every cell outside the outline is."""
     lab = bp.labels.copy()
+    room = np.ones(lab.shape, bool) if bp.inside is None else bp.inside > 0
     inst = None if bp.instances is None else bp.instances.copy()
     floor_ids = [k for k, n in bp.classes.items() if n == cfg.floor_class]
     for e, sel in zip(spec.edits, cells, strict=True):
@@ -228,10 +233,11 @@ def edited_plan(
             continue
         if cfg.removed_label == FLOOR_NAME and floor_ids:
             is_floor = np.isin(bp.labels, floor_ids)
-            lab[sel & ~is_floor] = floor_ids[0]
-            lab[sel & is_floor] = UNKNOWN
+            lab[sel & ~is_floor & room] = floor_ids[0]
+            lab[sel & (is_floor | ~room)] = UNKNOWN
         else:
             lab[sel] = UNKNOWN
         if inst is not None:
             inst[sel] = 0
-    return Blueprint(lab, bp.grid, dict(bp.classes), inst), int((lab != bp.labels).sum())
+    new = Blueprint(lab, bp.grid, dict(bp.classes), inst, bp.seen, bp.inside)
+    return new, int((lab != bp.labels).sum())

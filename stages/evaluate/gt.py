@@ -32,6 +32,8 @@ class EvaluateInputs:
     layout: Path | None = None  # the layout stage's plan.json (scored against gt/layout.json)
     points: Path | None = None  # the project stage's points.npz: metrics.observation of the
     #                             first blueprint (observation.py); None: not scored
+    observed: Path | None = None  # the project stage's observed.npz: the seen / inside
+    #                               shares of a blueprint that does not carry them
 
 
 @dataclass(frozen=True)
@@ -54,7 +56,8 @@ def run(cfg: EvaluateConfig, inputs: EvaluateInputs, out: Path) -> EvaluateOutpu
     GT ones. Given poses are used so too when the align stage moved them (e.g. a Manhattan
     yaw) by more than a tenth of a GT cell. Each plan's metrics record the frame under "frame".
     With a heldout.json listing views, each plan is also scored on those views' labelled
-    pixels (heldout.py), in its own frame: no ground truth needed for that.
+    pixels (heldout.py), in its own frame: no ground truth needed for that, nor for
+    metrics.observation (observation.py), which every run gets.
     """
     metrics: dict = {}
     gt_dir = inputs.gt
@@ -98,8 +101,10 @@ def run(cfg: EvaluateConfig, inputs: EvaluateInputs, out: Path) -> EvaluateOutpu
             for m, p in zip(inputs.methods, inputs.blueprints, strict=True):
                 scores = score_pixels(Blueprint.load(p), cap, xy, lab, len(stems))
                 metrics.setdefault("blueprint", {}).setdefault(m, {}).update(scores)
-    if inputs.points is not None and inputs.blueprints:
-        metrics["observation"] = observation(inputs.blueprints[0], inputs.points, inputs.layout)
+    if (inputs.points is not None or inputs.observed is not None) and inputs.blueprints:
+        metrics["observation"] = observation(
+            inputs.blueprints[0], inputs.points, inputs.layout, inputs.observed
+        )
     write_json(out / "metrics.json", metrics)
     return EvaluateOutputs.at(out)
 

@@ -1,11 +1,15 @@
 """How much of the plan rests on what the views saw, from the projected points alone (no
 ground truth needed).
 
-- `seen_pct`, `inferred_pct`, `outside_pct`: percent of the plan's cells observed (a point
-  near), inside the room's extent but unobserved (BluNF filled them), and outside it (255);
-  from the blueprint's `seen` / `inside`, when it carries them.
+- `seen_pct`, `inferred_pct`, `unknown_pct`, `outside_pct`: percent of the plan's cells
+  observed (a point near), inside the room's extent but unobserved (BluNF filled them),
+  inside it and left unknown, and outside it (255); from the blueprint's `seen` / `inside`,
+  or, when it does not carry them (a plan of another method), from the project stage's
+  observed.npz (`near`, `inside`).
 - `invented_pct`: percent of the labelled cells (not 255) with no projected point within
-  INVENTED_RADIUS metres of their centre.
+  INVENTED_RADIUS metres of their centre; without the points, the labelled cells that are
+  not `near` in observed.npz (the project stage's seen_radius, 0.25 m by default).
+No figure needs ground truth: the evaluate stage gives them on every run.
 - `seen_wall_support_pct`: percent of the length of the walls drawn as seen (plan.json
   `"seen"` true or absent; their openings cut out) with a seen vertical surface within
   SUPPORT_RADIUS metres: a projected point in a VERTICAL_CELL-wide column of points spanning
@@ -14,12 +18,13 @@ ground truth needed).
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from stages.common.blueprint import Blueprint
+from stages.common.blueprint import Blueprint, read_observed
 from stages.common.capture import UNKNOWN
 from stages.common.io import read_json
 from stages.common.points import read_points
@@ -99,14 +104,29 @@ def wall_support(walls: list[dict], xyz: np.ndarray, openings: list[dict] = ()) 
     }
 
 
-def observation(blueprint: Path, points: Path, layout: Path | None) -> dict:
-    """metrics.observation of the plan `blueprint`, its projected points and its layout."""
+def observation(
+    blueprint: Path,
+    points: Path | None,
+    layout: Path | None,
+    observed: Path | None = None,
+) -> dict:
+    """metrics.observation of the plan `blueprint`, its projected points, its layout and the
+    project stage's observed.npz (any of the last three may be None: the figures that need
+    it are left out)."""
     bp = Blueprint.load(blueprint)
-    xyz = read_points(points)[0]
+    if (bp.seen is None or bp.inside is None) and observed is not None:
+        near, inside, _ = read_observed(observed, bp.labels.shape)
+        bp = replace(bp, seen=near.astype(np.uint8), inside=inside.astype(np.uint8))
     out: dict = dict(bp.shares() or {})
-    out["labelled_pct"] = round(100.0 * float((bp.labels != UNKNOWN).mean()), 3)
-    out["invented_pct"] = round(invented_pct(bp, xyz[:, :2]), 3)
-    if layout is not None and Path(layout).is_file():
+    lab = bp.labels != UNKNOWN
+    out["labelled_pct"] = round(100.0 * float(lab.mean()), 3)
+    xyz = read_points(points)[0] if points is not None else None
+    if xyz is not None:
+        out["invented_pct"] = round(invented_pct(bp, xyz[:, :2]), 3)
+    elif observed is not None:
+        near = read_observed(observed, bp.labels.shape)[0]
+        out["invented_pct"] = round(100.0 * float((lab & ~near).sum()) / max(1, lab.sum()), 3)
+    if xyz is not None and layout is not None and Path(layout).is_file():
         plan = read_json(layout)
         out.update(wall_support(plan.get("walls", []), xyz, plan.get("openings", [])))
     return out

@@ -74,9 +74,9 @@ def run(cfg: SemanticsConfig, inputs: SemanticsInputs, out: Path) -> SemanticsOu
     outs = SemanticsOutputs.at(out)
     outs.labels.mkdir(parents=True, exist_ok=True)
     outs.instances.mkdir(parents=True, exist_ok=True)
-    room, reach = _room(verts, tris, seg, cap, cfg) if cfg.floor_fill else (None, None)
-    hull = cfg.floor_fill_hull or not seg.has_floor
-    if room is not None and cfg.outside_unknown:
+    room, reach = _room(verts, tris, seg, cap, cfg) if cfg.floor_fill.enabled else (None, None)
+    hull = cfg.floor_fill.hull or not seg.has_floor
+    if room is not None and cfg.objects.outside_unknown:
         out_obj = (seg.cls == OBJECT) & ~room.contains(triangles(verts, tris)[0][:, :2])
         seg.cls[out_obj] = UNKNOWN
         seg.instance[out_obj] = 0
@@ -101,7 +101,9 @@ def run(cfg: SemanticsConfig, inputs: SemanticsInputs, out: Path) -> SemanticsOu
         "noise_clusters": seg.noise_clusters,  # labelled unknown
         "noise_triangles": seg.noise_triangles,  # labelled unknown
         "floating_clusters": seg.floating_clusters,  # labelled unknown
-        "object_base_z": round(seg.object_base_z, 3),  # clusters stand within object_max_gap of it
+        "resting_clusters": seg.resting_clusters,  # on a standing object: objects
+        "hanger_triangles": seg.hanger_triangles,  # by what hangs before a wall: unknown
+        "object_base_z": round(seg.object_base_z, 3),  # clusters stand within objects.max_gap of it
         "outside_triangles": seg.outside_triangles,  # objects outside the room: unknown
         # the floor fill's room: the floor and wall triangles' footprint, or without a floor
         # plane the hull of the surface and the cameras, rays bounded by a reach (m²: cells)
@@ -109,7 +111,7 @@ def run(cfg: SemanticsConfig, inputs: SemanticsInputs, out: Path) -> SemanticsOu
         if room is None
         else {
             "room": "hull of surface and cameras" if hull else "floor and walls",
-            "reach": reach is not None,  # rays bounded by floor_fill_min_drop_deg and _reach
+            "reach": reach is not None,  # rays bounded by floor_fill.min_drop_deg and .reach
             "room_m2": round(float(room.mask.sum()) * room.cell**2, 2),
         },
         "area_m2": {
@@ -159,10 +161,10 @@ def _render(
 
     With a room (fill: the room and the rays' reach, floorfill.py), the floor seen through
     the surface within it (plane_dist metres beyond the plane) is labelled floor, and each
-    view's depth is written with it; with wall_fill, so are the walls seen through it
+    view's depth is written with it; with walls.fill, so are the walls seen through it
     (wallfill.py), the nearer crossing winning."""
     room, reach = fill
-    margin = cfg.plane_dist
+    margin = cfg.planes.plane_dist
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(mesh)
     cls = np.append(seg.cls, np.uint8(UNKNOWN))  # [T + 1]: the last entry is "no hit"
@@ -170,7 +172,7 @@ def _render(
     wide = inst.max(initial=0) > 255
     walls = tuple(p for p in seg.planes if p["kind"] == WALL_NAME)
     # the point walls are plain walls seen through by construction: always filled
-    fill_walls = tuple(w for w in walls if cfg.wall_fill or w.get("source") == "points")
+    fill_walls = tuple(w for w in walls if cfg.walls.fill or w.get("source") == "points")
     counts = np.zeros(256, np.int64)
     frames, filled, walled = [], 0, 0
     if room is not None:
@@ -223,17 +225,17 @@ def _point_walls(cfg: SemanticsConfig, inputs: SemanticsInputs, cap: Capture
                  ) -> MoreWalls | None:  # fmt: skip
     """The segmentation's walls from the views' readings (pointwalls.py), or None when
     point_walls is off or no readings are given."""
-    if not (cfg.point_walls and inputs.evidence):
+    if not (cfg.point_walls.enabled and inputs.evidence):
         return None
     pts = evidence_points([Capture.load(p) for p in inputs.evidence])
     cams = np.array([f.pose[:3, 3] for f in cap.frames if f.pose is not None])  # [N, 3]
     opt = PointWallOptions(
-        dist=cfg.point_wall_dist,
-        min_length=cfg.wall_min_length,
-        min_height=cfg.point_wall_min_height,
-        min_area=cfg.point_wall_min_area,
-        max_beyond=cfg.point_wall_max_beyond,
-        top=cfg.ceiling_min_z,
+        dist=cfg.point_walls.dist,
+        min_length=cfg.walls.min_length,
+        min_height=cfg.point_walls.min_height,
+        min_area=cfg.point_walls.min_area,
+        max_beyond=cfg.point_walls.max_beyond,
+        top=cfg.planes.ceiling_min_z,
     )
     log.info("semantics: %d readings for the point walls", len(pts))
 
@@ -251,19 +253,19 @@ def _room(
     """Where the floor may be seen through the surface and how far a ray may reach it: the
     footprint of the floor and wall triangles, any reach. Without a floor plane (z = 0, the
     align stage's floor, stands in for it) the convex hull of the surface and the cameras,
-    within the config's reach (floorfill.py), or nothing when floor_fill_no_plane is off; with
-    floor_fill_hull, that hull at the found floor's height too, within that reach unless
-    floor_fill_hull_reach is off."""
+    within the config's reach (floorfill.py), or nothing when floor_fill.no_plane is off; with
+    floor_fill.hull, that hull at the found floor's height too, within that reach unless
+    floor_fill.hull_reach is off."""
     found = seg.has_floor
-    if cfg.floor_fill_hull or not found:
-        if not (cfg.floor_fill_no_plane or found):
+    if cfg.floor_fill.hull or not found:
+        if not (cfg.floor_fill.no_plane or found):
             return None, None
         c = triangles(verts, tris)[0]  # [T, 3] centres
         cams = np.array([f.pose[:3, 3] for f in cap.frames if f.pose is not None])  # [N, 3]
         xy = np.concatenate([c[:, :2], cams[:, :2]])
-        bound = not found or cfg.floor_fill_hull_reach
-        reach = Reach(cfg.floor_fill_min_drop_deg, cfg.floor_fill_reach) if bound else None
-        return Footprint.of(xy, cfg.floor_fill_cell, hull=True), reach
+        bound = not found or cfg.floor_fill.hull_reach
+        reach = Reach(cfg.floor_fill.min_drop_deg, cfg.floor_fill.reach) if bound else None
+        return Footprint.of(xy, cfg.floor_fill.cell, hull=True), reach
     keep = (seg.cls == FLOOR) | (seg.cls == WALL)
     c = triangles(verts, tris[keep])[0]  # [K, 3] centres
-    return Footprint.of(c[:, :2], cfg.floor_fill_cell), None
+    return Footprint.of(c[:, :2], cfg.floor_fill.cell), None

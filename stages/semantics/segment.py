@@ -4,26 +4,28 @@ Every triangle gets a class (semantics.config CLASSES, or UNKNOWN) and an object
 id (0 = none), from its centre, unit normal and area:
 
 1. Floor: RANSAC planes (Open3D `segment_plane`) over the horizontal triangles facing up
-   whose centre is within `floor_max_z` of z = 0; ceiling: the same over horizontal
-   triangles facing down above `ceiling_min_z`. A plane counts when its inliers (within
-   `plane_dist`, normal within `max_tilt_deg`) cover `plane_min_area`.
+   whose centre is within `planes.floor_max_z` of z = 0; ceiling: the same over horizontal
+   triangles facing down above `planes.ceiling_min_z`. A plane counts when its inliers (within
+   `planes.plane_dist`, normal within `planes.max_tilt_deg`) cover `planes.min_area`.
 2. Walls: RANSAC planes over the remaining vertical triangles; a plane is a wall when its
-   inliers span `wall_min_height` in z, `wall_min_length` along the floor and cover
-   `wall_min_area` (a cabinet front is too low, a chair back too small), and no other such
-   plane stands behind it within `wall_behind` (blinds before a window wall, cubicle panels,
+   inliers span `walls.min_height` in z, `walls.min_length` along the floor and cover
+   `walls.min_area` (a cabinet front is too low, a chair back too small), and no other such
+   plane stands behind it within `walls.behind` (blinds before a window wall, cubicle panels,
    tall cabinets against a wall: the wall is the outermost surface). Planes that fail stay
    in the object pool, except one before a wall that hangs clear of the floor (blinds, a
-   curtain: unknown).
-3. Unlabelled triangles within `plane_dist` of an accepted plane, inside its extent, join it
+   curtain, a whiteboard: unknown), and with it what lies within `walls.hanger_slab` of it
+   (its frame, legs and stand).
+3. Unlabelled triangles within `planes.plane_dist` of an accepted plane, inside its extent, join it
    whatever their normal: the rounded seams of the TSDF surface where a wall meets the
    floor would otherwise form thin "objects" along every wall.
 4. Objects: the rest, clustered by DBSCAN (Open3D `cluster_dbscan`) on voxels of
-   cluster_eps / 2. A cluster is an object instance when it covers `object_min_area` and its
-   lowest point is within `object_max_gap` of the floor; smaller clusters, DBSCAN noise and
+   cluster_eps / 2. A cluster is an object instance when it covers `objects.min_area` and its
+   lowest point is within `objects.max_gap` of the floor; smaller clusters, DBSCAN noise and
    clusters hanging higher (wall cabinets, lamps, fused noise) are labelled UNKNOWN: a plan
    holds what stands on the floor, and no class is invented for them; except a table top
-   whose legs no view fused (a cluster mostly facing up, at table height: `_table_top`).
-   Each cluster is split into pieces where its top height steps by more than `piece_step`
+   whose legs no view fused (a cluster mostly facing up, at table height), or what rests on
+   a standing object (a plant on its stand): objects.py.
+   Each cluster is split into pieces where its top height steps by more than `objects.piece_step`
    (pieces.py): a counter run, the island beside it, a wardrobe, a chair's seat by a table
    are instances of their own.
 
@@ -46,13 +48,11 @@ from stages.common.classes import (
     CEILING_NAME,
     FLOOR,
     FLOOR_NAME,
-    OBJECT,
     WALL,
     WALL_NAME,
 )
-from stages.common.rows import unique_rows
 from stages.semantics.config import SemanticsConfig
-from stages.semantics.pieces import split_by_top
+from stages.semantics.objects import objects
 
 log = logging.getLogger(__name__)
 
@@ -72,6 +72,8 @@ class Segmentation:
     noise_clusters: int = 0  # clusters below object_min_area (unknown)
     noise_triangles: int = 0  # triangles DBSCAN calls noise (unknown)
     floating_clusters: int = 0  # clusters above object_max_gap (unknown)
+    resting_clusters: int = 0  # clusters above it that rest on a standing object (objects)
+    hanger_triangles: int = 0  # by a surface hanging before a wall, its frame (unknown)
     outside_triangles: int = 0  # object triangles outside the room (outside_unknown)
     floor_z: float = 0.0  # median height of the floor triangles (0 when no floor was found)
     object_base_z: float = 0.0  # height object clusters' lowest points are measured from
@@ -112,21 +114,24 @@ def segment(
     c, n, area = triangles(verts, tris)
     t = len(c)
     seg = Segmentation(np.full(t, UNKNOWN, np.uint8), np.zeros(t, np.int32), area)
-    cos_t, sin_t = np.cos(np.radians(cfg.max_tilt_deg)), np.sin(np.radians(cfg.max_tilt_deg))
+    cos_t, sin_t = (
+        np.cos(np.radians(cfg.planes.max_tilt_deg)),
+        np.sin(np.radians(cfg.planes.max_tilt_deg)),
+    )
     ok = area > 0
     horiz = ok & (np.abs(n[:, 2]) > cos_t)
     vert = ok & (np.abs(n[:, 2]) < sin_t)
 
-    pool = horiz & (n[:, 2] > 0) & (np.abs(c[:, 2]) < cfg.floor_max_z)
+    pool = horiz & (n[:, 2] > 0) & (np.abs(c[:, 2]) < cfg.planes.floor_max_z)
     for plane, inl in _planes(c, n, area, pool, cfg, rng, horizontal=True):
-        if area[inl].sum() >= cfg.plane_min_area:
+        if area[inl].sum() >= cfg.planes.min_area:
             _accept(seg, plane, inl, FLOOR_NAME, FLOOR, c, area)
     floor = seg.cls == FLOOR
     if floor.any():
         seg.floor_z = float(np.median(c[floor, 2]))
-    pool = horiz & (n[:, 2] < 0) & (c[:, 2] > cfg.ceiling_min_z)
+    pool = horiz & (n[:, 2] < 0) & (c[:, 2] > cfg.planes.ceiling_min_z)
     for plane, inl in _planes(c, n, area, pool, cfg, rng, horizontal=True):
-        if area[inl].sum() >= cfg.plane_min_area:
+        if area[inl].sum() >= cfg.planes.min_area:
             _accept(seg, plane, inl, CEILING_NAME, CEILING, c, area)
     pool = vert & (seg.cls == UNKNOWN)
     found = []
@@ -136,8 +141,9 @@ def segment(
         else:
             seg.rejected.append(_describe(plane, inl, "vertical", c, area))
             log.debug("semantics: not a wall %s", seg.rejected[-1])
-    outer = _outermost(found, c, n, cfg.wall_behind)
+    outer = _outermost(found, c, n, cfg.walls.behind)
     hung = np.zeros(t, bool)  # surfaces hanging before a wall: in no object
+    hangers: list[tuple[np.ndarray, float, float]] = []  # their planes and extents along
     for (plane, inl), is_outer in zip(found, outer, strict=True):
         if is_outer:
             _accept(seg, plane, inl, WALL_NAME, WALL, c, area)
@@ -149,13 +155,17 @@ def segment(
         log.debug("semantics: in front of a wall %s", seg.rejected[-1])
         if np.percentile(c[inl, 2], SPAN_PCT[0]) - seg.floor_z > HANGS:
             hung[inl] = True
+            along = c[inl] @ _axes(plane)
+            hangers.append((plane, float(along.min()), float(along.max())))
     if more_walls is not None:
         for w in more_walls(c, n, area, seg.floor_z):
             if not any(_same_wall(w, p) for p in seg.planes if p["kind"] == WALL_NAME):
                 seg.planes.append(w)
                 log.debug("semantics: wall from points %s", w)
     _absorb(seg, c, cfg)
-    _objects(seg, c, n, area, ok & ~hung, cfg)
+    by = _by_hangers(c, hangers, cfg.walls.hanger_slab) & (seg.cls == UNKNOWN) & ~hung
+    seg.hanger_triangles = int(by.sum())
+    objects(seg, c, n, area, ok & ~hung & ~by, cfg)
     return seg
 
 
@@ -175,24 +185,28 @@ def _planes(
     inliers leave the pool. Planes whose orientation is not the one asked are skipped.
     """
     pool = pool.copy()
-    cos_t = np.cos(np.radians(cfg.max_tilt_deg))
-    min_area = cfg.plane_min_area if horizontal else cfg.wall_min_area
-    for _ in range(cfg.max_planes):
+    cos_t = np.cos(np.radians(cfg.planes.max_tilt_deg))
+    min_area = cfg.planes.min_area if horizontal else cfg.walls.min_area
+    for _ in range(cfg.planes.max_planes):
         idx = np.flatnonzero(pool)
         if len(idx) < 3 or area[idx].sum() < min_area:
             return
-        sample = idx if len(idx) <= cfg.ransac_points else rng.choice(idx, cfg.ransac_points, False)
+        sample = (
+            idx
+            if len(idx) <= cfg.planes.ransac_points
+            else rng.choice(idx, cfg.planes.ransac_points, False)
+        )
         sample = np.sort(sample)
         pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(c[sample]))
-        model, raw = pc.segment_plane(cfg.plane_dist, 3, cfg.ransac_iters)
+        model, raw = pc.segment_plane(cfg.planes.plane_dist, 3, cfg.planes.ransac_iters)
         plane = np.asarray(model, np.float64)
         plane /= np.linalg.norm(plane[:3])
-        inl = _inliers(plane, c, n, idx, cfg.plane_dist, cos_t)
+        inl = _inliers(plane, c, n, idx, cfg.planes.plane_dist, cos_t)
         if len(inl) >= 3:
             plane = _refit(c[inl])
-            inl = _inliers(plane, c, n, idx, cfg.plane_dist, cos_t)
+            inl = _inliers(plane, c, n, idx, cfg.planes.plane_dist, cos_t)
         up = abs(plane[2])
-        kind_ok = (up > cos_t) if horizontal else (up < np.sin(np.radians(cfg.max_tilt_deg)))
+        kind_ok = (up > cos_t) if horizontal else (up < np.sin(np.radians(cfg.planes.max_tilt_deg)))
         if len(inl) < 3 or not kind_ok:
             # RANSAC's plane cuts across surfaces of other orientations (clutter): drop its
             # points from the pool so the next fit looks elsewhere
@@ -229,9 +243,9 @@ def _is_wall(plane: np.ndarray, c: np.ndarray, area: np.ndarray, cfg: SemanticsC
     lo, hi = np.percentile(np.stack([s, c[:, 2]], axis=1), SPAN_PCT, axis=0)  # [2] each
     length, height = hi - lo
     return bool(
-        height >= cfg.wall_min_height
-        and length >= cfg.wall_min_length
-        and area.sum() >= cfg.wall_min_area
+        height >= cfg.walls.min_height
+        and length >= cfg.walls.min_length
+        and area.sum() >= cfg.walls.min_area
     )
 
 
@@ -314,9 +328,9 @@ def _absorb(seg: Segmentation, c: np.ndarray, cfg: SemanticsConfig) -> None:
     for pl in seg.planes:
         free = np.flatnonzero(seg.cls == UNKNOWN)
         p = c[free]
-        dist = pl.get("dist", cfg.plane_dist)
+        dist = pl.get("dist", cfg.planes.plane_dist)
         near = np.abs(p @ np.asarray(pl["normal"]) + pl["d"]) < dist
-        seg.cls[free[near & in_extent(pl, p, cfg.plane_dist)]] = ids[pl["kind"]]
+        seg.cls[free[near & in_extent(pl, p, cfg.planes.plane_dist)]] = ids[pl["kind"]]
 
 
 def in_extent(plane: dict, p: np.ndarray, pad: float) -> np.ndarray:
@@ -331,72 +345,17 @@ def in_extent(plane: dict, p: np.ndarray, pad: float) -> np.ndarray:
     return np.asarray(((q >= lo - pad) & (q <= hi + pad)).all(axis=-1))
 
 
-def _table_top(
-    c: np.ndarray, n: np.ndarray, area: np.ndarray, base: float, cfg: SemanticsConfig
-) -> bool:
-    """Whether a cluster that does not reach the floor is a table whose legs or pedestal no
-    view fused: its faces up (horizontal, facing up) cover at least table_min_top m² and a third
-    its area, at a median height of at most table_max_top above the floor. A wall cabinet
-    shows its front and underside; a lamp, fused noise little that faces up."""
-    up = n[:, 2] > np.cos(np.radians(cfg.max_tilt_deg))  # [N]
-    a_up = float(area[up].sum())
-    if cfg.table_max_top <= 0 or a_up < cfg.table_min_top or a_up < float(area.sum()) / 3:
-        return False
-    return bool(np.median(c[up, 2]) - base <= cfg.table_max_top)
-
-
-def _objects(
-    seg: Segmentation,
-    c: np.ndarray,
-    n: np.ndarray,
-    area: np.ndarray,
-    ok: np.ndarray,
-    cfg: SemanticsConfig,
-) -> None:
-    """DBSCAN the unlabelled triangles; clusters standing on the floor become instances."""
-    rest = np.flatnonzero((seg.cls == UNKNOWN) & ok)
-    if len(rest) == 0:
-        return
-    vox = cfg.cluster_eps / 2.0
-    keys = np.floor(c[rest] / vox).astype(np.int64)  # [N, 3]
-    cells, _, inv = unique_rows(keys)  # [M, 3], [N]
-    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector((cells + 0.5) * vox))
-    lab = np.asarray(pc.cluster_dbscan(cfg.cluster_eps, cfg.cluster_min_points), np.int64)[inv]
-    seg.noise_triangles = int((lab < 0).sum())
-    # Without a floor plane, z = 0 is only the align stage's estimate, and from photos alone
-    # the floor and the low fronts that reach it are often not reconstructed at all (plain
-    # surfaces: no stereo): the 7-Scenes kitchen's photos-only mesh starts 0.44 m up, at the
-    # counters, and every cluster "floated" into unknown. There the clusters are measured
-    # from the lowest surface the mesh holds (1st percentile), so what stands lowest still
-    # counts as standing and what hangs above it (wall cabinets, lamps) still does not.
-    base = seg.floor_z
-    if not seg.has_floor:
-        base = max(base, float(np.percentile(c[rest, 2], 1)))
-    seg.object_base_z = base
-    found = []
-    for k in np.unique(lab[lab >= 0]):
-        members = rest[lab == k]
-        a = float(area[members].sum())
-        if a < cfg.object_min_area:
-            seg.noise_clusters += 1
-        elif c[members, 2].min() - base > cfg.object_max_gap and not _table_top(
-            c[members], n[members], area[members], base, cfg
-        ):
-            seg.floating_clusters += 1
-        elif cfg.piece_step > 0:
-            piece = split_by_top(
-                c[members],
-                cfg.piece_cell,
-                cfg.piece_step,
-                cfg.piece_min_width,
-                base + cfg.object_max_gap,
-            )
-            for k in range(int(piece.max()) + 1):
-                part = members[piece == k]
-                found.append((float(area[part].sum()), int(part.min()), part))
-        else:
-            found.append((a, int(members.min()), members))
-    found.sort(key=lambda x: (-x[0], x[1]))  # by area, then position in the mesh: deterministic
-    for i, (_, _, members) in enumerate(found, start=1):
-        seg.cls[members] = OBJECT
-        seg.instance[members] = i
+def _by_hangers(
+    c: np.ndarray, hangers: list[tuple[np.ndarray, float, float]], slab: float
+) -> np.ndarray:
+    """bool [T]: triangle centres c [T, 3] within `slab` metres of a surface hanging before a
+    wall (plane [4], extent along it), inside that extent grown by `slab`, at any height: its
+    frame, legs and stand (a whiteboard's, a screen's), which hang with it (unknown) and
+    would otherwise paint its whole depth object on the plan. slab 0: none."""
+    out = np.zeros(len(c), bool)
+    if slab <= 0:
+        return out
+    for plane, lo, hi in hangers:
+        s = c @ _axes(plane)
+        out |= (np.abs(c @ plane[:3] + plane[3]) <= slab) & (s >= lo - slab) & (s <= hi + slab)
+    return out

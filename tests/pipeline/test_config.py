@@ -246,3 +246,30 @@ def test_default_configs_stop_on_steps_not_seconds():
         load_config(None, ["depth.field.train.max_steps=0", "depth.field.train.eval_every=0"])
     with pytest.raises(BlunfError, match=r"time_budget"):
         load_config(None, ["nerf.train.time_budget=.nan"])
+
+
+def test_nested_semantics_settings_and_renamed_keys(tmp_path):
+    # the semantics stage's settings are nested (planes, walls, objects, floor_fill,
+    # point_walls); the flat keys fail with one line naming the new key, also where the old
+    # key is now a section's name (semantics.point_walls was a bool)
+    cfg = load_config(None, ["semantics.walls.behind=0.4", "semantics.point_walls.enabled=true"])
+    assert cfg["semantics"].walls.behind == 0.4 and cfg["semantics"].point_walls.enabled
+    p = tmp_path / "nested.yaml"
+    p.write_text("semantics:\n  floor_fill: {hull: true}\n  planes: {max_tilt_deg: 25}\n")
+    cfg = load_config(p)
+    assert cfg["semantics"].floor_fill.hull and cfg["semantics"].planes.max_tilt_deg == 25
+    assert cfg["semantics"].floor_fill.enabled  # the rest of the section keeps its defaults
+    for old, new in [
+        ("semantics.wall_behind=0.4", "semantics.walls.behind"),
+        ("semantics.point_walls=true", "semantics.point_walls.enabled"),
+        ("semantics.floor_fill=false", "semantics.floor_fill.enabled"),
+        ("semantics.floor_fill_hull=true", "semantics.floor_fill.hull"),
+        ("semantics.object_max_gap=0.2", "semantics.objects.max_gap"),
+        ("semantics.plane_dist=0.02", "semantics.planes.plane_dist"),
+    ]:
+        key = old.partition("=")[0]
+        with pytest.raises(BlunfError, match=rf"{key}: renamed to {new}$") as e:
+            load_config(None, [old])
+        assert "\n" not in str(e.value)
+    with pytest.raises(BlunfError, match="semantics.impl"):
+        load_config(None, ["semantics.impl=magic"])

@@ -12,6 +12,7 @@ import pytest
 import torch
 import trimesh
 
+from stages.common.blueprint import Blueprint
 from stages.edit.config import EditConfig
 from stages.edit.metrics import EditScore, changed, match_instances, pooled_iou
 from stages.edit.ops import edit_mesh
@@ -138,3 +139,27 @@ def test_edited_plan_keeps_instances_but_the_removed_ones():
     assert new.instances is not None
     assert np.all(new.instances[a] == 0) and np.all(new.instances[~a] == inst[~a])
     assert (inst[~a] == 7).any()
+
+
+def test_edited_plan_keeps_seen_and_inside_through_save(tmp_path):
+    """An edit changes labels, not what the capture saw: seen and inside survive the edit
+    and the saved file; a removed object's cells are floor inside the outline, unknown
+    outside it."""
+    from stages.edit.select import edited_plan
+
+    bp = _plan()
+    a = _select("click", (0.6, 0.6))
+    seen = np.zeros(bp.labels.shape, np.uint8)
+    seen[::2] = 1
+    inside = np.ones(bp.labels.shape, np.uint8)
+    rows = np.flatnonzero(a.any(axis=1))
+    inside[rows[0]] = 0  # one row of the chair lies outside the outline
+    bp = replace(bp, seen=seen, inside=inside)
+    edits = (Edit(0, "remove", Selector("click", (0.6, 0.6))),)
+    new, n = edited_plan(EditConfig(), bp, EditSpec(Path("e.yaml"), edits, (0,)), [a])
+    new.save(tmp_path / "edited.npz")
+    back = Blueprint.load(tmp_path / "edited.npz")
+    assert np.array_equal(back.seen, seen) and np.array_equal(back.inside, inside)
+    out = a & (inside == 0)
+    assert out.any() and np.all(back.labels[out] == 255)
+    assert np.all(back.labels[a & (inside == 1)] == 0) and n == int(a.sum())

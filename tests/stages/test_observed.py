@@ -11,7 +11,7 @@ from shapely.geometry import box
 
 from stages.common.blueprint import Blueprint, Grid, read_observed
 from stages.common.capture import UNKNOWN
-from stages.common.io import save_npz
+from stages.common.io import read_json, save_npz
 from stages.evaluate.observation import invented_pct, vertical_points, wall_support
 from stages.layout import LayoutConfig
 from stages.layout.draw import write_dxf, write_svg
@@ -122,6 +122,40 @@ def test_invented_cells_by_hand():
     grid = Grid((0.0, 0.0), 0.1, (1, 20))
     bp = Blueprint(np.zeros((1, 20), np.uint8), grid, {0: "floor"})
     assert invented_pct(bp, np.array([[0.05, 0.05]])) == 85.0
+
+
+def test_observation_from_the_runs_own_files(tmp_path):
+    """A plan that carries no seen / inside (another method's) and no points: the shares and
+    the invented cells come from observed.npz, worked out by hand."""
+    from stages.evaluate.gt import EvaluateConfig, EvaluateInputs, run
+
+    labels = np.zeros((4, 5), np.uint8)
+    labels[:, 4] = UNKNOWN  # outside
+    labels[0, 0] = UNKNOWN  # inside, unknown
+    near = np.ones((4, 5), np.uint8)
+    near[:, 3:] = 0  # column 3 labelled but no observation near: inferred, invented
+    inside = np.ones((4, 5), np.uint8)
+    inside[:, 4] = 0
+    grid = Grid((0.0, 0.0), 0.5, (4, 5))
+    Blueprint(labels, grid, {0: "floor"}).save(tmp_path / "b.npz")
+    z = np.zeros((4, 5), np.uint8)
+    save_npz(tmp_path / "observed.npz", near=near, free=z, inside=inside, labelled=inside)
+    frames = tmp_path / "frames.json"
+    frames.write_text('{"root": ".", "kind": "t", "classes": {}, "frames": []}')
+    ins = EvaluateInputs(frames, None, (tmp_path / "b.npz",), ("blunf",), False,
+                         observed=tmp_path / "observed.npz")  # fmt: skip
+    out = tmp_path / "ev"
+    out.mkdir()
+    got = read_json(run(EvaluateConfig(), ins, out).metrics)["observation"]
+    # 20 cells: seen 11, inferred 4, unknown 1, outside 4; 15 labelled, 4 of them not near
+    assert got == {
+        "seen_pct": 55.0,
+        "inferred_pct": 20.0,
+        "unknown_pct": 5.0,
+        "outside_pct": 20.0,
+        "labelled_pct": 75.0,
+        "invented_pct": round(100 * 4 / 15, 3),
+    }
 
 
 def test_seen_wall_support_by_hand():

@@ -23,9 +23,9 @@ from tests.conftest import shared_capture
 
 MARGIN = 3.0  # points below the measured figure that still pass
 # the semantics settings that find the office's walls in the mesh (README, photos-only
-# accuracy); configs/phone.yaml adds the walls found in the readings (semantics.point_walls)
+# accuracy); configs/phone.yaml adds the walls found in the readings (semantics.point_walls.enabled)
 # and the floor filled inside the hull of the surface and the cameras (floor_fill_hull)
-WALLS = ["semantics.wall_min_height=0.7", "semantics.wall_min_area=0.5"]
+WALLS = ["semantics.walls.min_height=0.7", "semantics.walls.min_area=0.5"]
 
 # measured on the 7-Scenes kitchen, these settings, four runs with SfM on the 240 px images
 # (19 of 20 registered, ATE 4.8-4.9 cm, scale x1.057-1.063 from the priors): fwIoU 40.8 /
@@ -35,7 +35,7 @@ WALLS = ["semantics.wall_min_height=0.7", "semantics.wall_min_area=0.5"]
 # 32.2, object 41.9. The bars are the lowest of each.
 # Its photos-only mesh holds no floor (stereo finds nothing on the plain floor; the surface
 # starts at the counters): the floor is filled at z = 0 where views look down through free
-# space, inside the hull of the surface and the cameras (semantics.floor_fill_no_plane);
+# space, inside the hull of the surface and the cameras (semantics.floor_fill.no_plane);
 # without that fill, in the same runs, fwIoU 30.8 / - / 29.5 / 30.2, floor 0.0, object
 # unchanged, 90 % of the reference's floor cells unknown (now 40-46 %; 7-8 % of its object
 # cells became floor). Before the align stage found the floor under the counter tops (sparse

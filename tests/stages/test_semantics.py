@@ -20,6 +20,7 @@ from stages.common.io import read_label, write_image
 from stages.fusion import IMPLS as FUSION
 from stages.fusion import FusionConfig, FusionInputs
 from stages.semantics import IMPLS, SemanticsConfig, SemanticsInputs
+from stages.semantics.config import FloorFillConfig, PlanesConfig, WallsConfig
 from stages.semantics.floorfill import Footprint
 from stages.semantics.segment import segment, triangles
 from tests.conftest import shared_capture
@@ -221,7 +222,9 @@ def test_floor_is_seen_through_a_hole_in_the_surface_but_not_beyond_the_room(tmp
     for fill in (False, True):
         out = tmp_path / f"out{int(fill)}"
         out.mkdir()
-        outs = IMPLS["geometry"](SemanticsConfig(floor_fill=fill), inputs, out)
+        outs = IMPLS["geometry"](
+            SemanticsConfig(floor_fill=FloorFillConfig(enabled=fill)), inputs, out
+        )
         runs[fill] = (outs, Capture.load(outs.frames))
     (plain, plain_cap), (filled, cap) = runs[False], runs[True]
     assert all(f.depth is None for f in plain_cap.frames)  # no depth of its own without fill
@@ -290,9 +293,9 @@ def test_config_checks():
     with pytest.raises(BlunfError, match="semantics.impl"):
         SemanticsConfig(impl="magic")
     with pytest.raises(BlunfError, match="floor_max_z"):
-        SemanticsConfig(floor_max_z=2.0, ceiling_min_z=1.5)
-    with pytest.raises(BlunfError, match="floor_fill_cell"):
-        SemanticsConfig(floor_fill_cell=0.0)
+        PlanesConfig(floor_max_z=2.0, ceiling_min_z=1.5)
+    with pytest.raises(BlunfError, match="semantics.floor_fill.cell"):
+        FloorFillConfig(cell=0.0)
 
 
 # GT classes of the procedural room: 0 floor, 1 wall, 2 ceiling, 3.. furniture -> object.
@@ -439,7 +442,7 @@ def test_a_wall_is_the_outermost_surface_not_the_blinds_before_it():
     blinds = np.abs(c[:, 1] - (Y - 0.3)) < 1e-6
     walls = {}
     for behind in (0.6, 0.0):
-        seg = segment(verts, tris, SemanticsConfig(wall_behind=behind))
+        seg = segment(verts, tris, SemanticsConfig(walls=WallsConfig(behind=behind)))
         walls[behind] = sorted(-p["d"] * np.sign(p["normal"][1]) for p in seg.planes
                                if p["kind"] == "wall")  # fmt: skip
         box = (c[:, 2] > 0.05) & (c[:, 1] < 1.01)
@@ -448,3 +451,74 @@ def test_a_wall_is_the_outermost_surface_not_the_blinds_before_it():
             assert not (seg.cls[blinds] == WALL).any()
     assert walls[0.6] == pytest.approx([Y], abs=0.01)
     assert walls[0.0] == pytest.approx([Y - 0.3, Y], abs=0.01)  # the rule off: both
+
+
+def test_the_stand_of_a_board_before_a_wall_hangs_with_it():
+    # a whiteboard 0.3 m before the wall at y = 3 (0.7 to 1.9 m up, 1.8 m long) on two legs
+    # from the floor at its ends: the board is no wall and hangs (unknown); its legs lie
+    # within hanger_slab of it and go with it, not into an object that paints the board's
+    # depth on the plan. A box elsewhere stays an object. hanger_slab 0: the legs are objects
+    yb = Y - 0.3
+    parts = [
+        trimesh.creation.box(bounds=[(1.0, 0.5, 0.0), (1.6, 1.0, 0.7)]),
+        trimesh.creation.box(bounds=[(1.0, yb - 0.03, 0.0), (1.05, yb + 0.03, 0.7)]),
+        trimesh.creation.box(bounds=[(2.75, yb - 0.03, 0.0), (2.8, yb + 0.03, 0.7)]),
+    ]
+    parts = [(np.asarray(b.vertices), np.asarray(b.faces)) for b in parts] + [
+        _quad([(0, 0, 0), (X, 0, 0), (X, Y, 0), (0, Y, 0)], (0, 0, 1)),
+        _quad([(0, Y, 0), (X, Y, 0), (X, Y, Z), (0, Y, Z)], (0, -1, 0)),
+        _quad([(1.0, yb, 0.7), (2.8, yb, 0.7), (2.8, yb, 1.9), (1.0, yb, 1.9)], (0, -1, 0)),
+    ]
+    verts, tris, n = [], [], 0
+    for v, f in parts:
+        v, f = trimesh.remesh.subdivide_to_size(v, f, max_edge=EDGE)
+        verts.append(v)
+        tris.append(f + n)
+        n += len(v)
+    verts, tris = np.concatenate(verts), np.concatenate(tris)
+    c, _, _ = triangles(verts, tris)
+    legs = (c[:, 2] > 0.05) & (c[:, 2] < 0.69) & (np.abs(c[:, 1] - yb) < 0.04)
+    box = (c[:, 2] > 0.05) & (c[:, 1] < 1.01)
+    seg = segment(verts, tris, SemanticsConfig())
+    assert (seg.cls[legs] == UNKNOWN).all() and seg.hanger_triangles > 0
+    assert (seg.cls[box] == OBJECT).all() and seg.instance.max() == 1
+    off = segment(verts, tris, SemanticsConfig(walls=WallsConfig(hanger_slab=0.0)))
+    assert (off.cls[legs] == OBJECT).any() and off.instance.max() == 3
+
+
+def test_a_plant_resting_on_its_stand_is_an_object_a_cabinet_above_a_counter_is_not():
+    # a plant (a box 0.75-1.2 m up) 15 cm above its stand (0.6 m tall) rests on it: an object
+    # though it does not reach the floor; a wall cabinet 0.6 m above a counter and a screen
+    # with nothing under it hang (unknown), and so does a fragment too small to be a thing
+    boxes = [
+        ((0.5, 0.5, 0.0), (0.9, 0.9, 0.6)),  # stand
+        ((0.3, 0.3, 0.75), (1.1, 1.1, 1.2)),  # plant
+        ((2.0, 2.4, 0.0), (3.6, 3.0, 0.9)),  # counter
+        ((2.0, 2.65, 1.5), (3.6, 3.0, 2.1)),  # wall cabinet
+        ((1.5, 0.1, 1.0), (2.5, 0.2, 1.6)),  # screen
+        ((2.5, 2.5, 1.05), (2.6, 2.6, 1.1)),  # a fragment over the counter (0.04 m²)
+    ]
+    parts = [trimesh.creation.box(bounds=b) for b in boxes]
+    parts = [(np.asarray(b.vertices), np.asarray(b.faces)) for b in parts]
+    parts.append(_quad([(0, 0, 0), (X, 0, 0), (X, Y, 0), (0, Y, 0)], (0, 0, 1)))
+    parts.append(_quad([(0, Y, 0), (X, Y, 0), (X, Y, Z), (0, Y, Z)], (0, -1, 0)))
+    verts, tris, n = [], [], 0
+    for v, f in parts:
+        v, f = trimesh.remesh.subdivide_to_size(v, f, max_edge=EDGE)
+        verts.append(v)
+        tris.append(f + n)
+        n += len(v)
+    verts, tris = np.concatenate(verts), np.concatenate(tris)
+    c, _, _ = triangles(verts, tris)
+
+    def inside(b: tuple) -> np.ndarray:  # its faces off the floor and the wall
+        lo, hi = np.asarray(b[0]), np.asarray(b[1])
+        box = ((c >= lo - 1e-6) & (c <= hi + 1e-6)).all(axis=1)
+        return box & (c[:, 2] > 0.05) & (c[:, 1] < Y - 0.05)
+
+    seg = segment(verts, tris, SemanticsConfig())
+    plant, cabinet, screen = inside(boxes[1]), inside(boxes[3]), inside(boxes[4])
+    assert (seg.cls[plant] == OBJECT).all() and seg.resting_clusters == 1
+    assert (seg.cls[cabinet] == UNKNOWN).all() and (seg.cls[screen] == UNKNOWN).all()
+    # below objects.rest_min_area: stereo's fragments over furniture rest on nothing
+    assert (seg.cls[inside(boxes[5])] == UNKNOWN).all() and seg.floating_clusters == 3

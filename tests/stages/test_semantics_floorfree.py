@@ -1,4 +1,4 @@
-"""The floor fill without a floor plane (semantics.floor_fill_no_plane): a mesh holding no
+"""The floor fill without a floor plane (semantics.floor_fill.no_plane): a mesh holding no
 floor and no walls, as photos alone give of a plain-floored kitchen (stereo finds only the
 counters), seen by views looking down through free space. The floor is filled at z = 0
 inside the convex hull of the surface and the cameras, by rays steep enough and near enough;
@@ -19,6 +19,7 @@ from stages.common.classes import FLOOR
 from stages.common.io import read_label
 from stages.common.o3d import o3d_extrinsic, o3d_intrinsic
 from stages.semantics import IMPLS, SemanticsConfig, SemanticsInputs
+from stages.semantics.config import FloorFillConfig
 from tests.stages.test_semantics import _holed_room, _look, _views_capture
 
 LX = 6.0  # the counters run along x in [0, LX]; the hull spans y in [-0.5, 3]
@@ -71,8 +72,10 @@ def _rays(frame) -> np.ndarray:
 @pytest.mark.parametrize(("drop", "reach"), [(30.0, 3.0), (10.0, 2.0), (45.0, 10.0)])
 def test_floor_without_a_plane_is_filled_within_the_hull_and_the_reach(tmp_path, drop, reach):
     inputs = _counters_only(tmp_path)
-    cfg = SemanticsConfig(floor_fill_min_drop_deg=drop, floor_fill_reach=reach)
-    plain, _ = _run(inputs, tmp_path / "plain", SemanticsConfig(floor_fill_no_plane=False))
+    cfg = SemanticsConfig(floor_fill=FloorFillConfig(min_drop_deg=drop, reach=reach))
+    plain, _ = _run(
+        inputs, tmp_path / "plain", SemanticsConfig(floor_fill=FloorFillConfig(no_plane=False))
+    )
     cap, stats = _run(inputs, tmp_path / "fill", cfg)
     assert stats["planes"]["floor"] == 0 and stats["floor_fill"]["room"].startswith("hull")
     assert stats["objects"] == 2  # the counters stand on the lowest surface
@@ -128,8 +131,8 @@ def test_a_mesh_with_a_floor_plane_is_filled_as_before(tmp_path):
     inputs = _holed_room(tmp_path)
     cfgs = [
         SemanticsConfig(),
-        SemanticsConfig(floor_fill_no_plane=False),
-        SemanticsConfig(floor_fill_min_drop_deg=89.0, floor_fill_reach=0.01),
+        SemanticsConfig(floor_fill=FloorFillConfig(no_plane=False)),
+        SemanticsConfig(floor_fill=FloorFillConfig(min_drop_deg=89.0, reach=0.01)),
     ]
     runs = [_run(inputs, tmp_path / f"out{i}", c) for i, c in enumerate(cfgs)]
     (first, stats), rest = runs[0], runs[1:]
@@ -142,11 +145,13 @@ def test_a_mesh_with_a_floor_plane_is_filled_as_before(tmp_path):
 
 
 def test_floor_fill_hull_bounds_a_found_floor_by_the_hull_and_the_walls(tmp_path):
-    """semantics.floor_fill_hull: the holed room's floor (found) is filled inside the hull of
+    """semantics.floor_fill.hull: the holed room's floor (found) is filled inside the hull of
     the surface and the cameras; its walls still stop the rays through the doorway."""
     inputs = _holed_room(tmp_path)
     base, _ = _run(inputs, tmp_path / "base", SemanticsConfig())
-    cap, stats = _run(inputs, tmp_path / "hull", SemanticsConfig(floor_fill_hull=True))
+    cap, stats = _run(
+        inputs, tmp_path / "hull", SemanticsConfig(floor_fill=FloorFillConfig(hull=True))
+    )
     assert stats["floor_fill"]["room"].startswith("hull")
     assert stats["floor_fill"]["room_m2"] == pytest.approx(4.0 * 3.0, rel=0.1)
     down, door, _ = (read_label(f.label) for f in cap.frames)
@@ -156,14 +161,16 @@ def test_floor_fill_hull_bounds_a_found_floor_by_the_hull_and_the_walls(tmp_path
 
 
 def test_floor_fill_hull_reach_off_leaves_a_found_floor_unbounded(tmp_path):
-    """semantics.floor_fill_hull_reach=false: with a floor plane found, the hull's fill is not
+    """semantics.floor_fill.hull_reach=false: with a floor plane found, the hull's fill is not
     bounded by floor_fill_min_drop_deg and floor_fill_reach (as it is without one)."""
     inputs = _holed_room(tmp_path)
-    tight = {"floor_fill_hull": True, "floor_fill_reach": 0.05, "floor_fill_min_drop_deg": 85.0}
-    bounded, s_bounded = _run(inputs, tmp_path / "bounded", SemanticsConfig(**tight))
-    cfg = SemanticsConfig(**tight, floor_fill_hull_reach=False)
+    tight = {"hull": True, "reach": 0.05, "min_drop_deg": 85.0}
+    bounded, s_bounded = _run(
+        inputs, tmp_path / "bounded", SemanticsConfig(floor_fill=FloorFillConfig(**tight))
+    )
+    cfg = SemanticsConfig(floor_fill=FloorFillConfig(**tight, hull_reach=False))
     free, s_free = _run(inputs, tmp_path / "free", cfg)
-    wide = SemanticsConfig(floor_fill_hull=True, floor_fill_reach=1e3, floor_fill_min_drop_deg=0.0)
+    wide = SemanticsConfig(floor_fill=FloorFillConfig(hull=True, reach=1e3, min_drop_deg=0.0))
     loose, _ = _run(inputs, tmp_path / "loose", wide)
     assert s_bounded["floor_fill"]["reach"] and not s_free["floor_fill"]["reach"]
     assert s_bounded["planes"]["floor"] == 1

@@ -1,4 +1,4 @@
-"""Objects outside the room's footprint (semantics.outside_unknown): the exact room of
+"""Objects outside the room's footprint (semantics.objects.outside_unknown): the exact room of
 test_semantics with a box standing on the floor's level 0.3 m beyond its east wall."""
 
 from __future__ import annotations
@@ -11,6 +11,7 @@ import trimesh
 
 from stages.common.camera import Intrinsics
 from stages.semantics import IMPLS, SemanticsConfig, SemanticsInputs
+from stages.semantics.config import ObjectsConfig
 from tests.stages.test_semantics import _look, _views_capture, exact_room
 
 
@@ -31,7 +32,9 @@ def test_an_object_behind_a_wall_is_unknown_only_when_asked(tmp_path):
     for flag in (False, True):
         out = tmp_path / f"out{int(flag)}"
         out.mkdir()
-        outs = IMPLS["geometry"](SemanticsConfig(outside_unknown=flag), inputs, out)
+        outs = IMPLS["geometry"](
+            SemanticsConfig(objects=ObjectsConfig(outside_unknown=flag)), inputs, out
+        )
         stats[flag] = json.loads(outs.stats.read_text())
     assert stats[False]["objects"] == stats[True]["objects"] + 1
     assert stats[False]["outside_triangles"] == 0

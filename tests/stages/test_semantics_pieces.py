@@ -13,6 +13,7 @@ from stages.common.components import with_heights
 from stages.layout.openings import scene_of
 from stages.layout.walls import object_heights
 from stages.semantics import SemanticsConfig
+from stages.semantics.config import ObjectsConfig
 from stages.semantics.pieces import split_by_top
 from stages.semantics.segment import segment, triangles
 from stages.synth.furniture import box_mesh, build_chair, build_table
@@ -76,7 +77,7 @@ def test_touching_furniture_is_one_piece_per_item_where_tops_step():
     items, _, _, _ = _furniture()
     verts, tris, owner = _mesh(items)
     c, _, area = triangles(verts, tris)
-    whole = segment(verts, tris, SemanticsConfig(piece_step=0.0))
+    whole = segment(verts, tris, SemanticsConfig(objects=ObjectsConfig(piece_step=0.0)))
     # without the split DBSCAN joins all but the chair: two instances
     assert whole.instance.max() == 2
     seg = segment(verts, tris, SemanticsConfig())
@@ -160,5 +161,5 @@ def test_a_table_top_without_its_legs_is_an_object_a_wall_cabinet_is_not():
     assert (seg.cls[top] == OBJECT).all() and seg.instance[top].min() == 1
     assert (seg.cls[owner == 1] != OBJECT).all() and seg.floating_clusters == 1
     # without the rule the table top floats too
-    off = segment(verts, tris, SemanticsConfig(table_max_top=0.0))
+    off = segment(verts, tris, SemanticsConfig(objects=ObjectsConfig(table_max_top=0.0)))
     assert (off.cls[owner >= 0] != OBJECT).all() and off.floating_clusters == 2

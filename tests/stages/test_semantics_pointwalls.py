@@ -19,6 +19,7 @@ from stages.common.capture import Capture, Frame
 from stages.common.classes import OBJECT, WALL
 from stages.common.io import read_label, write_depth_npy
 from stages.semantics import IMPLS, SemanticsConfig, SemanticsInputs
+from stages.semantics.config import PointWallsConfig
 from stages.semantics.pointwalls import PointWallOptions, point_walls, room_directions
 from tests.stages.test_semantics import _look, _views_capture
 from tests.stages.test_semantics_floorfree import _rays, box_mesh
@@ -66,7 +67,9 @@ def _run(inputs: SemanticsInputs, out, cfg: SemanticsConfig) -> tuple[Capture, d
 def test_a_plain_wall_is_found_in_the_readings_and_filled_over_its_holes(tmp_path):
     inputs = _scene(tmp_path)
     plain, before = _run(inputs, tmp_path / "plain", SemanticsConfig())
-    cap, stats = _run(inputs, tmp_path / "walls", SemanticsConfig(point_walls=True))
+    cap, stats = _run(
+        inputs, tmp_path / "walls", SemanticsConfig(point_walls=PointWallsConfig(enabled=True))
+    )
     assert before["planes"]["wall"] == 0  # the strip is 0.6 m tall: no wall of the mesh
     assert stats["point_walls"] == 1 and stats["planes"]["wall"] == 1
     (wall,) = [p for p in stats["plane_list"] if p["kind"] == "wall"]
@@ -80,10 +83,11 @@ def test_a_plain_wall_is_found_in_the_readings_and_filled_over_its_holes(tmp_pat
         r = _rays(f)
         at = r[..., :3] + np.load(f.depth)[..., None] * r[..., 3:]  # [H, W, 3]
         wall_px = got == WALL
-        # every wall pixel lies on the wall's plane (mesh triangles within point_wall_dist
+        # every wall pixel lies on the wall's plane (mesh triangles within point_walls.dist
         # joined it: the counter top's back edge), from the floor up to its top
         np.testing.assert_allclose(at[wall_px][:, 1], NORTH - 0.02, atol=0.06)
-        assert (at[wall_px][:, 2] <= max(STRIP[1], SemanticsConfig().ceiling_min_z) + 0.05).all()
+        top = max(STRIP[1], SemanticsConfig().planes.ceiling_min_z)
+        assert (at[wall_px][:, 2] <= top + 0.05).all()
         # the strip's pixels (within the readings' span along it: these small views read
         # every other pixel, and its ends only at grazing angles) become wall
         strip = np.abs(at[..., 1] - (NORTH - 0.02)) < 0.01
