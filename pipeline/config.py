@@ -167,6 +167,45 @@ def _check_section(obj: Any, value: Any, where: str, prefix: str) -> dict:
     return out
 
 
+def recorded(cls: type, d: dict, where: str, prefix: str) -> Any:
+    """A stage's config from the settings a run recorded (report.json's `config.<stage>`),
+    read by this version: a flat key of an earlier version goes to its new place (the
+    config's RENAMED), a key this version does not know is dropped, the rest is checked."""
+    obj = cls()
+    return _replace(obj, _check_section(obj, _known(obj, d), where, prefix))
+
+
+def recorded_sections(d: dict) -> dict:
+    """A whole recorded config (report.json's `config`) as this version reads it, section by
+    section as `recorded` does (unknown sections dropped), to be loaded as a YAML layer."""
+    cfg = default_config()
+    out = {"run": _known(cfg.run, d["run"])} if isinstance(d.get("run"), dict) else {}
+    for name, obj in cfg.stages.items():
+        if isinstance(d.get(name), dict):
+            out[name] = _known(obj, d[name])
+    return out
+
+
+def _known(obj: Any, d: dict) -> dict:
+    names = {f.name for f in fields(obj)}
+    renamed: dict[str, str] = getattr(type(obj), "RENAMED", {})
+    out: dict = {}
+    for k, v in d.items():
+        if k in renamed and (k not in names or not isinstance(v, dict)):
+            *path, last = renamed[k].split(".")
+            at = out
+            for part in path:
+                at = at.setdefault(part, {})
+            at.setdefault(last, v)
+        elif k in names:
+            cur = getattr(obj, k)
+            if is_dataclass(cur) and isinstance(v, dict):
+                merge(out.setdefault(k, {}), _known(cur, v))
+            elif not is_dataclass(cur):
+                out[k] = v
+    return out
+
+
 def merge(into: dict, layer: dict) -> None:
     """Deep-merge checked overrides; a later layer wins (sections are dicts, values are not)."""
     for k, v in layer.items():

@@ -152,7 +152,8 @@ def test_shipped_configs_load(name):
         assert default_config()["nerf"].train.edge_batch == 0.0
         assert cfg["nerf"].train.max_steps == 1000 and cfg["nerf"].train.time_budget == 0
     if name == "edit-fast.yaml":
-        assert cfg["edit"].render == "surface" and default_config()["edit"].render == "volume"
+        assert cfg["edit"].render.path == "surface"
+        assert default_config()["edit"].render.path == "volume"
         assert cfg["nerf"].train.max_steps == 200
 
 
@@ -165,7 +166,7 @@ def test_shipped_configs_load(name):
         (["blueprint.blunf.encoding=fourier"], "blueprint.blunf.encoding"),
         (["blueprint.blunf.balance=even"], "blueprint.blunf.balance"),
         (["blueprint.mvr.min_votes=0"], "blueprint.mvr.min_votes"),
-        (["edit.render=raster"], "edit.render"),
+        (["edit.render.path=raster"], "edit.render.path"),
     ],
 )
 def test_settings_no_stage_could_use_fail_at_load(sets, named):

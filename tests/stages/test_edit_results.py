@@ -12,7 +12,7 @@ import pytest
 import torch
 import trimesh
 
-from stages.edit.config import EditConfig
+from stages.edit.config import EditConfig, SelectConfig
 from stages.edit.metrics import EditScore, changed, match_instances, pooled_iou
 from stages.edit.ops import edit_mesh
 from stages.edit.spec import Edit, EditSpec, Selector
@@ -84,7 +84,7 @@ def test_mesh_edits():
         vertex_colors=rgba,
         process=False,
     )
-    cfg = EditConfig(pad=0.0)
+    cfg = EditConfig(select=SelectConfig(pad=0.0))
     a = _select("click", (0.6, 0.6))
     out, stats = edit_mesh(mesh, [_edit("remove", a, cfg)])
     assert stats["faces_removed"] == len(box.faces)

@@ -25,7 +25,7 @@ from tests.runs import VOXEL, run_ok, small_room
 
 pytestmark = pytest.mark.slow
 
-SETS = ["nerf.train.max_steps=60", "edit.gif_frames=2"]  # a small NeRF, a short GIF
+SETS = ["nerf.train.max_steps=60", "edit.gif.frames=2"]  # a small NeRF, a short GIF
 
 
 @pytest.fixture(scope="module")
