@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 
 @dataclass(frozen=True)
@@ -16,4 +17,5 @@ class IngestConfig:
     #                            max_side wins when set); their intrinsics scale with them
     video_frames: int = 0  # video: frames kept, the sharpest of each of N equal windows;
     #                        0 = by its length (2 a second, 20 to 100)
-    check: str = "full"  # "full": decode every selected file; "quick": headers and paths only
+    # "full": decode every selected file; "quick": headers and paths only
+    check: Literal["full", "quick"] = "full"

@@ -37,8 +37,6 @@ from stages.ingest.video import VideoOptions
 
 log = logging.getLogger(__name__)
 
-CHECKS = ("full", "quick")
-
 
 @dataclass(frozen=True)
 class IngestInputs:
@@ -82,8 +80,6 @@ def _check_config(cfg: IngestConfig) -> None:
     for name in ("max_side", "photo_max_side", "video_frames"):
         if getattr(cfg, name) < 0:
             raise BlunfError(f"ingest.{name}: must be >= 0, got {getattr(cfg, name)}")
-    if cfg.check not in CHECKS:
-        raise BlunfError(f"ingest.check: {cfg.check!r} unknown (use one of {CHECKS})")
 
 
 def check_structure(cap: Capture, allowed: tuple[Path, ...]) -> None:

@@ -162,7 +162,6 @@ def test_bad_config_values(tmp_path):
     src = make_capture(tmp_path / "cap", n=2)
     for i, (cfg, word) in enumerate(
         [
-            ({"check": "thorough"}, "ingest.check"),
             ({"frames": -1}, "ingest.frames"),
             ({"kind": "kinect"}, "ingest.kind"),
             ({"max_side": -5}, "ingest.max_side"),
