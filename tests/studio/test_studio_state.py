@@ -203,5 +203,6 @@ def test_training_needs_an_edit_and_takes_the_runs_config(run) -> None:
     cfg = training_config(out, ["nerf.train.max_steps=7"])
     assert cfg["fusion"].voxel == VOXEL  # the run's own settings
     assert cfg["nerf"].train.edge_batch == 0.5  # configs/edit-fast.yaml's
-    assert cfg["edit"].render == "surface" and training_config(out)["nerf"].train.max_steps == 200
+    assert cfg["edit"].render.path == "surface"
+    assert training_config(out)["nerf"].train.max_steps == 200
     assert cfg["nerf"].train.max_steps == 7  # and the sets given
