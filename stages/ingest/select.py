@@ -18,7 +18,7 @@ from typing import ClassVar
 import numpy as np
 from PIL import Image
 
-from stages.common.capture import Capture, Frame, recentred
+from stages.common.capture import Capture, Frame
 from stages.common.checks import check_intrinsics, check_unique_stems
 from stages.common.errors import BlunfError
 from stages.common.io import (
@@ -33,6 +33,7 @@ from stages.common.io import (
 )
 from stages.ingest.config import IngestConfig
 from stages.ingest.photos import intrinsics_facts
+from stages.ingest.recentre import recentred
 from stages.ingest.video import VideoOptions
 
 log = logging.getLogger(__name__)
