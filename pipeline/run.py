@@ -19,9 +19,9 @@ from stages.common.io import check_exists, read_json
 from stages.depth import DepthInputs
 from stages.edit import EditInputs, EditOutputs, EditSpec, load_spec
 from stages.evaluate import EvaluateInputs
-from stages.export.files import ExportInputs
+from stages.export.config import ExportInputs
 from stages.fusion import FusionInputs
-from stages.ingest.select import IngestInputs
+from stages.ingest.config import IngestInputs
 from stages.layout import LayoutInputs, LayoutOutputs
 from stages.nerf.config import NerfInputs, NerfOutputs
 from stages.poses import PosesInputs

@@ -1,9 +1,11 @@
-"""Configuration of the ingest stage (reading a capture and choosing its frames)."""
+"""Configuration and the input / output contract of the ingest stage (reading a capture
+and choosing its frames)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from pathlib import Path
+from typing import ClassVar, Literal
 
 
 @dataclass(frozen=True)
@@ -19,3 +21,18 @@ class IngestConfig:
     #                        0 = by its length (2 a second, 20 to 100)
     # "full": decode every selected file; "quick": headers and paths only
     check: Literal["full", "quick"] = "full"
+
+
+@dataclass(frozen=True)
+class IngestInputs:
+    capture: Path  # capture folder in any layout of stages.ingest.READERS (or transforms.json)
+
+
+@dataclass(frozen=True)
+class IngestOutputs:
+    STATS: ClassVar[str | None] = "ingest.json"  # its stats file: the report's facts
+    frames: Path  # frames.json written by Capture.save
+
+    @classmethod
+    def at(cls, out: Path) -> IngestOutputs:
+        return cls(frames=Path(out) / "frames.json")

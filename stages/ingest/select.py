@@ -11,9 +11,8 @@ from __future__ import annotations
 import logging
 import os
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, replace
 from pathlib import Path
-from typing import ClassVar
 
 import numpy as np
 from PIL import Image
@@ -31,27 +30,12 @@ from stages.common.io import (
     write_json,
     write_label_png,
 )
-from stages.ingest.config import IngestConfig
+from stages.ingest.config import IngestConfig, IngestInputs, IngestOutputs
 from stages.ingest.photos import intrinsics_facts
 from stages.ingest.recentre import recentred
 from stages.ingest.video import VideoOptions
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class IngestInputs:
-    capture: Path  # capture folder in any layout of stages.ingest.READERS (or transforms.json)
-
-
-@dataclass(frozen=True)
-class IngestOutputs:
-    STATS: ClassVar[str | None] = "ingest.json"  # its stats file: the report's facts
-    frames: Path  # frames.json written by Capture.save
-
-    @classmethod
-    def at(cls, out: Path) -> IngestOutputs:
-        return cls(frames=Path(out) / "frames.json")
 
 
 def select_indices(count: int, n: int) -> list[int]:
