@@ -31,9 +31,10 @@ from pipeline.studio.guard import ANY, Guard, guarded
 from pipeline.studio.panel import Panel
 from pipeline.studio.plan_view import StrokeDrag
 from pipeline.studio.scene import StudioScene
-from pipeline.studio.state import Session, floor_point
+from pipeline.studio.state import Session
 from pipeline.studio.tabs import Tabs
 from pipeline.studio.train import Trainer
+from pipeline.studio.values import floor_point
 
 log = logging.getLogger(__name__)
 

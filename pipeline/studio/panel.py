@@ -20,9 +20,10 @@ import viser
 from pipeline.render import TRAIN_HINT
 from pipeline.studio.plan_view import plan_picture
 from pipeline.studio.scene import StudioScene
-from pipeline.studio.state import OPS, STRENGTH, WIDTH, Session, offered
+from pipeline.studio.state import Session
 from pipeline.studio.tabs import Tabs
 from pipeline.studio.train import Trainer
+from pipeline.studio.values import OPS, STRENGTH, WIDTH, offered
 from stages.common.errors import BlunfError
 
 FULL_PATHS = ("fast", "volume")  # how the full view is rendered (the first: the default)

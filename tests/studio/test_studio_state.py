@@ -12,8 +12,9 @@ import pytest
 from pipeline.cli import main
 from pipeline.render import camera_json, pose_wxyz, viewer_camera
 from pipeline.studio.plan_view import StrokeDrag, cell_centre, plan_picture, screen_ray, top_view
-from pipeline.studio.state import SPEC_NAME, Session, floor_point
+from pipeline.studio.state import SPEC_NAME, Session
 from pipeline.studio.train import Trainer, training_config
+from pipeline.studio.values import floor_point
 from stages.common.classes import class_color
 from stages.common.errors import BlunfError
 from stages.edit.render import look_at
