@@ -250,3 +250,23 @@ def test_default_configs_stop_on_steps_not_seconds():
         load_config(None, ["depth.field.train.max_steps=0", "depth.field.train.eval_every=0"])
     with pytest.raises(BlunfError, match=r"time_budget"):
         load_config(None, ["nerf.train.time_budget=.nan"])
+
+
+def test_the_plan_cell_is_set_once_and_passed_to_the_depth_sweep(tmp_path):
+    # project.cell is the plan's cell; the depth sweep's finest useful resolution follows it
+    assert default_config()["depth"].stereo.cell == default_config()["project"].cell
+    cfg = load_config(None, ["project.cell=0.05"])
+    assert cfg["project"].cell == 0.05 and cfg["depth"].stereo.cell == 0.05
+    for where, load in [
+        ("--set", lambda: load_config(None, ["depth.stereo.cell=0.05"])),
+        ("cell.yaml", lambda: load_config(_yaml(tmp_path, "depth:\n  stereo:\n    cell: 0.05\n"))),
+    ]:
+        with pytest.raises(BlunfError, match=r"depth.stereo.cell: set from project.cell") as e:
+            load()
+        assert where in str(e.value) and "\n" not in str(e.value)
+
+
+def _yaml(tmp_path: Path, text: str) -> Path:
+    p = tmp_path / "cell.yaml"
+    p.write_text(text)
+    return p

@@ -111,3 +111,17 @@ def test_settings_a_run_of_an_earlier_version_recorded_are_read_in_their_new_pla
     sections = recorded_sections({"edit": old, "nerf": {"threads": 1}, "gone": {}})
     assert sections["edit"]["render"] == {"path": "surface", "threads": 2}
     assert "gone" not in sections
+
+
+def test_a_recorded_config_leaves_the_plan_cell_to_its_one_place(tmp_path):
+    # a run records depth.stereo.cell (passed from project.cell); read back, it is not a
+    # second setting of the plan cell
+    rec = default_config().to_dict()
+    rec["project"]["cell"] = 0.04
+    rec["depth"]["stereo"]["cell"] = 0.04
+    sections = recorded_sections(json.loads(json.dumps(rec)))
+    assert "cell" not in sections["depth"]["stereo"]
+    p = tmp_path / "recorded.yaml"
+    p.write_text(json.dumps(sections))  # JSON is YAML
+    cfg = load_config(p)
+    assert cfg["project"].cell == 0.04 and cfg["depth"].stereo.cell == 0.04
