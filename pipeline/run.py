@@ -81,8 +81,9 @@ def _recipe(r: Runner, pub: Publication, capture: Path, cfg: Config, spec: EditS
     frames = r.step(plan.get("align"), AlignInputs(frames, free_yaw=posed is not None)).frames
     depth = r.step(plan.get("depth"), DepthInputs(frames=frames))  # photos only: stereo, fills
     fused = r.step(plan.get("fusion"), FusionInputs(frames=depth.frames if depth else frames))
-    # the point walls' readings: the SfM tracks (the aligned frames) and what fusion read
-    seen = (frames, depth.frames) if depth and cfg["semantics"].point_walls else ()
+    # what the views saw, for the point walls: the SfM tracks (the aligned frames) and what
+    # fusion read; the semantics stage alone decides whether to use it (semantics.point_walls)
+    seen = (frames, depth.frames) if depth else ()
     sem = r.step(plan.get("semantics"), SemanticsInputs(fused.frames, fused.mesh, seen))
     labelled = sem.frames if sem else fused.frames  # the frames the plan is projected from
     # on the fused (dense, clean) depth and the labels: for the NeRF baseline and edits
