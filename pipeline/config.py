@@ -39,6 +39,11 @@ class RunSection:
             raise BlunfError(f"run.methods: a method is named twice in {list(self.methods)}")
 
 
+# Settings a stage takes from another stage's section, passed when the config is built, so
+# that each is set in one place: the depth sweep's finest useful cell is the plan's.
+PASSED: dict[str, str] = {"depth.stereo.cell": "project.cell"}
+
+
 def stage_configs() -> dict[str, type]:
     """Stage name -> its config dataclass, in pipeline order (the one place that lists them)."""
     from stages.align.config import AlignConfig
@@ -89,7 +94,7 @@ class Config:
 
 
 def default_config() -> Config:
-    return Config(RunSection(), {name: cls() for name, cls in stage_configs().items()})
+    return _passed(Config(RunSection(), {name: cls() for name, cls in stage_configs().items()}))
 
 
 def load_config(path: Path | None = None, sets: list[str] | tuple[str, ...] = ()) -> Config:
@@ -128,6 +133,12 @@ def load_config(path: Path | None = None, sets: list[str] | tuple[str, ...] = ()
 def _checked(cfg: Config, data: dict, where: str) -> dict:
     """`data` with every key known and every value coerced to its field's type."""
     out: dict = {}
+    for to, frm in PASSED.items():
+        at: Any = data
+        for part in to.split("."):
+            at = at.get(part) if isinstance(at, dict) else None
+        if at is not None:
+            raise BlunfError(f"{where}: {to}: set from {frm} (one place for it); set {frm}")
     for name, value in data.items():
         if name == "run":
             out[name] = _check_section(cfg.run, value, f"{where}: run", "run")
@@ -167,6 +178,53 @@ def _check_section(obj: Any, value: Any, where: str, prefix: str) -> dict:
     return out
 
 
+def recorded(cls: type, d: dict, where: str, prefix: str) -> Any:
+    """A stage's config from the settings a run recorded (report.json's `config.<stage>`),
+    read by this version: a flat key of an earlier version goes to its new place (the
+    config's RENAMED), a key this version does not know is dropped, the rest is checked."""
+    obj = cls()
+    return _replace(obj, _check_section(obj, _known(obj, d), where, prefix))
+
+
+def recorded_sections(d: dict) -> dict:
+    """A whole recorded config (report.json's `config`) as this version reads it, section by
+    section as `recorded` does (unknown sections dropped, the PASSED settings left to their
+    source), to be loaded as a YAML layer."""
+    cfg = default_config()
+    out = {"run": _known(cfg.run, d["run"])} if isinstance(d.get("run"), dict) else {}
+    for name, obj in cfg.stages.items():
+        if isinstance(d.get(name), dict):
+            out[name] = _known(obj, d[name])
+    for to in PASSED:
+        *path, last = to.split(".")
+        at: Any = out
+        for part in path:
+            at = at.get(part) if isinstance(at, dict) else None
+        if isinstance(at, dict):
+            at.pop(last, None)
+    return out
+
+
+def _known(obj: Any, d: dict) -> dict:
+    names = {f.name for f in fields(obj)}
+    renamed: dict[str, str] = getattr(type(obj), "RENAMED", {})
+    out: dict = {}
+    for k, v in d.items():
+        if k in renamed and (k not in names or not isinstance(v, dict)):
+            *path, last = renamed[k].split(".")
+            at = out
+            for part in path:
+                at = at.setdefault(part, {})
+            at.setdefault(last, v)
+        elif k in names:
+            cur = getattr(obj, k)
+            if is_dataclass(cur) and isinstance(v, dict):
+                merge(out.setdefault(k, {}), _known(cur, v))
+            elif not is_dataclass(cur):
+                out[k] = v
+    return out
+
+
 def merge(into: dict, layer: dict) -> None:
     """Deep-merge checked overrides; a later layer wins (sections are dicts, values are not)."""
     for k, v in layer.items():
@@ -182,7 +240,22 @@ def _build(cfg: Config, changes: dict) -> Config:
     for name, ch in changes.items():
         if name != "run":
             stages_[name] = _replace(stages_[name], ch)
-    return Config(run, stages_)
+    return _passed(Config(run, stages_))
+
+
+def _passed(cfg: Config) -> Config:
+    """`cfg` with each PASSED setting taken from its source."""
+    stages_ = dict(cfg.stages)
+    for to, frm in PASSED.items():
+        src = stages_
+        for part in frm.split("."):
+            src = src[part] if isinstance(src, dict) else getattr(src, part)
+        stage, *path = to.split(".")
+        change: Any = src
+        for part in reversed(path):
+            change = {part: change}
+        stages_[stage] = _replace(stages_[stage], change)
+    return Config(cfg.run, stages_)
 
 
 def _replace(obj: Any, changes: dict) -> Any:

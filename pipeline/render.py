@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.config import recorded
 from stages.common.blueprint import Blueprint
 from stages.common.camera import Intrinsics, check_pose
 from stages.common.capture import Capture
@@ -79,9 +80,9 @@ def run_files(run: Path) -> RunFiles:
 
 
 def edit_config(d: dict) -> EditConfig:
-    """The run's edit settings (unknown keys of another version dropped)."""
-    known = set(EditConfig.__dataclass_fields__)
-    return EditConfig(**{k: v for k, v in d.items() if k in known})
+    """The run's edit settings as this version reads them (`pipeline.config.recorded`: the
+    flat keys of earlier versions moved to their place, unknown keys dropped)."""
+    return recorded(EditConfig, d, "report.json", "edit")
 
 
 def camera_json(path: Path) -> tuple[np.ndarray, Intrinsics]:

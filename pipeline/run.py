@@ -19,9 +19,9 @@ from stages.common.io import check_exists, read_json
 from stages.depth import DepthInputs
 from stages.edit import EditInputs, EditOutputs, EditSpec, load_spec
 from stages.evaluate import EvaluateInputs
-from stages.export.files import ExportInputs
+from stages.export.config import ExportInputs
 from stages.fusion import FusionInputs
-from stages.ingest.select import IngestInputs
+from stages.ingest.config import IngestInputs
 from stages.layout import LayoutInputs, LayoutOutputs
 from stages.nerf.config import NerfInputs, NerfOutputs
 from stages.poses import PosesInputs
@@ -81,8 +81,8 @@ def _recipe(r: Runner, pub: Publication, capture: Path, cfg: Config, spec: EditS
     frames = r.step(plan.get("align"), AlignInputs(frames, free_yaw=posed is not None)).frames
     depth = r.step(plan.get("depth"), DepthInputs(frames=frames))  # photos only: stereo, fills
     fused = r.step(plan.get("fusion"), FusionInputs(frames=depth.frames if depth else frames))
-    # the readings point walls may be found in (the stage reads semantics.point_walls): the
-    # SfM tracks (the aligned frames) and what fusion read, when the depth is the photos'
+    # what the views saw, for the point walls: the SfM tracks (the aligned frames) and what
+    # fusion read; the semantics stage alone decides whether to use it (semantics.point_walls)
     seen = (frames, depth.frames) if depth else ()
     sem = r.step(plan.get("semantics"), SemanticsInputs(fused.frames, fused.mesh, seen))
     labelled = sem.frames if sem else fused.frames  # the frames the plan is projected from

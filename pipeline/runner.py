@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import importlib
 import logging
-import os
 import shutil
 import time
 import typing
@@ -25,6 +24,7 @@ from pipeline.config import Config, stage_view
 from pipeline.planner import Step
 from pipeline.publish import writing
 from pipeline.report import Report, StageRecord, peak_rss_mb, peak_rss_reset
+from pipeline.runtime import stage_threads
 from stages.common.errors import BlunfError
 from stages.common.io import read_json
 from stages.common.progress import StepProgress, listening
@@ -120,7 +120,7 @@ class Runner:
                 peak_rss_reset()
                 t0, c0 = time.perf_counter(), time.process_time()
                 listen = nullcontext() if self.on_event is None else listening(self.on_event)
-                with torch_threads(_run_threads(self.cfg.run.threads)), listen:
+                with torch_threads(stage_threads(self.cfg.run.threads)), listen:
                     fn(scfg, inputs, tmp)
                 secs, cpu = time.perf_counter() - t0, time.process_time() - c0
                 stats = stats_name(outputs_cls, impl)
@@ -189,13 +189,6 @@ def _outputs_class(meta: dict, stage: str, impl: str) -> Any:
         module, _, qual = name.partition(":")
         return getattr(importlib.import_module(module), qual)
     return typing.get_type_hints(registry(stage)[impl])["return"]
-
-
-def _run_threads(threads: int) -> int:
-    """The torch threads a stage runs with: run.threads, else OMP_NUM_THREADS, else 1 (set only
-    once torch is actually needed: see torch_threads)."""
-    env = os.environ.get("OMP_NUM_THREADS", "")
-    return threads or (int(env) if env.isdigit() and int(env) > 0 else 1)
 
 
 def _facts(p: Path) -> dict:

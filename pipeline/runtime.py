@@ -1,5 +1,10 @@
 """The process's runtime: torch/Open3D threads sized to the free cores, glibc's malloc
-thresholds raised (set once, by the command line or a batch worker, before the stages run)."""
+thresholds raised (set once, by the command line or a batch worker, before the stages run).
+
+The one place that decides how many threads a run computes with: `setup_runtime` decides
+them for the process (run.threads, else the free cores), `stage_threads` hands that count
+to each stage the runner runs. A stage's own `threads` setting (e.g. nerf.threads) only
+overrides it for that stage."""
 
 from __future__ import annotations
 
@@ -7,10 +12,14 @@ import ctypes
 import os
 import time
 
+_decided: int | None = None  # the process's thread count, once setup_runtime decided it
+
 
 def setup_runtime(threads: int = 0) -> int:
-    """Size torch/Open3D threads to the free cores and raise glibc's malloc thresholds."""
-    n = threads or free_cores()
+    """Size torch/Open3D threads to the free cores (or `threads`, run.threads) and raise
+    glibc's malloc thresholds; returns the thread count decided."""
+    global _decided
+    n = _decided = threads or free_cores()
     # OpenMP (torch, Open3D) reads this when first loaded; torch's own setting is applied by the
     # runner once a stage that needs torch runs (a fully cached run never imports it).
     os.environ.setdefault("OMP_NUM_THREADS", str(n))
@@ -21,6 +30,18 @@ def setup_runtime(threads: int = 0) -> int:
     except OSError:
         pass
     return n
+
+
+def stage_threads(threads: int = 0) -> int:
+    """The torch threads a stage runs with: `threads` (run.threads) when given, else the
+    count setup_runtime decided for this process, else OMP_NUM_THREADS, else 1 (a process
+    that never set its runtime up: a test, a library call)."""
+    if threads:
+        return threads
+    if _decided is not None:
+        return _decided
+    env = os.environ.get("OMP_NUM_THREADS", "")
+    return int(env) if env.isdigit() and int(env) > 0 else 1
 
 
 def free_cores() -> int:

@@ -3,40 +3,21 @@
 Every module under `stages/<pkg>/` (the generator `stages/synth` included) may import its
 own package, `stages.common...` and third-party packages; `stages/common` imports only
 itself; none imports `pipeline/`. Imports are read with `ast` wherever they are (module
-level, inside functions), and so are the "module:attr" strings of lazy registries. What
+level, inside functions), and so are the "module:attr" strings of lazy registries, by the
+cache's own reader (`pipeline.cache.imported_names`, what a stage's cache key follows). What
 several stages share moves to `stages/common`, so that the cache key, which follows
 imports, sees what a stage runs.
 """
 
 from __future__ import annotations
 
-import ast
-import re
 import shutil
 from pathlib import Path
 
+from pipeline.cache import imported_names
+
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = "common"
-MODULE_NAME = re.compile(r"[A-Za-z_]\w*(?:\.[A-Za-z_]\w*)+(?::[\w.]+)?")
-
-
-def _targets(tree: ast.AST, package: tuple[str, ...]) -> set[tuple[str, ...]]:
-    """Every module name the tree imports or names as "module:attr" (relative ones resolved;
-    `from stages import x` gives stages.x)."""
-    out: set[tuple[str, ...]] = set()
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Import):
-            out.update(tuple(a.name.split(".")) for a in node.names)
-        elif isinstance(node, ast.ImportFrom):
-            base = package[: len(package) - node.level + 1] if node.level else ()
-            mod = base + (tuple(node.module.split(".")) if node.module else ())
-            out.add(mod)
-            if mod == ("stages",):
-                out.update(("stages", a.name) for a in node.names)
-        elif isinstance(node, ast.Constant) and isinstance(node.value, str):
-            if MODULE_NAME.fullmatch(node.value):
-                out.add(tuple(node.value.partition(":")[0].split(".")))
-    return out
 
 
 def cross_stage_imports(root: Path) -> set[tuple[str, str]]:
@@ -47,11 +28,16 @@ def cross_stage_imports(root: Path) -> set[tuple[str, str]]:
         rel = path.relative_to(root).with_suffix("").parts  # ("stages", pkg, ..., module)
         own = rel[1]
         module = ".".join(rel[:-1] if rel[-1] == "__init__" else rel)
-        for t in _targets(ast.parse(path.read_bytes(), str(path)), rel[:-1]):
-            if len(t) >= 2 and t[0] == "stages" and t[1] not in {own, SHARED}:
-                edges.add((module, ".".join(t)))
-            if t[0] == "pipeline":  # a stage is a pure function of its config and inputs
-                edges.add((module, ".".join(t)))
+        bad = {
+            t
+            for t in imported_names(path, root)  # `from m import n` gives m and m.n
+            if (len(t) >= 2 and t[0] == "stages" and t[1] not in {own, SHARED})
+            or t[0] == "pipeline"  # a stage is a pure function of its config and inputs
+        }
+        # each import once, by the module it names (m, not m.n as well)
+        edges.update(
+            (module, ".".join(t)) for t in bad if not any(t[:i] in bad for i in range(len(t)))
+        )
     return edges
 
 

@@ -27,7 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.bench.real import confusion, observed, run_plan, run_poses, stripped_copy
+from pipeline.bench.real import confusion, observed, run_plan, stripped_copy
+from pipeline.bench.runs import run_poses
 from stages.common.blueprint import Blueprint
 from stages.common.capture import UNKNOWN
 from stages.common.errors import BlunfError

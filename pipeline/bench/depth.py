@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
+from pipeline.bench.runs import run_poses
 from stages.common.capture import Capture
 from stages.common.errors import BlunfError
 from stages.common.gt_frame import pose_similarity
@@ -148,8 +149,6 @@ class _Tally:
 def photos_scale(photos_run: Path, ref_run: Path) -> float:
     """The factor that takes the photos-only run's lengths to the reference run's metres:
     the scale of the whole-pose similarity between the two runs' poses (1 when no fit)."""
-    from pipeline.bench.real import run_poses  # real.py imports this module
-
     est, gt = run_poses(photos_run), run_poses(ref_run)
     common = [s for s in gt if s in est]
     m, _ = pose_similarity([est[s] for s in common], [gt[s] for s in common])

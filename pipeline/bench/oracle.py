@@ -36,7 +36,8 @@ import numpy as np
 from scipy import ndimage
 
 from pipeline.bench.depth import at_centres, depth_folder, sensor_views
-from pipeline.bench.real import run_plan, run_poses, score
+from pipeline.bench.real import run_plan, score
+from pipeline.bench.runs import run_poses
 from stages.common.capture import Frame, write_layout
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth, read_label, write_depth_png, write_json

@@ -44,8 +44,9 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.bench.runs import run_poses
 from stages.common.blueprint import Blueprint
-from stages.common.capture import UNKNOWN, Capture, write_layout
+from stages.common.capture import UNKNOWN, write_layout
 from stages.common.classes import GEOMETRY, GEOMETRY_IGNORE, UNKNOWN_NAME
 from stages.common.errors import BlunfError
 from stages.common.gt_frame import plan_frame
@@ -97,15 +98,6 @@ def run_plan(capture: Path, out: Path, args: list[str]) -> float:
     if rc != 0:
         raise BlunfError(f"{out}: blunf run failed (exit code {rc}); see its report.json")
     return time.perf_counter() - t
-
-
-def run_poses(run: Path) -> dict[str, np.ndarray]:
-    """stem -> [4, 4] camera-to-world pose in the frame of the run's plan (the align stage's)."""
-    found = sorted(glob.glob(str(Path(run) / "align" / "*" / "frames.json")))
-    if not found:
-        raise BlunfError(f"{run}: no align/*/frames.json (not a finished run folder)")
-    cap = Capture.load(Path(max(found, key=lambda p: Path(p).stat().st_mtime)))
-    return {f.stem: np.asarray(f.pose, np.float64) for f in cap.frames if f.pose is not None}
 
 
 def scale_facts(run: Path) -> dict:

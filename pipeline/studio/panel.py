@@ -1,53 +1,60 @@
 """The studio's panel: selection, edits, view, file, and training the NeRF of a run without one.
 
-A mixin of `pipeline.studio.app.Studio` (which holds the session, the server and the scene);
-every action runs through `_do`, so that a user error becomes the page's message and
-changes nothing. A value the page sends is checked against what the server offered, never
-against the handle's `options` (viser lets a client set those too): the session checks the
-edits' values, `offered` here the input view and the full view's path.
+It owns the panel's widgets and their actions; what an action changes in the 3-D scene it
+asks of the scene (`pipeline.studio.scene`), what it changes in the tabs
+(`pipeline.studio.tabs`). Every action runs through `do`, so that a user error becomes the
+page's message and changes nothing. A value the page sends is checked against what the
+server offered, never against the handle's `options` (viser lets a client set those too):
+the session checks the edits' values, `offered` here the input view and the full view's
+path.
 """
 
 from __future__ import annotations
 
 import threading
 import time
-from typing import TYPE_CHECKING, Any
+from collections.abc import Callable
+
+import viser
 
 from pipeline.render import TRAIN_HINT
 from pipeline.studio.plan_view import plan_picture
-from pipeline.studio.state import OPS, STRENGTH, WIDTH, offered
+from pipeline.studio.scene import StudioScene
+from pipeline.studio.state import Session
+from pipeline.studio.tabs import Tabs
 from pipeline.studio.train import Trainer
+from pipeline.studio.values import OPS, STRENGTH, WIDTH, offered
 from stages.common.errors import BlunfError
-
-if TYPE_CHECKING:
-    import viser
-
-    from pipeline.studio.state import Session
-    from pipeline.studio.view import ClientView
 
 FULL_PATHS = ("fast", "volume")  # how the full view is rendered (the first: the default)
 PLAN_SCALE = 2  # pixels of the panel's plan picture per plan cell
 
 
 class Panel:
-    session: Session
-    server: viser.ViserServer
-    clients: dict[int, ClientView]
-    views_seen: set[int]
-    running: bool
-    trainer: Trainer
+    """The panel's widgets, and what each does."""
 
-    def _layers(self) -> None: ...
-    def _sketch_mode(self) -> None: ...
-    def _show_selection(self) -> None: ...
-    def _to_plan_view(self, ev: Any) -> None: ...
-    def _field_ready(self) -> None: ...
-    def _draw_stroke(self) -> None: ...
+    def __init__(
+        self,
+        session: Session,
+        server: viser.ViserServer,
+        scene: StudioScene,
+        tabs: Tabs,
+        trainer: Trainer,
+        running: Callable[[], bool],
+        on_sketch: Callable[[bool], None],
+        on_field: Callable[[], None],
+    ):
+        self.session, self.server, self.scene, self.tabs = session, server, scene, tabs
+        self.trainer = trainer
+        self.on_sketch = on_sketch  # the "Sketch" checkbox changed: drags on the plan draw
+        self.on_field = on_field  # the NeRF trained from the page is ready
+        self.running = running  # False: the studio stops (the training's watch ends)
+        self._build()
 
     def say(self, text: str) -> None:
         self.message.content = text
 
-    def _build_gui(self) -> None:
+    def _build(self) -> None:
         gui, sess = self.server.gui, self.session
         gui.add_markdown(f"**blunf studio**: `{sess.files.run}`")
         self.message = gui.add_markdown("Click on the plan (the floor) to select an object.")
@@ -59,7 +66,7 @@ class Panel:
             visible=not sess.scene.has_field,
         )
         self.train_button = gui.add_button("Train the NeRF", visible=not sess.scene.has_field)
-        self.train_button.on_click(lambda _: self._do(self._train))
+        self.train_button.on_click(lambda _: self.do(self._train))
         self.train_bar = gui.add_progress_bar(0.0, visible=False)
         self.train_info = gui.add_markdown("", visible=False)
         self.sel_info = gui.add_markdown("Nothing selected: click on the plan.")
@@ -68,14 +75,14 @@ class Panel:
                 plan_picture(sess.scene.bp, scale=PLAN_SCALE), format="png"
             )
             gui.add_button("Plan view (2D)").on_click(
-                lambda ev: self._do(lambda: self._to_plan_view(ev))
+                lambda ev: self.do(lambda: self._to_plan_view(ev))
             )
             self.cls = gui.add_dropdown("Class", tuple(sess.classes()) or ("(none)",))
-            gui.add_button("Select class").on_click(lambda _: self._do(self._select_class))
+            gui.add_button("Select class").on_click(lambda _: self.do(self._select_class))
             self.sketching = gui.add_checkbox("Sketch: draw on the plan", False)
-            self.sketching.on_update(lambda _: self._sketch_mode())
+            self.sketching.on_update(lambda _: self.on_sketch(self.sketching.value))
             self.stroke_info = gui.add_markdown("Stroke: no points")
-            gui.add_button("Clear stroke").on_click(lambda _: self._do(self._clear_stroke))
+            gui.add_button("Clear stroke").on_click(lambda _: self.do(self._clear_stroke))
         with gui.add_folder("Edit"):
             self.op = gui.add_dropdown("Operation", OPS)
             self.color = gui.add_rgb("Colour", (40, 90, 200))
@@ -83,34 +90,54 @@ class Panel:
             tex = tuple(sess.textures()) or ("(none)",)
             self.texture = gui.add_dropdown("Texture", tex)
             self.upload = gui.add_upload_button("Upload texture", mime_type="image/*")
-            self.upload.on_upload(lambda _: self._do(self._uploaded))
+            self.upload.on_upload(lambda _: self.do(self._uploaded))
             self.width = gui.add_slider("Stroke width (m)", *WIDTH, 0.01, 0.1)
-            gui.add_button("Apply").on_click(lambda _: self._do(self._apply))
-            gui.add_button("Undo").on_click(lambda _: self._do(self._undo))
-            gui.add_button("Redo").on_click(lambda _: self._do(self._redo))
+            gui.add_button("Apply").on_click(lambda _: self.do(self._apply))
+            gui.add_button("Undo").on_click(lambda _: self.do(self._undo))
+            gui.add_button("Redo").on_click(lambda _: self.do(self._redo))
             self.edit_list = gui.add_markdown("No edits.")
         with gui.add_folder("View"):
             self.before = gui.add_checkbox("Before (no edits)", False)
             self.render_only = gui.add_checkbox("Render only", False)
-            self.render_only.on_update(lambda _: self._layers())
+            self.render_only.on_update(lambda _: self.scene.show(not self.render_only.value))
             self.view_names = tuple(f"{i}: {f.stem}" for i, f in enumerate(sess.scene.cap.frames))
             self.view_pick = gui.add_dropdown("Input view", self.view_names)
-            gui.add_button("Go to view").on_click(lambda ev: self._do(lambda: self._go(ev)))
+            gui.add_button("Go to view").on_click(lambda ev: self.do(lambda: self._go(ev)))
             # the preview always takes the fast path (stages/edit/surface.py); the full
             # view too by default (measured in the README: "The fast render path")
             self.full_path = gui.add_dropdown("Full view", FULL_PATHS)
-            self.full_path.on_update(lambda _: self._do(self._full_path))
+            self.full_path.on_update(lambda _: self.do(self._full_path))
             self.timing = gui.add_markdown("render: -")
         with gui.add_folder("File"):
-            gui.add_button("Save").on_click(lambda _: self._do(self._save))
-            gui.add_button("Load saved").on_click(lambda _: self._do(self._load))
+            gui.add_button("Save").on_click(lambda _: self.do(self._save))
+            gui.add_button("Load saved").on_click(lambda _: self.do(self._load))
 
-    def _do(self, fn) -> None:
+    def do(self, fn) -> None:
         """Run a panel action: a user error becomes the page's message, nothing applied."""
         try:
             fn()
         except BlunfError as e:
             self.say(f"**Not applied:** {e}")
+
+    def show_selection(self) -> None:
+        """The session's selection on the floor, on the plan picture and in words."""
+        s = self.session.selection
+        self.scene.show_selection(s)
+        self._draw_picture()
+        if s is None:
+            self.sel_info.content = "Nothing selected: click on the plan."
+            return
+        i = s.info
+        self.sel_info.content = (
+            f"**Selected:** {i['class']} (instance {', '.join(map(str, i['instance']))}), "
+            f"{i['area_m2']} m², x {i['bbox'][0]}..{i['bbox'][2]}, "
+            f"y {i['bbox'][1]}..{i['bbox'][3]} m"
+        )
+
+    def _to_plan_view(self, ev) -> None:
+        for cv in self.tabs.of(ev):
+            cv.plan_view()
+        self.say("Plan view: click on the plan to select, or draw on it with Sketch on.")
 
     def _draw_picture(self) -> None:
         """The panel's plan picture: the selection and the stroke on the plan."""
@@ -124,21 +151,21 @@ class Panel:
 
     def _select_class(self) -> None:
         self.session.select_class(self.cls.value)
-        self._show_selection()
+        self.show_selection()
         self.say(f"Selected every {self.cls.value}.")
 
     def _clear_stroke(self) -> None:
         self.session.clear_stroke()
-        self._stroke_changed()
+        self.stroke_changed()
 
-    def _stroke_changed(self, picture: bool = True) -> None:
+    def stroke_changed(self, picture: bool = True) -> None:
         st = self.session.stroke
         self.stroke_info.content = (
             f"Stroke: {len(st)} points (last {st[-1][0]:.2f}, {st[-1][1]:.2f} m)"
             if st
             else "Stroke: no points"
         )
-        self._draw_stroke()
+        self.scene.draw_stroke(st)
         if picture:
             self._draw_picture()
 
@@ -158,7 +185,7 @@ class Panel:
             kw["width"] = self.width.value
         self.session.apply(op, **kw)
         if op == "sketch":
-            self._stroke_changed()
+            self.stroke_changed()
         self._edits_changed(f"Applied {op}.")
 
     def _full_path(self) -> None:
@@ -174,21 +201,19 @@ class Panel:
         self._edits_changed("Redone." if self.session.redo() else "Nothing to redo.")
 
     def _edits_changed(self, msg: str) -> None:
-        for cv in list(self.clients.values()):
-            cv.moved = time.perf_counter()  # a preview first, then the full view
+        self.tabs.redraw()
         lines = self.session.describe()
         self.edit_list.content = "  \n".join(lines) if lines else "No edits."
         self.say(msg)
 
     def _go(self, ev) -> None:
         n = int(offered(self.view_pick.value, self.view_names, "input view").split(":")[0])
-        targets = [self.clients[ev.client.client_id]] if ev.client else self.clients.values()
-        for cv in targets:
+        for cv in self.tabs.of(ev):
             cv.jump(n)
         self.say(f"At input view {n}.")
 
     def _save(self) -> None:
-        views = sorted(self.views_seen) or [0]
+        views = sorted(self.tabs.views_seen) or [0]
         path = self.session.save(views)
         if self.session.scene.has_field:  # the renders the spec reproduces, beside it
             out = path.parent / "studio_views"
@@ -208,7 +233,7 @@ class Panel:
 
     # ---- training --------------------------------------------------------------------------
     def _train(self) -> None:
-        spec = self.trainer.start(sorted(self.views_seen) or [0])
+        spec = self.trainer.start(sorted(self.tabs.views_seen) or [0])
         self.train_button.disabled = True
         self.train_bar.visible = self.train_info.visible = True
         self.say(f"Training the NeRF for {spec} (the page follows it).")
@@ -216,7 +241,7 @@ class Panel:
 
     def _watch_training(self) -> None:
         """Show the training's progress once a second; when done, the renders start."""
-        while self.running:
+        while self.running():
             line, frac = self.trainer.progress()
             self.train_info.content = line
             self.train_bar.animated = frac is None
@@ -225,7 +250,7 @@ class Panel:
                 break
             time.sleep(1.0)
         if self.trainer.state == "done":
-            self._field_ready()
+            self.on_field()
             self.train_bar.visible = self.train_button.visible = self.no_field.visible = False
             self.say("The NeRF is trained: the view shows the edits.")
         else:

@@ -7,7 +7,7 @@ canvas, where the plan lies on the floor as an image node: "Plan view" puts a ta
 straight above the plan looking down, north up (`top_view`). A plane seen square-on through
 a pinhole is an exact scaled copy of itself, so the canvas then shows the plan as a 2-D
 picture, and a click there takes the same path as anywhere in 3-D: the pointer's ray, its
-floor point (`state.floor_point`), the plan cell under it (`Session.click`).
+floor point (`values.floor_point`), the plan cell under it (`Session.click`).
 
 Strokes: the plan's image node reports drags (start, update, end, ~20 a second) with the
 pointer projected on a plane facing the camera through the grab point; the line from the
@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.render import viewer_camera
+from pipeline.studio.values import floor_point
 from stages.common.blueprint import Blueprint, Grid
 from stages.common.classes import class_color
 
@@ -123,8 +124,6 @@ class StrokeDrag:
     def move(self, camera: Any, pointer: Sequence[float]) -> int:
         """Add the floor point on the ray from the camera's position through `pointer` (a
         world point on the pointer's ray); returns the stroke's length."""
-        from pipeline.studio.state import floor_point
-
         if not self.active:
             return len(self.session.stroke)
         o = np.asarray(camera, np.float64)

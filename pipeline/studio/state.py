@@ -7,7 +7,7 @@ no stroke, an upload that is not an image) raises a one-line BlunfError and chan
 
 The page is a client like any other (viser does not check a dropdown's value against its
 options, nor a slider's against its range): every value it sends is checked here against what
-the server offered (`offered`, the ranges below), and every path is resolved and checked
+the server offered (`pipeline.studio.values`), and every path is resolved and checked
 inside the studio's folder before any file is written.
 """
 
@@ -25,6 +25,7 @@ from PIL import Image, UnidentifiedImageError
 
 from pipeline.publish import STUDIO
 from pipeline.render import RunFiles, Scene, run_files
+from pipeline.studio.values import OPS, STRENGTH, WIDTH, floor_point, in_range, inside, offered, rgb
 from stages.common.capture import UNKNOWN
 from stages.common.errors import BlunfError
 from stages.edit.select import select_cells
@@ -36,47 +37,6 @@ MAX_UPLOAD = 20_000_000  # bytes
 BOMB = Image.DecompressionBombError  # PIL's refusal of a header claiming too many pixels
 MAX_UPLOAD_PIXELS = 4096 * 4096  # an upload's pixels (a texture; a larger one: refused)
 MAX_STROKE = 10_000  # points of a sketch's stroke
-OPS = ("remove", "recolor", "retexture", "sketch", "mask")  # the page's operations
-STRENGTH = (0.0, 1.0)  # the strength slider's range
-WIDTH = (0.02, 0.5)  # the stroke width slider's range (metres)
-
-
-def offered(value: Any, options: Any, what: str) -> Any:
-    """`value` when it is one of the `options` the page was given, else a one-line error."""
-    if not isinstance(value, str | int) or isinstance(value, bool) or value not in options:
-        raise BlunfError(f"{what}: {str(value)[:80]!r} is not one of the choices offered")
-    return value
-
-
-def in_range(value: Any, lo: float, hi: float, what: str) -> float:
-    """A finite number within [lo, hi] (the slider's range), else a one-line error."""
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        v = float("nan")
-    if not (np.isfinite(v) and lo <= v <= hi):
-        raise BlunfError(f"{what}: must be a number in {lo}..{hi}, got {str(value)[:80]!r}")
-    return v
-
-
-def rgb(value: Any) -> list[int]:
-    """[r, g, b] with integer values in 0..255, else a one-line error."""
-    ok = isinstance(value, list | tuple) and len(value) == 3
-    if ok:
-        try:
-            return [int(in_range(c, 0, 255, "colour")) for c in value]
-        except BlunfError:
-            pass
-    raise BlunfError(f"colour: must be [r, g, b] in 0..255, got {str(value)[:80]!r}")
-
-
-def inside(folder: Path, name: str, what: str) -> Path:
-    """`folder / name` resolved, when `name` is a plain file name that stays inside `folder`."""
-    bad = not isinstance(name, str) or not name or name != Path(name).name or name[0] == "."
-    p = (folder / str(name)).resolve()
-    if bad or not p.is_relative_to(folder.resolve()):
-        raise BlunfError(f"{what} {str(name)[:80]!r}: not a file name of {folder}")
-    return p
 
 
 @dataclass(frozen=True)
@@ -86,17 +46,6 @@ class Selection:
     select: dict  # e.g. {"click": [x, y]} or {"class": "sofa"}
     cells: np.ndarray  # bool [H, W]
     info: dict  # class, instance, area_m2, bbox [xmin, ymin, xmax, ymax] (metres), cells
-
-
-def floor_point(origin: Any, direction: Any) -> tuple[float, float]:
-    """Where a ray meets the floor plane z = 0, or a one-line error when it does not."""
-    o, d = np.asarray(origin, np.float64), np.asarray(direction, np.float64)
-    if o.shape != (3,) or d.shape != (3,) or not np.all(np.isfinite(o) & np.isfinite(d)):
-        raise BlunfError("click: not a ray")
-    if abs(d[2]) < 1e-9 or -o[2] / d[2] <= 0:
-        raise BlunfError("click: off the plan (the ray does not meet the floor)")
-    t = -o[2] / d[2]
-    return float(o[0] + t * d[0]), float(o[1] + t * d[1])
 
 
 class Session:

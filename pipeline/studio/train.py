@@ -21,7 +21,7 @@ from pathlib import Path
 
 import yaml
 
-from pipeline.config import Config, load_config, merge
+from pipeline.config import Config, load_config, merge, recorded_sections
 from pipeline.runner import RunEvent, StageEvent
 from pipeline.studio.state import Session
 from stages.common.errors import BlunfError
@@ -39,6 +39,7 @@ def training_config(run: Path, sets: Sequence[str] = ()) -> Config:
     d = read_json(rep).get("config")
     if not isinstance(d, dict):
         raise BlunfError(f"{rep}: no config recorded (made by an older blunf? run it again)")
+    d = recorded_sections(d)  # a run of an earlier version: its flat keys moved
     edit = yaml.safe_load(EDIT_CONFIG.read_text()) or {}
     with tempfile.TemporaryDirectory(prefix="blunf-studio-") as tmp:
         path = Path(tmp) / "config.yaml"

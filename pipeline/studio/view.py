@@ -48,18 +48,34 @@ def background_depth(depth: np.ndarray | None) -> np.ndarray | None:
     return np.where(np.isfinite(d), d + DEPTH_MARGIN, FAR).astype(np.float32)
 
 
-class Host(Protocol):
-    """What a tab needs of the studio that serves it (`pipeline.studio.app.Studio`)."""
+class Choices(Protocol):
+    """The panel's settings a render reads, and where it reports (`pipeline.studio.panel`)."""
 
-    session: Session
-    views_seen: set[int]
-    running: bool
-    renders: int  # renders shown so far
     before: viser.GuiCheckboxHandle  # "Before (no edits)"
     full_path: viser.GuiDropdownHandle  # the full view's path: fast or volume
     timing: viser.GuiMarkdownHandle  # where the render's time is shown
 
     def say(self, text: str) -> None: ...
+
+
+class Seen(Protocol):
+    """What the tabs keep of every tab (`pipeline.studio.tabs.Tabs`)."""
+
+    views_seen: set[int]
+    renders: int  # renders shown so far
+
+
+class Host(Protocol):
+    """What a tab needs of the studio that serves it (`pipeline.studio.app.Studio`)."""
+
+    session: Session
+    running: bool
+
+    @property
+    def panel(self) -> Choices: ...
+
+    @property
+    def tabs(self) -> Seen: ...
 
 
 class ClientView:
@@ -87,7 +103,7 @@ class ClientView:
             cam.wxyz = pose_wxyz(pose)
         self.at_view = n
         self.moved = time.perf_counter()  # a preview first, then the full view
-        self.studio.views_seen.add(n)
+        self.studio.tabs.views_seen.add(n)
 
     def plan_view(self) -> None:
         """The camera straight above the plan, north up: the canvas shows the plan in 2-D."""
@@ -136,7 +152,7 @@ class ClientView:
             try:
                 self._tick()
             except BlunfError as e:
-                self.studio.say(f"**Render:** {e}")
+                self.studio.panel.say(f"**Render:** {e}")
                 time.sleep(1.0)
             except Exception as e:  # a lost tab: stop this thread, the server goes on
                 if not self.alive:
@@ -154,7 +170,7 @@ class ClientView:
         except AssertionError:  # no camera state from the page yet
             return None
         st = self.studio
-        return (state, st.session.version, st.before.value, st.full_path.value)
+        return (state, st.session.version, st.panel.before.value, st.panel.full_path.value)
 
     def _tick(self) -> None:
         st = self.studio
@@ -172,7 +188,7 @@ class ClientView:
         if self.drawn is not None and self.drawn[0] == key and (self.drawn[1] or not full):
             return
         pose, intr = self.camera(full)
-        fast = not full or st.full_path.value == "fast"
+        fast = not full or st.panel.full_path.value == "fast"
         scene = st.session.scene
         r = scene.render(pose, intr, st.session.parsed(), before=key[2], fast=fast)
         self.client.scene.set_background_image(r.rgb, format="png", depth=background_depth(r.depth))
@@ -183,8 +199,9 @@ class ClientView:
         how = "volume render"
         if fast:
             how = f"fast path, {r.volume_rendered or 0.0:.0%} of the rays volume rendered"
-        st.renders += 1
-        st.timing.content = (
-            f"{what} {intr.width}x{intr.height}: {r.seconds * 1000:.0f} ms (render {st.renders})"
+        st.tabs.renders += 1
+        st.panel.timing.content = (
+            f"{what} {intr.width}x{intr.height}: {r.seconds * 1000:.0f} ms "
+            f"(render {st.tabs.renders})"
             f"  \n{how}"
         )

@@ -5,20 +5,19 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import ClassVar
+from typing import ClassVar, Literal, get_args
 
 from stages.common.errors import BlunfError
 
-ENCODINGS = ("none", "pe", "hash", "siren")  # as stages.common.encoding.ENCODINGS
-BALANCES = ("none", "sqrt", "cell")
-OUTSIDES = ("clamp", "field")
+Encoding = Literal["none", "pe", "hash", "siren"]  # as stages.common.encoding.ENCODINGS
+ENCODINGS = get_args(Encoding)
 
 
 @dataclass(frozen=True)
 class BlunfConfig:
     """The BluNF field B(x, y) -> class logits and how it is trained (defaults: fast on CPU)."""
 
-    encoding: str = "pe"  # "none" | "pe" | "hash" | "siren"
+    encoding: Encoding = "pe"
     n_freqs: int = 0  # pe: octaves of sin / cos (2^0 .. 2^(n-1)) pi; 0 = auto, see blunf.py
     hash_levels: int = 8  # hash: resolution levels
     hash_features: int = 2  # hash: features per level
@@ -34,10 +33,10 @@ class BlunfConfig:
     steps: int = 1000  # optimisation steps
     # point sampling: "none" (as projected) | "sqrt" (class p ∝ sqrt(count)) | "cell" (every
     # occupied plan cell equally likely, then one of its points)
-    balance: str = "cell"
+    balance: Literal["none", "sqrt", "cell"] = "cell"
     # plan cells beyond the points' bounds (grid.json): "clamp" = the field at the nearest point
     # of the bounds | "field" = the field's own extrapolation
-    outside: str = "clamp"
+    outside: Literal["clamp", "field"] = "clamp"
     seed: int = 0  # seeds the initialisation and the batch sampling
     shrink: float = 0.0  # metres: object footprints (every class but floor, wall, ceiling)
     #                      shrunk by this where they meet the floor, in whole cells, after
@@ -48,12 +47,6 @@ class BlunfConfig:
 
     def __post_init__(self) -> None:  # checked when the config loads, before any stage runs
         c, w = self, "blueprint.blunf"
-        if c.encoding not in ENCODINGS:
-            raise BlunfError(f"{w}.encoding must be one of {ENCODINGS}, got {c.encoding!r}")
-        if c.outside not in OUTSIDES:
-            raise BlunfError(f"{w}.outside must be one of {OUTSIDES}, got {c.outside!r}")
-        if c.balance not in BALANCES:
-            raise BlunfError(f"{w}.balance must be one of {BALANCES}, got {c.balance!r}")
         if not (c.shrink >= 0 and math.isfinite(c.shrink)):
             raise BlunfError(f"{w}.shrink must be >= 0 metres, got {c.shrink}")
         if c.n_freqs < 0:

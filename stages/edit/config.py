@@ -1,23 +1,45 @@
-"""Configuration and the input / output contract of the edit stage."""
+"""Configuration and the input / output contract of the edit stage.
+
+Settings are nested by job: `edit.select.*` (how a plan selection becomes a 3-D extent),
+`edit.render.*` (how the edited scene is drawn), `edit.refine.*` (the surface fused again
+round each selection) and `edit.gif.*` (the orbit GIF). The flat keys of earlier versions
+are listed in `EditConfig.RENAMED` and fail with their new name.
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import ClassVar
+from typing import ClassVar, Literal
 
 from stages.common.classes import FLOOR_NAME, UNKNOWN_NAME
 from stages.common.errors import BlunfError
 
 REMOVED_LABELS = (FLOOR_NAME, UNKNOWN_NAME)
-RENDERS = ("volume", "surface")
+
+
+def _metres(section: str, obj: object, *names: str) -> None:
+    for name in names:
+        v = getattr(obj, name)
+        if not 0 <= v < float("inf"):
+            raise BlunfError(f"edit.{section}.{name}: must be a finite number >= 0 metres, got {v}")
+
+
+def _positive(section: str, obj: object, *names: str) -> None:
+    for name in names:
+        if getattr(obj, name) < 1:
+            raise BlunfError(f"edit.{section}.{name}: must be >= 1, got {getattr(obj, name)}")
+
+
+def _scale(section: str, v: float) -> None:
+    if not 0 < v <= 4:
+        raise BlunfError(f"edit.{section}.scale: must be in (0, 4], got {v}")
 
 
 @dataclass(frozen=True)
-class EditConfig:
-    """How a selection becomes a 3-D extent, and how the edited scene is rendered and scored."""
+class SelectConfig:
+    """How a selection on the plan becomes a 3-D extent over the fused mesh."""
 
-    impl: str = "nerf"  # registry key in stages.edit.IMPLS: "nerf" (edits applied while rendering)
     floor_class: str = FLOOR_NAME  # name of the floor class in the plan's class table
     floor_band: float = 0.05  # metres: geometry within this of z = 0 is floor; a floor selection
     #                           is the slab |z| <= floor_band, an object's top ignores it
@@ -27,56 +49,98 @@ class EditConfig:
     #                        the object (smaller runs below it are noise)
     top_margin: float = 0.05  # metres added above an object's measured top
     pad: float = 0.02  # metres the footprint grows by sideways (the field's blur at object sides)
-    removed_label: str = FLOOR_NAME  # plan cells of removed selections become floor (when the
-    #                                 plan has it and the selection is not floor) or unknown (255)
-    mask_threshold: float = 0.5  # a pixel is selected when its weight inside the extent >= this
-    change_threshold: float = 0.02  # a pixel changed when a channel moved more than this (RGB 0-1)
-    render_scale: float = 1.0  # renders at this fraction of the frames' resolution
+
+    def __post_init__(self) -> None:
+        _metres("select", self, "floor_band", "floor_clear", "gap", "top_margin", "pad")
+        if not 0 <= self.min_run <= 1:
+            raise BlunfError(f"edit.select.min_run: must be in [0, 1], got {self.min_run}")
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    """How the edited scene is drawn (the stage's views, `blunf render`, the studio)."""
+
     # "volume": every ray marched through the field; "surface": the fused mesh ray-cast and
-    # the field asked at the hit (stages/edit/surface.py: the studio's fast path), so what an
-    # edit changes is outlined by the mesh, and the colours need a less trained field
-    render: str = "volume"
-    # > 0: the depth round each selection (not a floor) is fused again at this voxel
-    # (metres) with a truncation of refine_trunc voxels, and that surface outlines the edit
-    # in the fast render path (stages/edit/refine.py; needs EditInputs.depth); 0 = off
-    refine_voxel: float = 0.0
-    refine_trunc: float = 2.0  # voxels: thinner than the thin parts (chair legs ~3.5 cm)
-    refine_margin: float = 0.05  # metres each box grows by round its selection's extent
-    gif_frames: int = 24  # frames of the orbit GIF when the spec's views are frame indices
-    gif_scale: float = 0.5  # ... rendered at this fraction of the frames' resolution (a
-    #                         spec's own orbit is the views themselves, at render_scale)
-    gif_ms: int = 100  # milliseconds per GIF frame
+    # the field asked at the hit (stages/edit/surface.py: the studio's fast path)
+    path: Literal["volume", "surface"] = "volume"
+    scale: float = 1.0  # renders at this fraction of the frames' resolution
+    mask_threshold: float = 0.5  # a pixel is selected when its weight inside the extent >= this
     chunk: int = 16384  # rays per forward pass
     threads: int = 0  # torch threads while rendering (0 = leave torch's setting)
 
     def __post_init__(self) -> None:
-        for name in ("floor_band", "floor_clear", "gap", "top_margin", "pad"):
-            v = getattr(self, name)
-            if not 0 <= v < float("inf"):
-                raise BlunfError(f"edit.{name}: must be a finite number >= 0 metres, got {v}")
-        for name in ("refine_voxel", "refine_margin"):
-            if not 0 <= getattr(self, name) < float("inf"):
-                raise BlunfError(
-                    f"edit.{name}: must be a finite number >= 0 metres, got {getattr(self, name)}"
-                )
-        if not 1 <= self.refine_trunc < float("inf"):
-            raise BlunfError(f"edit.refine_trunc: must be >= 1 voxels, got {self.refine_trunc}")
-        for name in ("min_run", "mask_threshold", "change_threshold"):
-            v = getattr(self, name)
-            if not 0 <= v <= 1:
-                raise BlunfError(f"edit.{name}: must be in [0, 1], got {v}")
+        _scale("render", self.scale)
+        _positive("render", self, "chunk")
+        if not 0 <= self.mask_threshold <= 1:
+            raise BlunfError(
+                f"edit.render.mask_threshold: must be in [0, 1], got {self.mask_threshold}"
+            )
+
+
+@dataclass(frozen=True)
+class RefineConfig:
+    """The depth round each selection (not a floor) fused again, finer, to outline the edit
+    in the surface path (stages/edit/refine.py; needs EditInputs.depth)."""
+
+    voxel: float = 0.0  # metres; 0 = off
+    trunc: float = 2.0  # voxels: thinner than the thin parts (chair legs ~3.5 cm)
+    margin: float = 0.05  # metres each box grows by round its selection's extent
+
+    def __post_init__(self) -> None:
+        _metres("refine", self, "voxel", "margin")
+        if not 1 <= self.trunc < float("inf"):
+            raise BlunfError(f"edit.refine.trunc: must be >= 1 voxels, got {self.trunc}")
+
+
+@dataclass(frozen=True)
+class GifConfig:
+    """The orbit GIF when the spec's views are frame indices (a spec's own orbit is the views
+    themselves, at render.scale)."""
+
+    frames: int = 24  # frames of the orbit
+    scale: float = 0.5  # rendered at this fraction of the frames' resolution
+    ms: int = 100  # milliseconds per frame
+
+    def __post_init__(self) -> None:
+        _scale("gif", self.scale)
+        _positive("gif", self, "frames", "ms")
+
+
+@dataclass(frozen=True)
+class EditConfig:
+    """How a selection becomes a 3-D extent, and how the edited scene is rendered and scored."""
+
+    impl: Literal["nerf"] = "nerf"  # registry key in stages.edit.IMPLS (edits applied while
+    #                                 rendering)
+    # plan cells of removed selections become floor (when the plan has it and the selection
+    # is not floor) or unknown (255); checked against the class vocabulary's names
+    removed_label: str = FLOOR_NAME
+    change_threshold: float = 0.02  # a pixel changed when a channel moved more than this (RGB 0-1)
+    select: SelectConfig = field(default_factory=SelectConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
+    refine: RefineConfig = field(default_factory=RefineConfig)
+    gif: GifConfig = field(default_factory=GifConfig)
+
+    # the flat keys of earlier versions -> their place now (an old key fails naming it)
+    RENAMED: ClassVar[dict[str, str]] = {
+        **{k: f"select.{k}" for k in (
+            "floor_class", "floor_band", "floor_clear", "gap", "min_run", "top_margin", "pad")},
+        "render": "render.path",
+        "render_scale": "render.scale",
+        **{k: f"render.{k}" for k in ("mask_threshold", "chunk", "threads")},
+        **{f"refine_{k}": f"refine.{k}" for k in ("voxel", "trunc", "margin")},
+        **{f"gif_{k}": f"gif.{k}" for k in ("frames", "scale", "ms")},
+    }  # fmt: skip
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.change_threshold <= 1:
+            raise BlunfError(
+                f"edit.change_threshold: must be in [0, 1], got {self.change_threshold}"
+            )
         if self.removed_label not in REMOVED_LABELS:
             raise BlunfError(
                 f"edit.removed_label: must be one of {REMOVED_LABELS}, got {self.removed_label!r}"
             )
-        if self.render not in RENDERS:
-            raise BlunfError(f"edit.render: must be one of {RENDERS}, got {self.render!r}")
-        for name in ("render_scale", "gif_scale"):
-            if not 0 < getattr(self, name) <= 4:
-                raise BlunfError(f"edit.{name}: must be in (0, 4], got {getattr(self, name)}")
-        for name in ("gif_frames", "gif_ms", "chunk"):
-            if getattr(self, name) < 1:
-                raise BlunfError(f"edit.{name}: must be >= 1, got {getattr(self, name)}")
 
 
 @dataclass(frozen=True)
@@ -88,7 +152,7 @@ class EditInputs:
     frames: Path  # frames.json: the posed frames `views` indexes
     gt: Path | None = None  # ground-truth folder (instances/<stem>.png, instances.json), if any
     depth: Path | None = None  # frames.json with the depth the fusion stage read (sensor or
-    #                            stereo; for edit.refine_voxel), None: no refinement
+    #                            stereo; for edit.refine.voxel), None: no refinement
     textures: tuple[Path, ...] = ()  # the texture files the spec names (`spec_textures(spec)`),
     #                                  listed so that a changed texture changes the cache key
 

@@ -69,7 +69,7 @@ def run(cfg: EditConfig, inputs: EditInputs, out: Path) -> EditOutputs:
     outs = EditOutputs.at(out)
 
     mesh = load_mesh(inputs.mesh)
-    with torch_threads(cfg.threads):
+    with torch_threads(cfg.render.threads):
         view = EditedView(cfg, load_model(inputs.model), mesh, bp, cmap)
         edits: list[FieldEdit] = []  # as applied to the field
         mesh_edits: list[FieldEdit] = []  # the same, shaded against the mesh's colours
@@ -96,15 +96,15 @@ def run(cfg: EditConfig, inputs: EditInputs, out: Path) -> EditOutputs:
         views = _views(spec, cap, cfg)
         cast_v, cast_f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
         refined = None
-        if cfg.render == "surface" and cfg.refine_voxel > 0 and inputs.depth is not None:
+        if cfg.render.path == "surface" and cfg.refine.voxel > 0 and inputs.depth is not None:
             objects = [
                 e.extent
                 for e, r in zip(edits, records, strict=True)
-                if all(c["class"] != cfg.floor_class for c in r["components"])
+                if all(c["class"] != cfg.select.floor_class for c in r["components"])
             ]
             cast_v, cast_f, refined = refine_mesh(
-                cast_v, cast_f, boxes_of(objects, view.verts, cfg.refine_margin), inputs.depth,
-                cfg.refine_voxel, cfg.refine_trunc,
+                cast_v, cast_f, boxes_of(objects, view.verts, cfg.refine.margin), inputs.depth,
+                cfg.refine.voxel, cfg.refine.trunc,
             )  # fmt: skip
         view.cast = (cast_v, cast_f)  # before the first fast render
         scored = _render_views(cfg, view, views, edits, outs, inputs.gt, records)
@@ -135,7 +135,7 @@ def run(cfg: EditConfig, inputs: EditInputs, out: Path) -> EditOutputs:
             },
             "mesh": mesh_stats,
             "render": {
-                "path": cfg.render,
+                "path": cfg.render.path,
                 "size": [views[0].intr.width, views[0].intr.height],
                 "renders": scored["renders"],
                 "seconds": round(scored["seconds"], 3),
@@ -195,13 +195,13 @@ def _views(spec: EditSpec, cap: Capture, cfg: EditConfig) -> list[View]:
             View(
                 cap.frames[i].stem,
                 np.asarray(cap.frames[i].pose),
-                scaled(cap.frames[i].intrinsics, cfg.render_scale),
+                scaled(cap.frames[i].intrinsics, cfg.render.scale),
                 cap.frames[i].stem,
             )
             for i in spec.views
         ]
     o = spec.orbit
-    intr = scaled(cap.frames[0].intrinsics, cfg.render_scale)
+    intr = scaled(cap.frames[0].intrinsics, cfg.render.scale)
     poses = orbit_poses(o.center, o.radius, o.height, o.frames)
     return [View(f"orbit_{k:03d}", p, intr, None) for k, p in enumerate(poses)]
 
@@ -266,9 +266,9 @@ def _gif(
         centers = cap.poses()[:, :3, 3]  # [C, 3]
         c = centers.mean(axis=0)
         radius = float(np.linalg.norm(centers[:, :2] - c[:2], axis=1).mean()) or 1.0
-        poses = orbit_poses((c[0], c[1], ORBIT_TARGET_Z), radius, float(c[2]), cfg.gif_frames)
-        intr = scaled(cap.frames[0].intrinsics, cfg.gif_scale)
+        poses = orbit_poses((c[0], c[1], ORBIT_TARGET_Z), radius, float(c[2]), cfg.gif.frames)
+        intr = scaled(cap.frames[0].intrinsics, cfg.gif.scale)
         for pose in track(poses, "edit orbit", unit="frame"):
             frames.append(view.render(pose, intr, edits).image)
     imgs = [Image.fromarray(f) for f in frames]
-    imgs[0].save(path, save_all=True, append_images=imgs[1:], duration=cfg.gif_ms, loop=0)
+    imgs[0].save(path, save_all=True, append_images=imgs[1:], duration=cfg.gif.ms, loop=0)

@@ -148,18 +148,18 @@ def extent_of(
         part = cells & (cmap == cid)
         r0, c0 = np.argwhere(part)[0]
         cls = class_name(bp, int(bp.labels[r0, c0]))
-        if cls == cfg.floor_class:
-            lo, hi, how = -cfg.floor_band, cfg.floor_band, "floor slab"
+        if cls == cfg.select.floor_class:
+            lo, hi, how = -cfg.select.floor_band, cfg.select.floor_band, "floor slab"
         else:
             z = v[vinner == cid, 2]
             how = "inner cells"
             if len(z) == 0:
                 z, how = v[vcomp == cid, 2], "all cells (no vertex over the inner cells)"
-            lo, hi = cfg.floor_clear, np.inf
+            lo, hi = cfg.select.floor_clear, np.inf
             if len(z) == 0:
                 how = "no fused geometry over it: the whole column above the floor"
             else:
-                hi = _top(z, cfg) + cfg.top_margin
+                hi = _top(z, cfg) + cfg.select.top_margin
         zlo[part], zhi[part] = lo, hi
         info.append(
             {
@@ -170,20 +170,20 @@ def extent_of(
                 "measured_on": how,
             }
         )
-    for _ in range(int(round(cfg.pad / bp.grid.cell))):
+    for _ in range(int(round(cfg.select.pad / bp.grid.cell))):
         zlo, zhi = _grow(zlo, zhi)
     return Extent(bp.grid, zlo, zhi), info
 
 
 def _top(z: np.ndarray, cfg: EditConfig) -> float:
     """Top of an object from the heights z [N] of the vertices over it: the highest vertex of
-    the first run (runs split at gaps > cfg.gap) holding >= min_run of the vertices above the
+    the first run (runs split at gaps > cfg.select.gap) holding >= min_run of the vertices above the
     floor band; the floor band itself when nothing stands above it."""
-    z = np.sort(z[z > cfg.floor_band])
+    z = np.sort(z[z > cfg.select.floor_band])
     if len(z) == 0:
-        return cfg.floor_band
-    runs = np.split(z, np.flatnonzero(np.diff(z) > cfg.gap) + 1)
-    need = cfg.min_run * len(z)
+        return cfg.select.floor_band
+    runs = np.split(z, np.flatnonzero(np.diff(z) > cfg.select.gap) + 1)
+    need = cfg.select.min_run * len(z)
     run = next((r for r in runs if len(r) >= need), max(runs, key=len))
     return float(run[-1])
 
@@ -227,7 +227,7 @@ def edited_plan(
     lab = bp.labels.copy()
     room = np.ones(lab.shape, bool) if bp.inside is None else bp.inside > 0
     inst = None if bp.instances is None else bp.instances.copy()
-    floor_ids = [k for k, n in bp.classes.items() if n == cfg.floor_class]
+    floor_ids = [k for k, n in bp.classes.items() if n == cfg.select.floor_class]
     for e, sel in zip(spec.edits, cells, strict=True):
         if e.op != "remove":
             continue

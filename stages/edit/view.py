@@ -59,7 +59,7 @@ def load_mesh(path: Path) -> trimesh.Trimesh:
 
 
 def scaled(intr: Intrinsics, s: float) -> Intrinsics:
-    """The camera at `s` times its resolution (edit.render_scale, gif_scale, a preview)."""
+    """The camera at `s` times its resolution (edit.render.scale, edit.gif.scale, a preview)."""
     if s == 1.0:
         return intr
     return intr.scaled(max(1, round(intr.width * s)), max(1, round(intr.height * s)))
@@ -88,12 +88,13 @@ def ground_fill(
     FILL_RING band round the footprint, from the mesh's vertex colours `colors` [V, 3] (what
     the photos showed there), or from the field when the mesh has none. None for other ops,
     for a removal of floor itself, and when no floor surrounds the footprint."""
-    if e.op != "remove" or any(c["class"] == cfg.floor_class for c in comps):
+    if e.op != "remove" or any(c["class"] == cfg.select.floor_class for c in comps):
         return None
     grow = max(1, round(FILL_RING / ext.grid.cell))
     ring = ndimage.binary_dilation(ext.footprint, iterations=grow) & ~ext.footprint  # [H, W]
-    ring_ext = Extent(ext.grid, np.where(ring, -cfg.floor_band, np.inf).astype(np.float32),
-                      np.where(ring, cfg.floor_band, -np.inf).astype(np.float32))  # fmt: skip
+    band = cfg.select.floor_band
+    ring_ext = Extent(ext.grid, np.where(ring, -band, np.inf).astype(np.float32),
+                      np.where(ring, band, -np.inf).astype(np.float32))  # fmt: skip
     on = ring_ext.contains(verts)  # [V] fused floor round the footprint
     if not on.any():
         return None
@@ -190,8 +191,8 @@ class EditedView:
 
     def _draw(self, pose, intr, ops, masks, fast: bool) -> dict[str, np.ndarray]:
         if fast:
-            return self.surface().render_view(pose, intr, ops, masks, self.cfg.chunk)
-        return render_view_edited(self._field(), pose, intr, ops, self.cfg.chunk, masks)
+            return self.surface().render_view(pose, intr, ops, masks, self.cfg.render.chunk)
+        return render_view_edited(self._field(), pose, intr, ops, self.cfg.render.chunk, masks)
 
     def _edits(self, edits: Sequence[Edit | FieldEdit]) -> list[FieldEdit]:
         return [self.resolve(e).edit if isinstance(e, Edit) else e for e in edits]
@@ -201,10 +202,11 @@ class EditedView:
         """The unedited view and every edit's selection in it ([E, H, W] masks)."""
         t0 = time.perf_counter()
         eds = self._edits(edits)
-        fast = self.cfg.render == "surface" if fast is None else fast
-        with torch_threads(self.cfg.threads):
+        fast = self.cfg.render.path == "surface" if fast is None else fast
+        with torch_threads(self.cfg.render.threads):
             res = self._draw(pose, intr, [], [e.extent for e in eds], fast)
-        return _picture(res, res["rgb"], res["masks"] >= self.cfg.mask_threshold, 1, t0, fast)
+        sel = res["masks"] >= self.cfg.render.mask_threshold
+        return _picture(res, res["rgb"], sel, 1, t0, fast)
 
     def render(
         self,
@@ -216,16 +218,16 @@ class EditedView:
     ) -> Picture:
         """The view with `edits` applied. `fast`: through the cast mesh's ray cast, the
         field asked at its hits (`stages.edit.surface`), instead of the volume render (None:
-        as edit.render says). `unedited`: the `before` picture of the same view and edits,
+        as edit.render.path says). `unedited`: the `before` picture of the same view and edits,
         whose selections (and, without field edits, rgb) are used instead of rendered."""
         t0 = time.perf_counter()
         eds = self._edits(edits)
-        fast = self.cfg.render == "surface" if fast is None else fast
+        fast = self.cfg.render.path == "surface" if fast is None else fast
         field_ops = [e for e in eds if e.op != "mask"]
         shown = [i for i, e in enumerate(eds) if e.op == "mask"]
-        thr = self.cfg.mask_threshold
+        thr = self.cfg.render.mask_threshold
         res, renders = None, 0
-        with torch_threads(self.cfg.threads):
+        with torch_threads(self.cfg.render.threads):
             ext = [eds[i].extent for i in shown]
             if field_ops or unedited is None:
                 res = self._draw(pose, intr, field_ops, [] if field_ops else ext, fast)

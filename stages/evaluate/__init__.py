@@ -1,10 +1,9 @@
 """Evaluate stage: every metric the capture's ground truth allows (plans, poses)."""
 
-from stages.evaluate import gt
-from stages.evaluate.config import EvaluateConfig
-from stages.evaluate.gt import EvaluateInputs, EvaluateOutputs
+from stages.common.registry import LazyImpls
+from stages.evaluate.config import EvaluateConfig, EvaluateInputs, EvaluateOutputs
 
-IMPLS = {"gt": gt.run}
+IMPLS = LazyImpls({"gt": "stages.evaluate.gt:run"})
 
 __all__ = [
     "IMPLS",

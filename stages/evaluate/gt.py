@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
-from typing import ClassVar
 
 import numpy as np
 
@@ -13,39 +12,11 @@ from stages.common.capture import Capture
 from stages.common.gt_frame import FRAME_ALIGNED, plan_frame, pose_pairs, pose_similarity
 from stages.common.io import read_json, write_json
 from stages.common.plan_metrics import evaluate_plan
-from stages.evaluate.config import EvaluateConfig
+from stages.evaluate.config import EvaluateConfig, EvaluateInputs, EvaluateOutputs
 from stages.evaluate.heldout import heldout_pixels, score_pixels
 from stages.evaluate.layout import layout_to_frame, score_layout
 from stages.evaluate.observation import observation
 from stages.evaluate.poses import pose_metrics
-
-
-@dataclass(frozen=True)
-class EvaluateInputs:
-    frames: Path  # frames.json the plans were projected from (poses; depth and labels for
-    #               the held-out views)
-    gt: Path | None  # the capture's gt/ folder (None: the capture has none)
-    blueprints: tuple[Path, ...]  # blueprint.npz of each method
-    methods: tuple[str, ...]  # the method name of each blueprint
-    poses_estimated: bool  # score poses only when a stage estimated them
-    heldout: Path | None = None  # the project stage's heldout.json (None: no held-out score)
-    layout: Path | None = None  # the layout stage's plan.json (scored against gt/layout.json)
-    points: Path | None = None  # the project stage's points.npz: metrics.observation of the
-    #                             first blueprint (observation.py); None: not scored
-    observed: Path | None = None  # the project stage's observed.npz: the seen / inside
-    #                               shares of a blueprint that does not carry them
-
-
-@dataclass(frozen=True)
-class EvaluateOutputs:
-    STATS: ClassVar[str | None] = None  # metrics.json feeds report.metrics
-    metrics: Path  # metrics.json: {"blueprint": {method: {...}}, "poses": {...}}; held-out
-    #                scores under blueprint.<method>.heldout_pacc; "alignment": the scoring
-    #                frame's conditioning when the plans were read through a similarity
-
-    @classmethod
-    def at(cls, out: Path) -> EvaluateOutputs:
-        return cls(out / "metrics.json")
 
 
 def run(cfg: EvaluateConfig, inputs: EvaluateInputs, out: Path) -> EvaluateOutputs:

@@ -1,5 +1,5 @@
 """Export: the run's user-facing files."""
 
-from stages.export import files
+from stages.common.registry import LazyImpls
 
-IMPLS = {"files": files.run}
+IMPLS = LazyImpls({"files": "stages.export.files:run"})

@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import shutil
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
-from typing import ClassVar
 
 from shapely.errors import GEOSException
 
@@ -15,40 +14,9 @@ from stages.common.components import plan_summary, polygons, with_heights
 from stages.common.io import read_json, write_json
 from stages.common.nerfstudio import write_transforms
 from stages.common.plan_picture import plan_png
-from stages.export.config import ExportConfig
+from stages.export.config import ExportConfig, ExportInputs, ExportOutputs
 from stages.export.picture import architect_png
 from stages.export.vector import write_dxf, write_geojson, write_svg
-
-FILES = (
-    "blueprint.png",
-    "blueprint.npz",
-    "blueprint.svg",
-    "blueprint.geojson",
-    "blueprint.dxf",
-    "mesh.ply",
-    "transforms.json",
-    "components.json",
-)
-
-
-@dataclass(frozen=True)
-class ExportInputs:
-    blueprint: Path  # blueprint.npz of the product's method
-    mesh: Path  # fused mesh.ply
-    frames: Path  # frames.json with the final (aligned) poses
-    layout: Path | None = None  # the layout stage's plan.json, drawn over blueprint.png (None:
-    #                             the classes alone)
-
-
-@dataclass(frozen=True)
-class ExportOutputs:
-    STATS: ClassVar[str | None] = "export.json"  # its stats file: the report's facts
-    folder: Path
-    files: tuple[str, ...] = FILES
-
-    @classmethod
-    def at(cls, out: Path) -> ExportOutputs:
-        return cls(Path(out))
 
 
 def run(cfg: ExportConfig, inputs: ExportInputs, out: Path) -> ExportOutputs:

@@ -10,9 +10,7 @@ from stages.common.errors import BlunfError
 from stages.common.memory import check_memory
 
 VOXEL_BYTES = 20  # float tsdf, weight and RGB per voxel (as fusion/tsdf.py allocates them)
-MIN_BLOCKS = 64  # blocks any fused scene touches at least (the 7-Scenes kitchen touches 607
-#                 blocks of 0.32 m at the defaults). Counted in blocks, not in square metres of
-#                 surface, so that the check holds for a world in any unit (tests/test_stability)
+MIN_BLOCKS = 64  # blocks any fused scene touches at least (docs/figures.md#fusion-min-blocks)
 
 
 @dataclass(frozen=True)
@@ -25,10 +23,8 @@ class FusionConfig:
     depth_min: float = 0.1  # readings nearer than this (metres) are not fused
     depth_max: float = 5.0  # readings farther than this (metres) are not fused
     far_share: float = 0.05  # > 0: the far limit grows past depth_max to the farthest
-    #                          view's depth with this share of its readings beyond it (a room
-    #                          longer than depth_max, its end wall seen only from afar: a
-    #                          photos-only L room's 8.3 m arm fused to 7.1 m); 0 = fixed.
-    #                          The real captures' views stay within 5 m (kitchen, office)
+    #                          view's depth with this share of its readings beyond it; 0 =
+    #                          fixed (docs/figures.md#fusion-far-share)
     far_max: float = 10.0  # metres: far_share grows the far limit up to this at most (a
     #                        patch of junk readings far off never moves it further)
     block_resolution: int = 16  # voxels along each side of a hashed voxel block

@@ -15,7 +15,8 @@ from pathlib import Path
 from stages.common.capture import Capture, read_layout, write_layout
 from stages.common.errors import BlunfError
 from stages.common.io import check_exists
-from stages.ingest import colmap, exif, nerfstudio, photos, replica, select, sevenscenes, video
+from stages.common.registry import LazyImpls
+from stages.ingest import colmap, exif, nerfstudio, photos, replica, sevenscenes, video
 
 log = logging.getLogger(__name__)
 
@@ -36,7 +37,7 @@ READERS: dict[str, Callable[[Path, Path], Capture]] = {
     "video": video.read,
 }
 
-IMPLS = {"auto": select.run}
+IMPLS = LazyImpls({"auto": "stages.ingest.select:run"})
 
 
 def detect(src: Path) -> str:

@@ -1,8 +1,11 @@
-"""Configuration of the ingest stage (reading a capture and choosing its frames)."""
+"""Configuration and the input / output contract of the ingest stage (reading a capture
+and choosing its frames)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
+from typing import ClassVar, Literal
 
 
 @dataclass(frozen=True)
@@ -16,4 +19,20 @@ class IngestConfig:
     #                            max_side wins when set); their intrinsics scale with them
     video_frames: int = 0  # video: frames kept, the sharpest of each of N equal windows;
     #                        0 = by its length (2 a second, 20 to 100)
-    check: str = "full"  # "full": decode every selected file; "quick": headers and paths only
+    # "full": decode every selected file; "quick": headers and paths only
+    check: Literal["full", "quick"] = "full"
+
+
+@dataclass(frozen=True)
+class IngestInputs:
+    capture: Path  # capture folder in any layout of stages.ingest.READERS (or transforms.json)
+
+
+@dataclass(frozen=True)
+class IngestOutputs:
+    STATS: ClassVar[str | None] = "ingest.json"  # its stats file: the report's facts
+    frames: Path  # frames.json written by Capture.save
+
+    @classmethod
+    def at(cls, out: Path) -> IngestOutputs:
+        return cls(frames=Path(out) / "frames.json")

@@ -11,14 +11,13 @@ from __future__ import annotations
 import logging
 import os
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, replace
 from pathlib import Path
-from typing import ClassVar
 
 import numpy as np
 from PIL import Image
 
-from stages.common.capture import Capture, Frame, recentred
+from stages.common.capture import Capture, Frame
 from stages.common.checks import check_intrinsics, check_unique_stems
 from stages.common.errors import BlunfError
 from stages.common.io import (
@@ -31,28 +30,12 @@ from stages.common.io import (
     write_json,
     write_label_png,
 )
-from stages.ingest.config import IngestConfig
+from stages.ingest.config import IngestConfig, IngestInputs, IngestOutputs
 from stages.ingest.photos import intrinsics_facts
+from stages.ingest.recentre import recentred
 from stages.ingest.video import VideoOptions
 
 log = logging.getLogger(__name__)
-
-CHECKS = ("full", "quick")
-
-
-@dataclass(frozen=True)
-class IngestInputs:
-    capture: Path  # capture folder in any layout of stages.ingest.READERS (or transforms.json)
-
-
-@dataclass(frozen=True)
-class IngestOutputs:
-    STATS: ClassVar[str | None] = "ingest.json"  # its stats file: the report's facts
-    frames: Path  # frames.json written by Capture.save
-
-    @classmethod
-    def at(cls, out: Path) -> IngestOutputs:
-        return cls(frames=Path(out) / "frames.json")
 
 
 def select_indices(count: int, n: int) -> list[int]:
@@ -82,8 +65,6 @@ def _check_config(cfg: IngestConfig) -> None:
     for name in ("max_side", "photo_max_side", "video_frames"):
         if getattr(cfg, name) < 0:
             raise BlunfError(f"ingest.{name}: must be >= 0, got {getattr(cfg, name)}")
-    if cfg.check not in CHECKS:
-        raise BlunfError(f"ingest.check: {cfg.check!r} unknown (use one of {CHECKS})")
 
 
 def check_structure(cap: Capture, allowed: tuple[Path, ...]) -> None:

@@ -1,15 +1,19 @@
 """The code version in a stage's cache key covers every project file the stage imports,
-transitively: editing a module a stage runs rekeys that stage, and only the stages that run it.
+transitively: editing a module a stage runs rekeys that stage, and only the stages that run it;
+and the stage's code reads every field of its config (the key's other half).
 Each test works on a copy of `stages/`, so that editing it leaves the project alone."""
 
 from __future__ import annotations
 
+import ast
+import dataclasses
 import shutil
 from pathlib import Path
 
 import pytest
 
 from pipeline.cache import PROJECT_ROOT, code_version, stage_sources
+from pipeline.config import default_config
 
 STAGES = (
     "ingest",
@@ -107,3 +111,58 @@ def test_the_depth_stage_is_keyed_by_its_parts_and_the_shared_field(tree):
     again = _versions(tree)
     changed = {s for s in STAGES if again[s] != after[s]}
     assert {"depth", "nerf"} <= changed and changed.isdisjoint({"poses", "fusion", "project"})
+
+
+def _reads(stage: str, root: Path = PROJECT_ROOT) -> set[str]:
+    """Names the stage's code reads as attributes (`cfg.select.pad`: select, pad) or names as
+    strings (`getattr(cfg, "pad")`), over every module its key follows but the config
+    modules (whose checks read every field)."""
+    names: set[str] = set()
+    for path in stage_sources(stage, root):
+        if path.name == "config.py":
+            continue
+        for node in ast.walk(ast.parse(path.read_bytes())):
+            if isinstance(node, ast.Attribute):
+                names.add(node.attr)
+            elif isinstance(node, ast.Constant) and isinstance(node.value, str):
+                names.add(node.value)
+    return names
+
+
+def _fields(obj, path: tuple[str, ...] = ()) -> list[tuple[str, ...]]:
+    out = []
+    for f in dataclasses.fields(obj):
+        v = getattr(obj, f.name)
+        out += _fields(v, (*path, f.name)) if dataclasses.is_dataclass(v) else [(*path, f.name)]
+    return out
+
+
+def unread_fields(stage: str, cfg) -> list[str]:
+    """The config's fields no code of the stage reads: a field is read when its name is read
+    as an attribute (`x.pad`, or named in a getattr) and so is each section over it (a section
+    is often handed down: `sweep(cfg.stereo)` reads `s.window`). `impl` is the runner's."""
+    reads = _reads(stage)
+    return [".".join(f) for f in _fields(cfg) if f != ("impl",) and not set(f) <= reads]
+
+
+@pytest.mark.parametrize("stage", [s for s in STAGES if s != "synth"])
+def test_the_stage_reads_every_field_of_its_config(stage):
+    # a setting in the cache key that no code reads would rerun a stage for nothing, and
+    # tell the user that it does something
+    cfg = default_config()[stage]
+    assert unread_fields(stage, cfg) == []
+
+
+def test_a_field_no_code_reads_is_found():
+    from stages.edit.config import EditConfig, RenderConfig
+
+    @dataclasses.dataclass(frozen=True)
+    class Render(RenderConfig):
+        never_read_knob: int = 0
+
+    @dataclasses.dataclass(frozen=True)
+    class Edit(EditConfig):
+        render: RenderConfig = dataclasses.field(default_factory=Render)
+        forgotten: float = 1.0
+
+    assert unread_fields("edit", Edit()) == ["render.never_read_knob", "forgotten"]

@@ -152,7 +152,8 @@ def test_shipped_configs_load(name):
         assert default_config()["nerf"].train.edge_batch == 0.0
         assert cfg["nerf"].train.max_steps == 1000 and cfg["nerf"].train.time_budget == 0
     if name == "edit-fast.yaml":
-        assert cfg["edit"].render == "surface" and default_config()["edit"].render == "volume"
+        assert cfg["edit"].render.path == "surface"
+        assert default_config()["edit"].render.path == "volume"
         assert cfg["nerf"].train.max_steps == 200
 
 
@@ -164,8 +165,11 @@ def test_shipped_configs_load(name):
         (["blueprint.blunf.steps=-5"], "blueprint.blunf.steps"),
         (["blueprint.blunf.encoding=fourier"], "blueprint.blunf.encoding"),
         (["blueprint.blunf.balance=even"], "blueprint.blunf.balance"),
+        (["blueprint.blunf.outside=wrap"], "blueprint.blunf.outside"),
+        (["nerf.field.kind=mlp"], "nerf.field.kind"),
+        (["ingest.check=thorough"], "ingest.check"),
         (["blueprint.mvr.min_votes=0"], "blueprint.mvr.min_votes"),
-        (["edit.render=raster"], "edit.render"),
+        (["edit.render.path=raster"], "edit.render.path"),
     ],
 )
 def test_settings_no_stage_could_use_fail_at_load(sets, named):
@@ -273,3 +277,23 @@ def test_nested_semantics_settings_and_renamed_keys(tmp_path):
         assert "\n" not in str(e.value)
     with pytest.raises(BlunfError, match="semantics.impl"):
         load_config(None, ["semantics.impl=magic"])
+
+
+def test_the_plan_cell_is_set_once_and_passed_to_the_depth_sweep(tmp_path):
+    # project.cell is the plan's cell; the depth sweep's finest useful resolution follows it
+    assert default_config()["depth"].stereo.cell == default_config()["project"].cell
+    cfg = load_config(None, ["project.cell=0.05"])
+    assert cfg["project"].cell == 0.05 and cfg["depth"].stereo.cell == 0.05
+    for where, load in [
+        ("--set", lambda: load_config(None, ["depth.stereo.cell=0.05"])),
+        ("cell.yaml", lambda: load_config(_yaml(tmp_path, "depth:\n  stereo:\n    cell: 0.05\n"))),
+    ]:
+        with pytest.raises(BlunfError, match=r"depth.stereo.cell: set from project.cell") as e:
+            load()
+        assert where in str(e.value) and "\n" not in str(e.value)
+
+
+def _yaml(tmp_path: Path, text: str) -> Path:
+    p = tmp_path / "cell.yaml"
+    p.write_text(text)
+    return p

@@ -29,8 +29,8 @@ SEPARATOR = 4  # the stage's before | after pictures: white pixels between them
 
 
 RUN = ["--set", f"fusion.voxel={VOXEL}", "--set", "nerf.train.time_budget=0",
-       "--set", "nerf.train.max_steps=20", "--set", "nerf.threads=1", "--set", "edit.threads=1",
-       "--set", "edit.gif_frames=2"]  # fmt: skip
+       "--set", "nerf.train.max_steps=20", "--set", "nerf.threads=1",
+       "--set", "edit.render.threads=1", "--set", "edit.gif.frames=2"]  # fmt: skip
 
 
 @pytest.mark.slow  # a run with a NeRF (20 steps: pixels are compared, not judged), ~1 min
@@ -40,7 +40,7 @@ def test_every_entry_point_renders_the_same_pixels(tmp_path) -> None:
     spec.write_text(SPEC)
     run = tmp_path / "run"
     for path in ("volume", "surface"):  # the second run renders the edits only
-        run_ok(cap, run, "--edits", str(spec), *RUN, "--set", f"edit.render={path}")
+        run_ok(cap, run, "--edits", str(spec), *RUN, "--set", f"edit.render.path={path}")
         _same_pixels(run, spec, path == "surface", tmp_path / f"{path}.png")
 
 

@@ -50,7 +50,7 @@ def test_edits_and_nerf_top(tiny_room, tmp_path):
     )
     out = tmp_path / "run"
     args = ("--edits", str(spec), "--set", "run.methods=[blunf,mvr,nerf_top]")
-    args += ("--set", "edit.gif_frames=4")
+    args += ("--set", "edit.gif.frames=4")
     r = _run(tiny_room, out, *args)
     st = _status(r)
     assert st["depth:stereo"] == "skipped"  # the room gives depth

@@ -12,7 +12,7 @@ from pipeline.runner import Runner, StageEvent
 from stages.common.errors import BlunfError
 from stages.common.progress import StepProgress
 from stages.fusion import FusionInputs
-from stages.ingest.select import IngestInputs
+from stages.ingest.config import IngestInputs
 from tests.runs import VOXEL, small_room
 
 

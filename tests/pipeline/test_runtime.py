@@ -40,3 +40,18 @@ def test_an_explicit_thread_count_wins(monkeypatch):
     monkeypatch.delenv("BLUNF_THREADS")
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     assert 1 <= free_cores() <= len(os.sched_getaffinity(0))
+
+
+def test_threads_are_decided_once_and_handed_to_every_stage(monkeypatch):
+    import pipeline.runtime as rt
+
+    monkeypatch.setattr(rt, "_decided", None)
+    monkeypatch.setenv("OMP_NUM_THREADS", "3")
+    assert rt.stage_threads() == 3  # no runtime set up: the environment's count
+    monkeypatch.delenv("OMP_NUM_THREADS")
+    assert rt.stage_threads() == 1
+    monkeypatch.setenv("BLUNF_THREADS", "2")
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")  # an older setting the decision overrides
+    assert rt.setup_runtime() == 2
+    assert rt.stage_threads() == 2  # what the runtime decided, not OMP_NUM_THREADS again
+    assert rt.stage_threads(4) == 4  # run.threads, when given, wins

@@ -27,7 +27,7 @@ from stages.common.components import component_map
 from stages.common.radiance.field import field_of
 from stages.common.radiance.rays import camera_rays
 from stages.common.radiance.render import RenderOptions
-from stages.edit.config import EditConfig
+from stages.edit.config import EditConfig, SelectConfig
 from stages.edit.ops import FieldEdit, reference_luminance
 from stages.edit.render import look_at, render_rays_edited
 from stages.edit.select import extent_of, select_cells
@@ -42,7 +42,7 @@ SIGMA = 1e4
 # floor_clear 0: the boxes stand on the floor with their bottom at z = 0, the floor slab is
 # z < 0, so an extent from z = 0 up holds all of a box and none of the floor. pad 0: the
 # footprints are exactly the boxes' cells.
-CFG = EditConfig(floor_clear=0.0, pad=0.0)
+CFG = EditConfig(select=SelectConfig(floor_clear=0.0, pad=0.0))
 
 
 def _in_box(x: torch.Tensor, b: tuple[float, float, float, float]) -> torch.Tensor:

@@ -17,6 +17,7 @@ from stages.common.blueprint import Blueprint
 from stages.common.capture import read_layout
 from stages.common.io import read_json, read_label
 from stages.edit import IMPLS, EditConfig, EditInputs, EditOutputs, spec_textures
+from stages.edit.config import GifConfig, RenderConfig
 from stages.fusion import IMPLS as FUSION
 from stages.fusion import FusionConfig, FusionInputs
 from stages.nerf import IMPLS as NERF
@@ -77,7 +78,7 @@ def edited(tmp_path_factory) -> tuple[Path, Path, EditOutputs, EditInputs]:
     )
     out = tmp / "edit"
     out.mkdir()
-    cfg = EditConfig(gif_frames=3, threads=1)
+    cfg = EditConfig(gif=GifConfig(frames=3), render=RenderConfig(threads=1))
     return room, fused.mesh, IMPLS["nerf"](cfg, inputs, out), inputs
 
 
@@ -150,7 +151,7 @@ def test_metrics_and_masks(edited):
 
 
 def test_surface_render_path_changes_what_the_volume_render_changes(edited, tmp_path):
-    """edit.render=surface (the fused mesh ray-cast, the field asked at the hit) on the same
+    """edit.render.path=surface (the fused mesh ray-cast, the field asked at the hit) on the same
     NeRF and spec: the same plan; in view 0, which the 8-view mesh covers, each edit changes
     the pixels the volume render changes, within a few points of its IoU against the ground
     truth (measured: remove 0.932 against 0.959, mask 0.949 against 0.992). In view 6 chair_2
@@ -160,7 +161,8 @@ def test_surface_render_path_changes_what_the_volume_render_changes(edited, tmp_
     room, _, outs, inputs = edited
     out = tmp_path / "surface"
     out.mkdir()
-    fast = IMPLS["nerf"](EditConfig(gif_frames=3, threads=1, render="surface"), inputs, out)
+    cfg = EditConfig(gif=GifConfig(frames=3), render=RenderConfig(path="surface", threads=1))
+    fast = IMPLS["nerf"](cfg, inputs, out)
     a, b = read_json(outs.stats), read_json(fast.stats)
     assert (a["render"]["path"], b["render"]["path"]) == ("volume", "surface")
     bp_a, bp_b = Blueprint.load(outs.blueprint), Blueprint.load(fast.blueprint)

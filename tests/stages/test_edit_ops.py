@@ -15,7 +15,7 @@ from stages.common.components import component_map
 from stages.common.radiance.field import FieldFns, field_of
 from stages.common.radiance.rays import camera_rays
 from stages.common.radiance.render import RenderOptions
-from stages.edit.config import EditConfig
+from stages.edit.config import EditConfig, SelectConfig
 from stages.edit.metrics import PSNR_CAP, EditScore
 from stages.edit.ops import edit_colors, fill_ground
 from stages.edit.render import render_rays_edited
@@ -81,7 +81,8 @@ def test_extent_heights_padding_and_contains():
     bp = _plan()
     v, _ = _vertices()
     poly = ((1.1, 1.1), (1.7, 1.1), (1.7, 1.7), (1.1, 1.7))
-    ext, info = extent_of(_select("polygon", poly), bp, component_map(bp), v, EditConfig(pad=0.0))
+    cfg = EditConfig(select=SelectConfig(pad=0.0))
+    ext, info = extent_of(_select("polygon", poly), bp, component_map(bp), v, cfg)
     # B's cells: from floor_clear 0.02 to its top 0.5 (the ceiling at 2.5 lies 2 m above,
     # past the 0.3 m gap) + top_margin 0.05; the floor ring keeps the slab |z| <= 0.05
     assert np.all(ext.zlo[4:8, 12:16] == np.float32(0.02))
@@ -104,7 +105,8 @@ def test_extent_heights_padding_and_contains():
     assert ext.contains(pts).tolist() == [True, False, False, False, True, False, False]
     assert ext.contains(torch.from_numpy(pts).float()).tolist() == ext.contains(pts).tolist()
     # pad 0.1 m = one 0.1 m cell: A's 4 x 4 cells grow to 6 x 6, all with A's range
-    big, _ = extent_of(_select("click", (0.6, 0.6)), bp, component_map(bp), v, EditConfig(pad=0.1))
+    cfg = EditConfig(select=SelectConfig(pad=0.1))
+    big, _ = extent_of(_select("click", (0.6, 0.6)), bp, component_map(bp), v, cfg)
     assert big.footprint.sum() == 36 and big.footprint[11:17, 3:9].all()
     assert np.all(big.zhi[big.footprint] == np.float32(0.55))
     assert big.bbox() == pytest.approx((0.3, 0.3, 0.9, 0.9))

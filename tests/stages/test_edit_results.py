@@ -13,7 +13,7 @@ import torch
 import trimesh
 
 from stages.common.blueprint import Blueprint
-from stages.edit.config import EditConfig
+from stages.edit.config import EditConfig, SelectConfig
 from stages.edit.metrics import EditScore, changed, match_instances, pooled_iou
 from stages.edit.ops import edit_mesh
 from stages.edit.spec import Edit, EditSpec, Selector
@@ -85,7 +85,7 @@ def test_mesh_edits():
         vertex_colors=rgba,
         process=False,
     )
-    cfg = EditConfig(pad=0.0)
+    cfg = EditConfig(select=SelectConfig(pad=0.0))
     a = _select("click", (0.6, 0.6))
     out, stats = edit_mesh(mesh, [_edit("remove", a, cfg)])
     assert stats["faces_removed"] == len(box.faces)

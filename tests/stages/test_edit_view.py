@@ -12,7 +12,7 @@ from stages.common.camera import Intrinsics
 from stages.common.components import component_map
 from stages.common.errors import BlunfError
 from stages.common.radiance.scene import build_model
-from stages.edit.config import EditConfig
+from stages.edit.config import EditConfig, RenderConfig, SelectConfig
 from stages.edit.render import look_at
 from stages.edit.spec import Edit, Selector
 from stages.edit.view import MASK_TINT, EditedView
@@ -43,8 +43,8 @@ def view() -> EditedView:
                 sampling__samples_across=64)  # fmt: skip
     model = build_model(ncfg, torch.tensor([0.0, 0.0, -0.1]), torch.tensor([2.0, 2.0, 1.0]), [], [])
     bp = _plan()
-    return EditedView(EditConfig(floor_clear=0.0, pad=0.0, chunk=50), model, _mesh(), bp,
-                      component_map(bp))  # fmt: skip
+    cfg = EditConfig(select=SelectConfig(floor_clear=0.0, pad=0.0), render=RenderConfig(chunk=50))
+    return EditedView(cfg, model, _mesh(), bp, component_map(bp))
 
 
 EDITS = (

@@ -16,8 +16,7 @@ from stages.common.errors import BlunfError
 from stages.common.io import read_depth, read_json, read_label, write_depth_png
 from stages.common.nerfstudio import write_transforms
 from stages.ingest import IMPLS, detect, import_capture, load
-from stages.ingest.config import IngestConfig
-from stages.ingest.select import IngestInputs
+from stages.ingest.config import IngestConfig, IngestInputs
 
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 

@@ -15,8 +15,8 @@ from stages.common.capture import Capture, read_layout, write_layout
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth, read_image, read_label, write_depth_png, write_label_png
 from stages.ingest import IMPLS
-from stages.ingest.config import IngestConfig
-from stages.ingest.select import IngestInputs, IngestOutputs, select_indices
+from stages.ingest.config import IngestConfig, IngestInputs, IngestOutputs
+from stages.ingest.select import select_indices
 
 W, H = 16, 12
 INTR = Intrinsics(fx=10.0, fy=11.0, cx=8.0, cy=6.0, width=W, height=H)
@@ -162,7 +162,6 @@ def test_bad_config_values(tmp_path):
     src = make_capture(tmp_path / "cap", n=2)
     for i, (cfg, word) in enumerate(
         [
-            ({"check": "thorough"}, "ingest.check"),
             ({"frames": -1}, "ingest.frames"),
             ({"kind": "kinect"}, "ingest.kind"),
             ({"max_side": -5}, "ingest.max_side"),

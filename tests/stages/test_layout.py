@@ -22,7 +22,7 @@ from stages.common.blueprint import Blueprint, Grid
 from stages.common.capture import UNKNOWN
 from stages.common.classes import class_color
 from stages.evaluate.layout import interior_angles, score_layout
-from stages.export.files import ExportInputs
+from stages.export.config import ExportInputs
 from stages.export.files import _picture as export_picture
 from stages.layout import IMPLS, LayoutConfig, LayoutInputs
 from stages.layout.draw import write_svg

@@ -25,8 +25,7 @@ from pipeline.runner import Runner
 from stages.common.capture import Capture, read_layout
 from stages.common.errors import BlunfError
 from stages.ingest import detect, exif, import_capture, load
-from stages.ingest.config import IngestConfig
-from stages.ingest.select import IngestInputs
+from stages.ingest.config import IngestConfig, IngestInputs
 from stages.ingest.select import run as ingest
 from stages.ingest.video import VideoOptions
 from stages.poses.config import PosesConfig, PosesInputs

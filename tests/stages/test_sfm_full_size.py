@@ -12,8 +12,7 @@ from stages.common.capture import Capture
 from stages.common.io import read_depth, read_json
 from stages.evaluate.poses import pose_metrics
 from stages.ingest import IMPLS as INGEST
-from stages.ingest.config import IngestConfig
-from stages.ingest.select import IngestInputs
+from stages.ingest.config import IngestConfig, IngestInputs
 from stages.poses import IMPLS, PosesConfig, PosesInputs
 from stages.poses.fullsize import max_side, sfm_frames
 from stages.poses.sfm import sparse_depth

@@ -43,16 +43,16 @@ def test_plan_on_the_floor_is_north_up(studio) -> None:
     # down; its client turns the textured plane by pi about x): the node's picture must then
     # run south to north, the plan's own rows reversed (row 0 of the plan is its north)
     _, st = studio
-    assert np.array_equal(st.plan.image, plan_rgba(st.session.scene.bp)[::-1])
+    assert np.array_equal(st.scene.plan.image, plan_rgba(st.session.scene.bp)[::-1])
 
 
 def test_page_without_a_nerf_offers_training(studio) -> None:
     _, st = studio
-    assert st.train_button.visible and st.no_field.visible
-    hint = st.no_field.content
+    assert st.panel.train_button.visible and st.panel.no_field.visible
+    hint = st.panel.no_field.content
     assert "blunf run" in hint and "--config configs/edit-fast.yaml" in hint
-    st._do(st._train)  # no edit yet: a message, nothing started
-    assert "apply an edit first" in st.message.content and st.trainer.state == "idle"
+    st.panel.do(st.panel._train)  # no edit yet: a message, nothing started
+    assert "apply an edit first" in st.panel.message.content and st.trainer.state == "idle"
 
 
 def test_plan_view_click_and_drag(studio) -> None:
@@ -70,12 +70,14 @@ def test_plan_view_click_and_drag(studio) -> None:
     u, v = intr.fx * xc[0] / xc[2] + intr.cx, intr.fy * xc[1] / xc[2] + intr.cy
     o, d = screen_ray(pos, wxyz, fov, aspect, ((u + 0.5) / intr.width, (v + 0.5) / intr.height))
     st._click(SimpleNamespace(ray_origin=tuple(o), ray_direction=tuple(d)))
-    assert s.selection is not None and "chair" in st.sel_info.content
-    assert np.array_equal(st.picture.image, plan_picture(s.scene.bp, s.selection.cells, scale=2))
+    assert s.selection is not None and "chair" in st.panel.sel_info.content
+    assert np.array_equal(
+        st.panel.picture.image, plan_picture(s.scene.bp, s.selection.cells, scale=2)
+    )
     # sketch on: a drag on the plan draws the stroke (the plan's image node takes drags)
-    st.sketching.value = True
-    st._sketch_mode()
-    assert st.plan._impl.drag_cb, "the plan takes no drag"
+    st.panel.sketching.value = True
+    st._sketch_mode(st.panel.sketching.value)
+    assert st.scene.plan._impl.drag_cb, "the plan takes no drag"
     a, b = np.array([x, y]), np.array([x + 0.5, y - 0.4])
     cam = SimpleNamespace(camera=SimpleNamespace(position=pos))
 
@@ -93,14 +95,14 @@ def test_plan_view_click_and_drag(studio) -> None:
 
     asyncio.run(drag())
     assert len(s.stroke) > 3 and np.allclose(s.stroke[-1], b, atol=1e-3)
-    assert st.stroke_line is not None and st.stroke_info.content.startswith("Stroke:")
-    st.op.value = "sketch"
-    st._do(st._apply)
-    assert "Applied sketch" in st.message.content and s.edits[-1]["op"] == "sketch"
-    assert s.stroke == [] and st.stroke_line is None
-    st.sketching.value = False
-    st._sketch_mode()
-    assert not st.plan._impl.drag_cb  # drags on the plan orbit the camera again
+    assert st.scene.stroke_line is not None and st.panel.stroke_info.content.startswith("Stroke:")
+    st.panel.op.value = "sketch"
+    st.panel.do(st.panel._apply)
+    assert "Applied sketch" in st.panel.message.content and s.edits[-1]["op"] == "sketch"
+    assert s.stroke == [] and st.scene.stroke_line is None
+    st.panel.sketching.value = False
+    st._sketch_mode(st.panel.sketching.value)
+    assert not st.scene.plan._impl.drag_cb  # drags on the plan orbit the camera again
 
 
 def test_forged_dropdowns_are_refused(studio) -> None:
@@ -110,20 +112,23 @@ def test_forged_dropdowns_are_refused(studio) -> None:
 
     _, st = studio
     run = st.session.files.run
-    st.cls.value = "sofa"
-    st._do(st._select_class)
+    st.panel.cls.value = "sofa"
+    st.panel.do(st.panel._select_class)
     forged = "../../../pipeline/cli.py"
-    st.texture._impl.props.options = (*st.texture.options, forged)  # as a client's update
-    st.texture._impl.value = forged
-    st.op._impl.value = "retexture"
+    st.panel.texture._impl.props.options = (
+        *st.panel.texture.options,
+        forged,
+    )  # as a client's update
+    st.panel.texture._impl.value = forged
+    st.panel.op._impl.value = "retexture"
     n = len(st.session.edits)
     before = snapshot(run.parent)
-    st._do(st._apply)
-    assert "Not applied" in st.message.content and "texture" in st.message.content
+    st.panel.do(st.panel._apply)
+    assert "Not applied" in st.panel.message.content and "texture" in st.panel.message.content
     assert snapshot(run.parent) == before and len(st.session.edits) == n
-    st.view_pick._impl.value = "999: nowhere"
-    st._do(lambda: st._go(SimpleNamespace(client=None)))
-    assert "Not applied" in st.message.content and "input view" in st.message.content
-    st.full_path._impl.value = "../x"
-    st._do(st._full_path)
-    assert st.full_path.value == "fast" and "Not applied" in st.message.content
+    st.panel.view_pick._impl.value = "999: nowhere"
+    st.panel.do(lambda: st.panel._go(SimpleNamespace(client=None)))
+    assert "Not applied" in st.panel.message.content and "input view" in st.panel.message.content
+    st.panel.full_path._impl.value = "../x"
+    st.panel.do(st.panel._full_path)
+    assert st.panel.full_path.value == "fast" and "Not applied" in st.panel.message.content

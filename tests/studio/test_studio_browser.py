@@ -39,7 +39,7 @@ SIZE = (160, 120)
 RUN_ARGS = [
     "--config", str(ROOT / "configs" / "edit.yaml"),
     "--set", "nerf.train.max_steps=300", "--set", "nerf.train.time_budget=0",
-    "--set", "edit.gif_frames=2",
+    "--set", "edit.gif.frames=2",
 ]  # fmt: skip
 CHANGED = 12  # a pixel changed when a channel moved by more than this (0-255)
 

@@ -56,7 +56,7 @@ def test_foreign_origin_or_no_token_is_refused(studio) -> None:
     ws = f"ws://127.0.0.1:{port}/"
     own = f"http://127.0.0.1:{port}"
     token = f"?token={st.guard.token}"
-    clients = len(st.clients)
+    clients = len(st.tabs.clients)
     refused = st.guard.refused
     cases = [
         (ws + token, "http://evil.example"),  # a foreign page, even knowing the token
@@ -73,7 +73,7 @@ def test_foreign_origin_or_no_token_is_refused(studio) -> None:
                 pass
         assert e.value.response.status_code == 403, (url_, origin)
     assert st.guard.refused == refused + len(cases)
-    assert len(st.clients) == clients  # none of them reached the studio
+    assert len(st.tabs.clients) == clients  # none of them reached the studio
 
 
 def test_own_origin_with_the_token_connects(studio) -> None:

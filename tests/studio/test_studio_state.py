@@ -12,8 +12,9 @@ import pytest
 from pipeline.cli import main
 from pipeline.render import camera_json, pose_wxyz, viewer_camera
 from pipeline.studio.plan_view import StrokeDrag, cell_centre, plan_picture, screen_ray, top_view
-from pipeline.studio.state import SPEC_NAME, Session, floor_point
+from pipeline.studio.state import SPEC_NAME, Session
 from pipeline.studio.train import Trainer, training_config
+from pipeline.studio.values import floor_point
 from stages.common.classes import class_color
 from stages.common.errors import BlunfError
 from stages.edit.render import look_at
@@ -203,5 +204,6 @@ def test_training_needs_an_edit_and_takes_the_runs_config(run) -> None:
     cfg = training_config(out, ["nerf.train.max_steps=7"])
     assert cfg["fusion"].voxel == VOXEL  # the run's own settings
     assert cfg["nerf"].train.edge_batch == 0.5  # configs/edit-fast.yaml's
-    assert cfg["edit"].render == "surface" and training_config(out)["nerf"].train.max_steps == 200
+    assert cfg["edit"].render.path == "surface"
+    assert training_config(out)["nerf"].train.max_steps == 200
     assert cfg["nerf"].train.max_steps == 7  # and the sets given

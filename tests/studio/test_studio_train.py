@@ -25,7 +25,7 @@ from tests.runs import VOXEL, run_ok, small_room
 
 pytestmark = pytest.mark.slow
 
-SETS = ["nerf.train.max_steps=60", "edit.gif_frames=2"]  # a small NeRF, a short GIF
+SETS = ["nerf.train.max_steps=60", "edit.gif.frames=2"]  # a small NeRF, a short GIF
 
 
 @pytest.fixture(scope="module")
@@ -43,27 +43,27 @@ def trained(tmp_path_factory) -> tuple[Path, Path, Session, list[str]]:
     server = viser.ViserServer(host="127.0.0.1", port=port, verbose=False)
     st = Studio(s, server, train_sets=SETS)
     try:
-        st.cls.value = "sofa"
-        st._do(st._select_class)
-        assert st.highlight is not None
+        st.panel.cls.value = "sofa"
+        st.panel.do(st.panel._select_class)
+        assert st.scene.highlight is not None
         s.apply("recolor", color=(40, 90, 200), strength=0.8)
-        st._do(st._train)  # the button
-        assert st.trainer.running, st.message.content
+        st.panel.do(st.panel._train)  # the button
+        assert st.trainer.running, st.panel.message.content
         assert (base / "run" / "studio" / SPEC_NAME).is_file()
         lines = []
         while st.trainer.running:
-            lines.append(st.train_info.content)
+            lines.append(st.panel.train_info.content)
             time.sleep(0.5)
         assert st.trainer.wait(600) == "done", st.trainer.error
         t0 = time.time()
-        while st.train_button.visible and time.time() - t0 < 10:  # the page's last update
+        while st.panel.train_button.visible and time.time() - t0 < 10:  # the page's last update
             time.sleep(0.2)
-        lines.append(st.train_info.content)
+        lines.append(st.panel.train_info.content)
         # the page: the button and the note gone, the renders take over from the points
-        assert not st.train_button.visible and not st.no_field.visible
-        assert not st.points.visible and "trained" in st.message.content
+        assert not st.panel.train_button.visible and not st.panel.no_field.visible
+        assert not st.scene.points.visible and "trained" in st.panel.message.content
         # the run read again: the selection cleared in the session and on the page
-        assert s.selection is None and st.highlight is None
+        assert s.selection is None and st.scene.highlight is None
     finally:
         st.running = False
         server.stop()

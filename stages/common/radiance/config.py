@@ -10,19 +10,19 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 from stages.common.errors import BlunfError
 
-HELDOUT_SCORES = ("views", "rays")  # train.heldout_score
-
-FIELDS = ("hash", "pe")
+FieldKind = Literal["hash", "pe"]
+FIELDS = get_args(FieldKind)  # field.kind (a loaded model.pt is checked against them too)
 
 
 @dataclass(frozen=True)
 class FieldConfig:
     """The network: an encoding of world points, a density trunk, colour and class heads."""
 
-    kind: str = "hash"  # "hash" (Instant-NGP grid + small MLP) | "pe" (NeRF PE + MLP)
+    kind: FieldKind = "hash"  # "hash" (Instant-NGP grid + small MLP) | "pe" (NeRF PE + MLP)
     hash_levels: int = 8  # hash: resolution levels
     hash_features: int = 2  # hash: features per level
     hash_log2_size: int = 17  # hash: log2 of the table entries per level
@@ -119,26 +119,19 @@ class TrainConfig:
     holdout_every: int = 8  # every k-th view (index % k == k // 2) is held out; 0 = none
     eval_every: int = 200  # steps between held-out evaluations
     eval_rays: int = 4096  # held-out pixels scored at each evaluation (fixed random subset)
-    heldout_score: str = "views"  # the final held-out scores (psnr_heldout, depth_absrel):
-    #   "views": every held-out view rendered in full (heldout/<stem>.png), the mean of the
-    #   views' PSNR and AbsRel; "rays": the last evaluation's eval_rays pixels, scored once at
-    #   the last step and reused, no held-out view rendered (PSNR of their pooled error,
-    #   median AbsRel). Demo room, 200 steps: 25.19 dB on 4096 rays against 25.23 over the
-    #   7 views, whose renders took 64 s of the stage's 163 (one thread)
+    # the final held-out scores (psnr_heldout, depth_absrel): "views" renders every held-out
+    # view in full, "rays" reuses the last evaluation's eval_rays pixels
+    # (docs/figures.md#train-heldout-score)
+    heldout_score: Literal["views", "rays"] = "views"
     patience: int = 5  # stop after this many evaluations without a gain of min_delta
     min_delta: float = 0.05  # dB: a smaller held-out PSNR gain does not count as improving
+    # the three stops: docs/figures.md#train-stop
     time_budget: float = 0.0  # an opt-in guard: seconds of training (evaluations excluded)
     #                          after which it stops (once past min_steps), reported as
-    #                          stop_reason "time" and a warning; 0 = none. A budget made the
-    #                          plan depend on the machine's load (the 7-Scenes kitchen's
-    #                          field took 89 steps of its 120 s on a loaded machine): the
-    #                          default stops on max_steps
+    #                          stop_reason "time" and a warning; 0 = none
     max_steps: int = 250  # stop after this many steps (reproducible); 0 = no limit (then
-    #                       the time budget or a held-out plateau stops it). 250: about what
-    #                       the 120 s budget gave on an idle machine (the demo room ~265)
-    min_steps: int = 100  # the time budget never stops training before this many steps: on
-    #                       a loaded machine make demo's photos-only field got 35 steps in
-    #                       its 120 s (held-out PSNR 5.7 dB) and fusion received no depth
+    #                       the time budget or a held-out plateau stops it)
+    min_steps: int = 100  # the time budget never stops training before this many steps
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.edge_batch <= 1.0:
@@ -154,11 +147,6 @@ class TrainConfig:
             raise BlunfError(
                 "nerf.train.max_steps: 0 with no time_budget and no held-out evaluation "
                 "(eval_every 0) never stops: give a step count"
-            )
-        if self.heldout_score not in HELDOUT_SCORES:
-            raise BlunfError(
-                f"nerf.train.heldout_score: must be one of {HELDOUT_SCORES}, "
-                f"got {self.heldout_score!r}"
             )
         if self.heldout_score == "rays" and self.eval_rays < 1:
             raise BlunfError("nerf.train.heldout_score: rays needs nerf.train.eval_rays >= 1")

@@ -1,0 +1,20 @@
+"""What the benches read of a finished run folder (besides its report.json)."""
+
+from __future__ import annotations
+
+import glob
+from pathlib import Path
+
+import numpy as np
+
+from stages.common.capture import Capture
+from stages.common.errors import BlunfError
+
+
+def run_poses(run: Path) -> dict[str, np.ndarray]:
+    """stem -> [4, 4] camera-to-world pose in the frame of the run's plan (the align stage's)."""
+    found = sorted(glob.glob(str(Path(run) / "align" / "*" / "frames.json")))
+    if not found:
+        raise BlunfError(f"{run}: no align/*/frames.json (not a finished run folder)")
+    cap = Capture.load(Path(max(found, key=lambda p: Path(p).stat().st_mtime)))
+    return {f.stem: np.asarray(f.pose, np.float64) for f in cap.frames if f.pose is not None}
