@@ -31,8 +31,7 @@ class StereoConfig:
     enabled: bool = True  # false: no sweep, the field fill learns depth from the photos and
     #                       the SfM tracks alone
     planes: int = 64  # depth planes, even in inverse depth between the view's track bounds
-    #                 (configs/phone.yaml: 32, measured there; the 96x72 test room keeps 8 %
-    #                 of its pixels with 32 against 14 % with 64)
+    #                 (docs/figures.md#depth-stereo-planes)
     plane_px: float = 0.0  # > 0: each view sweeps only as many planes (at most `planes`,
     #                 at least 8) as put one plane step at <= plane_px pixels of its widest
     #                 neighbour's image (disparity range = focal x baseline x (1/near -
@@ -41,10 +40,8 @@ class StereoConfig:
     #                   (0 or 1 = no refinement): a plane step is ~10 cm at 3 m here
     views: int = 4  # views each view is matched against (those overlapping it most)
     scale: int = 1  # depth maps at 1/scale of the photos' resolution (k x k binned); 0 = the
-    #                 largest at which a pixel at the median track depth spans <= `cell`.
-    #                 Demo room, photos only, stereo alone: scale 2 with coarse 2 took 17
-    #                 CPU-s against 155 at scale 1 but the plan fell to fwIoU 72.6 (one run),
-    #                 hence 1 until the coarse maps are fused better
+    #                 largest at which a pixel at the median track depth spans <= `cell`
+    #                 (docs/figures.md#depth-stereo-scale)
     cell: float = 0.02  # metres: the plan's cell, for scale 0 (a finer depth map adds no
     #                     detail to the plan)
     coarse: int = 1  # the planes are swept at a further 1/coarse, the per-pixel refinement at
@@ -55,8 +52,8 @@ class StereoConfig:
     tol: float = 0.02  # relative depth within which other views confirm a reading
     agree: int = 2  # ... and this many of them must
     fuse: bool = True  # depth for fusion: the stereo (and plane) reading where there is one,
-
     #                    the field's render elsewhere; false: the field's render alone
+
     def __post_init__(self) -> None:
         if self.planes < 3 or self.views < 1 or self.refine == 2 or self.refine < 0:
             raise BlunfError(
@@ -102,21 +99,15 @@ class FieldFillConfig(TrainingConfig):
 
     fill: bool | Literal["auto"] = "auto"  # true: always; false: never (the readings found
     #                 so far alone feed fusion); auto: only when they cover fewer than
-    #                 `below` of the pixels. Measured: the demo room (60 views 320x240,
-    #                 phone.yaml; stereo covers ~79 %) fwIoU 84.6 off against 84.5 on with
-    #                 0.38x the depth step's CPU time; the real 7-Scenes kitchen (20 frames at
-    #                 240 px; stereo covers 19 %: white walls and floor) 0.1 off against 30.8 on
+    #                 `below` of the pixels (docs/figures.md#depth-field-fill)
     below: float = 0.5  # auto: the coverage under which the field trains
     check: int = 1  # a rendered reading is kept only where this many other views' readings
     #                 agree with it (depth.stereo.tol) and none sees through it (0, or too few
-    #                 readings to train on: every rendered reading). Demo room, photos only:
-    #                 plan fwIoU 78.3 with the whole render, 82.3-82.9 with this check
+    #                 readings to train on: every rendered reading)
+    #                 (docs/figures.md#depth-field-check)
     render_scale: int = 2  # depth rendered at 1/k (never finer than the sweep ran)
     # the filling field's marching step: the scene box's diagonal / 256 (512 for fields that
-    # edits and views render). Its depth fills a sweep no finer than the plan's cell: the
-    # 7-Scenes kitchen (100 views, box diagonal 6.2 m) from its photos, 2.4 cm steps against
-    # 1.2: 36 samples a ray against 70, plan fwIoU 47.2 against 47.1-50.5 (three runs), the
-    # field's depth renders half the time
+    # edits and views render) (docs/figures.md#depth-field-sampling)
     sampling: SamplingConfig = dataclasses.field(
         default_factory=lambda: SamplingConfig(samples_across=256)
     )

@@ -19,9 +19,7 @@ class ProjectConfig:
     impl: str = "pinhole"  # registry key in stages.project.IMPLS
     stride: int = 0  # keep every stride-th pixel in u and v (1 = every pixel); 0 = the
     #                  stride whose samples at the capture's median depth lie nearest one
-    #                  plan cell apart (points.auto_stride; a finer sampling only adds points
-    #                  to the cells' votes): the demo room (320x240) 2, the 7-Scenes kitchen
-    #                  (640x480, ~1.8 m) 6, the procedural rooms at 640x480 3
+    #                  plan cell apart (docs/figures.md#project-stride)
     cell: float = 0.02  # plan cell size in metres
     # metres added around the robust bounds of the points: the plan covers the walls' thickness
     # (points stop at their inner faces) and a margin; BluNF fills it, MVR leaves it unknown

@@ -50,29 +50,18 @@ class WallsConfig:
     """Which vertical planes are walls (segment.py), and the wall fill (wallfill.py)."""
 
     min_height: float = 1.0  # a wall's inliers span at least this in z (5-95 %, metres)
-    #                          (photos only: 0.7 with min_area 0.5 found the plain walls
-    #                          stereo leaves in patches; Replica office0 fwIoU 36.2 -> 44.9,
-    #                          wall IoU 21.3 -> 32.9; README)
+    #                          (docs/figures.md#semantics-wall-bounds)
     min_length: float = 1.0  # ... and at least this along the floor (5-95 %, metres)
     min_area: float = 0.6  # ... and cover at least this many m²
-    behind: float = 0.6  # metres: a wall plane with another facing the same way behind it,
-    #                      this close, along half its length, is no wall (blinds, cubicle
-    #                      panels, tall cabinets before the wall); 0 = off. Replica office0
-    #                      (sensor depth): its blinds, 0.31 m before the window wall, were a
-    #                      wall (fwIoU against its own classes, padded, 84.4 -> 84.5 with what
-    #                      hangs left unknown)
-    # what lies within hanger_slab metres of a surface that hangs before a wall (see behind),
-    # inside its extent, at any height, is its frame or stand (a whiteboard's legs and bottom
-    # bar): unknown, as the surface is, not object. Replica office0 (sensor depth): a
-    # whiteboard on a stand 0.31 m before the wall painted that depth object along its 2.3 m.
-    # 0 = off
+    # metres: a wall plane with another facing the same way behind it, this close, along half
+    # its length, is no wall (blinds, cubicle panels, tall cabinets before the wall); 0 = off
+    # (docs/figures.md#semantics-walls-behind)
+    behind: float = 0.6
+    # metres: what lies this close to a surface hanging before a wall is its frame or stand,
+    # unknown as it is; 0 = off (docs/figures.md#semantics-hanger-slab)
     hanger_slab: float = 0.1
-    # rays that hit no surface and cross a wall plane inside the wall's extent (its inliers'
-    # box along the wall, down to the floor) and inside the room are labelled wall at that
-    # crossing (wallfill.py): plain walls that stereo left as holes. Needs floor_fill (the
-    # room's footprint and the depth written with it). Replica office0 from its photos (30
-    # frames, 320 px): plan fwIoU 36.2 -> 36.0, and 44.9 -> 44.4 with the lower wall bounds
-    # above (README): the rays it fills are few beside the noise behind the walls; off
+    # rays that hit nothing and cross a wall inside its extent are wall there (wallfill.py;
+    # needs floor_fill) (docs/figures.md#semantics-wall-fill)
     fill: bool = False
 
     def __post_init__(self) -> None:
@@ -89,38 +78,25 @@ class ObjectsConfig:
     cluster_min_points: int = 3  # DBSCAN: voxels within cluster_eps for a core voxel; voxels
     #                              DBSCAN calls noise are labelled unknown (255)
     min_area: float = 0.01  # m²: smaller clusters are noise, labelled unknown (255)
-    max_gap: float = 0.3  # metres: a cluster whose lowest point is higher above the floor
-    #                       does not stand on it (wall cabinet, lamp, fused noise) and is
-    #                       labelled unknown (255), unless it rests on an object that does,
-    #                       as high above its top (a plant on its stand, a lamp on a desk).
-    #                       Replica office0 (sensor depth), geometry classes against its own
-    #                       (padded): fwIoU 85.7 -> 88.0, floor 86.0 -> 89.0, object 84.7 ->
-    #                       87.2; the 7-Scenes kitchen: two wall cabinets over appliances
-    #                       became objects, its plan's observation figures the same
-    rest_min_area: float = 0.05  # m²: a cluster resting on an object covers at least this
-    #                              (photos-only stereo leaves fragments of 0.01-0.03 m² over
-    #                              furniture: the demo room from its photos has two)
+    # metres: a cluster whose lowest point is higher above the floor (or above the top of an
+    # object it rests on) is unknown (255) (docs/figures.md#semantics-max-gap)
+    max_gap: float = 0.3
+    # m²: a cluster resting on an object covers at least this
+    # (docs/figures.md#semantics-rest-min-area)
+    rest_min_area: float = 0.05
     # a cluster above max_gap that faces up over at least table_min_top m² and a third its
-    # area, at a median height of at most table_max_top, is an object all the same: a table
-    # whose legs or pedestal no view fused. Replica office0 (sensor depth, its 81 frames):
-    # two such tables (1.37 and 0.43 m²) were unknown and their plan cells floor. 0 = off
+    # area, at a median height of at most table_max_top, is an object all the same (a table
+    # whose legs no view fused); 0 = off (docs/figures.md#semantics-tables)
     table_max_top: float = 1.1  # metres above the floor
     table_min_top: float = 0.15  # m²
-    # a cluster is split into pieces where its top steps (pieces.py): plan cells of piece_cell
-    # metres whose tops differ by at most piece_step are one piece, and a piece no disk of
-    # piece_min_width fits in (a chair back, a kettle, a bevel) joins its neighbour. 7-Scenes
-    # kitchen (sensor depth, 100 frames): 3 clusters of over 0.1 m² (8.2, 4.1, 2.4 m²) -> 5
-    # pieces (4.3, 4.1, 3.9, 2.1, 2.0), the island (top 0.72 m) its own, the counters one
-    # piece per run. The procedural demo room from its photos (11 pieces of furniture): 7
-    # objects without pieces, 9 with, 17 with a width of 0.25 m (sofa and chair backs, which
-    # stereo thickens, stood alone); fwIoU the same (84.7). 0 = off: a cluster is one instance
+    # a cluster is split into pieces where its top steps by more than piece_step, on cells of
+    # piece_cell; a piece narrower than piece_min_width joins its neighbour (pieces.py);
+    # 0 = off: a cluster is one instance (docs/figures.md#semantics-pieces)
     piece_step: float = 0.1  # metres
     piece_cell: float = 0.05  # metres
     piece_min_width: float = 0.4  # metres
-    # object triangles whose centre lies outside the room's footprint (the floor fill's: floor
-    # and wall cells, closed and hole-filled) are labelled unknown: what photos-only depth
-    # puts behind the walls (stereo noise, the far side of a window) is not in the room.
-    # Replica office0 from its photos, with the lower wall bounds: fwIoU 44.9 -> 45.1
+    # object triangles outside the room's footprint (the floor fill's) are unknown
+    # (docs/figures.md#semantics-outside-unknown)
     outside_unknown: bool = False
 
     def __post_init__(self) -> None:
@@ -137,38 +113,21 @@ class FloorFillConfig:
     Rays that pass through every surface and through no wall and cross the floor plane
     inside the room (the hole-filled footprint of the floor and walls, on cells of `cell`
     metres) are labelled floor at that crossing. The views then get their depth from this
-    stage (depth/<stem>.npy). Photos-only synthetic rooms: fwIoU 85.3 -> 85.5 (default room),
-    78.1 -> 84.6 (seed 3); with their exact depth 90.3 -> 90.4, 85.5 -> 86.0."""
+    stage (depth/<stem>.npy). Figures: docs/figures.md#semantics-floor-fill."""
 
     enabled: bool = True
     cell: float = 0.05
-    # a mesh with no floor plane (photos alone: stereo finds nothing on a plain floor) is
-    # filled at z = 0, the align stage's floor, inside the convex hull of the surface and the
-    # cameras, by rays pointing at least min_drop_deg below the horizontal that cross within
-    # reach metres of the camera along the floor. A mesh with a floor plane is filled as
-    # above, unbounded by these. 7-Scenes kitchen from its photos (20 frames at 240 px, no
-    # floor in its mesh; three runs): floor IoU 0 -> 35.4-40.8, fwIoU 29.5-30.8 -> 38.1-40.8,
-    # object unchanged; in one run 10, 20 or 30 degrees and 3 m or more gave the same within
-    # 0.1, 40 degrees -1.7, 2 m -1.0; the hull grown by 0.5 m +0.6 but painted floor beyond
-    # the counters and walls (16 % of the object cells)
+    # a mesh with no floor plane is filled at z = 0 inside the convex hull of the surface and
+    # the cameras, by rays at least min_drop_deg below the horizontal crossing within reach
+    # (docs/figures.md#semantics-floor-fill-no-plane)
     no_plane: bool = True
     min_drop_deg: float = 30.0  # degrees below the horizontal
     reach: float = 3.0  # metres from the camera, along the floor
-    # with a floor plane too, the room is that hull within that reach (the found walls still
-    # stop rays) rather than the floor and wall triangles' footprint, which is small where
-    # stereo found the floor in patches. Replica office0 from its photos (30 frames at 240 px,
-    # 14 registered, rough): fwIoU 13.5 -> 22.3, floor IoU 13.9 -> 34.1, object 14.6 -> 14.3,
-    # 27 % of the reference's object cells floor (2 % before); the procedural rooms are not
-    # measured with it: off
+    # with a floor plane too, the room is that hull within that reach rather than the floor
+    # and wall triangles' footprint (docs/figures.md#semantics-floor-fill-hull)
     hull: bool = False
-    # with hull and a floor plane found, rays are bounded by that reach as without one; off,
-    # they are not (the floor's height is measured there, not the align stage's guess, and
-    # the found walls stop rays). Photos alone, 20 frames at 240 px (configs/phone.yaml):
-    # Replica office0 fwIoU 29.0 -> 36.6 with the hull unbounded (floor 28.7 -> 45.7, wall
-    # 45.4 -> 45.4, object 26.3 -> 26.1; 36.3, floor 45.0, with the reach); the procedural
-    # demo room (60 views, a floor plane) 84.3 -> 84.2 unbounded (floor 88.0 -> 88.1, wall
-    # 79.0 -> 78.0), 83.5 with the reach (floor 87.1); the 7-Scenes kitchen has no floor
-    # plane (unchanged). Off in phone.yaml
+    # with hull and a floor plane found, rays are bounded by that reach as without one
+    # (docs/figures.md#semantics-floor-fill-hull-reach)
     hull_reach: bool = True
 
     def __post_init__(self) -> None:
@@ -189,23 +148,16 @@ class PointWallsConfig:
     inside, extended along itself over the free space that did not see through it, up to at
     least planes.ceiling_min_z; mesh triangles within dist join it, rays that hit nothing
     and cross it are wall there (as walls.fill) and no floor is filled beyond it.
-    Measured from photos alone (20 frames at 240 px, configs/phone.yaml, the slow real-photo
-    test's settings; same SfM, stereo and fusion, semantics only changed), 7-Scenes kitchen,
-    two SfM runs: fwIoU 37.6 -> 38.4 and 38.2 -> 39.8, wall IoU 0 -> 26.2 and 0 -> 39.2 (its
-    wall behind the counters: readings 0.9 m tall over 2.2 m² of cells, where the mesh kept
-    0.24 m² of triangles), floor 32.8 -> 32.9 and 33.9 -> 34.1, object 41.4 -> 41.0 and 41.9
-    -> 41.8; Replica office0 29.0 -> 28.9 (its walls are the mesh's already); the procedural
-    demo room (60 views) unchanged. On in configs/phone.yaml; off here (sensor depth has its
-    walls)."""
+    On in configs/phone.yaml; off here (sensor depth has its walls). Figures:
+    docs/figures.md#semantics-point-walls."""
 
     enabled: bool = False
     dist: float = 0.05  # metres: a reading this close to the plane lies on it
     min_height: float = 0.5  # metres in z (5-95 %) the readings span at least
     max_beyond: float = 0.2  # readings beyond the plane per reading on it
-    min_area: float = 1.0  # m²: the 10 cm cells (along it x height) its readings cover at
-    #                        least (a cell a few readings touch counts whole: more than
-    #                        walls.min_area; the kitchen's wall covers 2.2, a cabinet side 0.5,
-    #                        the office's 1.6-4)
+    # m²: the 10 cm cells (along it x height) its readings cover at least
+    # (docs/figures.md#semantics-point-walls-area)
+    min_area: float = 1.0
 
     def __post_init__(self) -> None:
         _positive(self, "point_walls", ("dist", "min_height"))
