@@ -1,0 +1,183 @@
+"""The camera's walk through a procedural home, as a person films it room after room.
+
+The walk starts at room 0's first spot and looks round there (a full turn), goes to the
+room's other spots and looks round at each, then walks through the door or passage into
+the next room, and so on to the last room. It ends back in an earlier room (through the
+passage to room 0 when the plan has that loop, else back into the last room but one) with
+one more turn on the spot where it first looked round there, so that the walk closes a
+loop. In a room it moves from cell to cell through cell centres (so it keeps off the
+walls and round an L's inner corner) and lines up with a gap STEP_IN metres before it.
+The views are spaced evenly along the walk, a radian of turning counting as R_TURN metres;
+each looks along its heading (a turn on the spot, or the way it walks), CAM_Z high and
+pitched down by PITCH degrees, both varying slowly, with a small seeded jitter.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from stages.synth.home_plan import Gap, HomePlan
+from stages.synth.render import look
+
+R_TURN = 0.8  # metres of walk a radian of turning counts for when spacing the views
+STEP_IN = 1.0  # metres: the walk lines up with a gap this far before it and goes as far past
+CAM_Z = (1.42, 1.58)  # camera height range (metres)
+PITCH = (8.0, 14.0)  # downward pitch range (degrees)
+SPLIT = 4.0  # metres: a one-cell room this long or longer gets two spots along its length
+
+Cell = tuple[int, int]
+
+
+def spots(plan: HomePlan, k: int) -> list[tuple[Cell, np.ndarray]]:
+    """Where the walk looks round in room k: a one-cell room's centre (two spots along its
+    length when it is long), the centres of a two-cell room's cells, an L's two arms' ends."""
+    cells = plan.cells_of(k)
+    if len(cells) == 1:
+        x0, x1, y0, y1 = plan.cell_box(*cells[0])
+        c = np.array([(x0 + x1) / 2, (y0 + y1) / 2])
+        long_x = x1 - x0 >= y1 - y0
+        length = max(x1 - x0, y1 - y0)
+        if length < SPLIT:
+            return [(cells[0], c)]
+        d = np.array([0.2 * length, 0.0] if long_x else [0.0, 0.2 * length])
+        return [(cells[0], c - d), (cells[0], c + d)]
+    ends = [a for a in cells if len(_neighbours(a, cells)) == 1] if len(cells) == 3 else cells
+    return [(a, _centre(plan, a)) for a in ends]
+
+
+def _centre(plan: HomePlan, a: Cell) -> np.ndarray:
+    x0, x1, y0, y1 = plan.cell_box(*a)
+    return np.array([(x0 + x1) / 2, (y0 + y1) / 2])
+
+
+def _neighbours(a: Cell, cells: list[Cell]) -> list[Cell]:
+    return [b for b in cells if abs(a[0] - b[0]) + abs(a[1] - b[1]) == 1]
+
+
+def _cell_path(a: Cell, b: Cell, cells: list[Cell]) -> list[Cell]:
+    """The cells from a to b (both included) through neighbouring cells of one room."""
+    prev: dict[Cell, Cell | None] = {a: None}
+    queue = [a]
+    while queue:
+        c = queue.pop(0)
+        for d in _neighbours(c, cells):
+            if d not in prev:
+                prev[d] = c
+                queue.append(d)
+    out: list[Cell] = [b]
+    while prev[out[-1]] is not None:
+        out.append(prev[out[-1]])  # type: ignore[arg-type]
+    return out[::-1]
+
+
+def _cell_at(plan: HomePlan, p: np.ndarray) -> Cell:
+    for r, _ in enumerate(plan.cells):
+        for c, _ in enumerate(plan.cells[0]):
+            x0, x1, y0, y1 = plan.cell_box(c, r)
+            if x0 <= p[0] <= x1 and y0 <= p[1] <= y1:
+                return (c, r)
+    raise ValueError(f"point {p} is in no cell")
+
+
+class _Walk:
+    def __init__(self, plan: HomePlan) -> None:
+        self.plan = plan
+        self.points: list[tuple[np.ndarray, bool]] = []  # (x, y), turn round there
+        self.cell: Cell = (0, 0)
+
+    def go(self, cell: Cell, p: np.ndarray, turn: bool = False) -> None:
+        """To p in `cell` of the current room, through the centres of the cells between."""
+        if self.points:
+            room = self.plan.cells[self.cell[1]][self.cell[0]]
+            cells = self.plan.cells_of(room)
+            for c in _cell_path(self.cell, cell, cells)[1:-1]:
+                self.points.append((_centre(self.plan, c), False))
+        self.points.append((p, turn))
+        self.cell = cell
+
+    def cross(self, g: Gap, forward: bool = True) -> None:
+        """Line up with the gap STEP_IN before it, walk through to STEP_IN past it."""
+        n = np.asarray(g.normal, np.float64) * (1.0 if forward else -1.0)
+        reach = self.plan.wall / 2 + STEP_IN
+        before, after = g.centre - n * reach, g.centre + n * reach
+        self.go(_cell_at(self.plan, before), before)
+        self.points.append((after, False))
+        self.cell = _cell_at(self.plan, after)
+
+
+def route(plan: HomePlan) -> list[tuple[np.ndarray, bool]]:
+    """The walk's points (x, y) in order, each with whether the walk turns round there."""
+    n = plan.n_rooms
+    by_rooms = {g.rooms: g for g in plan.gaps}
+    w = _Walk(plan)
+    first = spots(plan, 0)[0]
+    w.go(*first, turn=True)
+    for k in range(n):
+        todo = spots(plan, k)[1 if k == 0 else 0 :]
+        while todo:
+            here = w.points[-1][0]
+            todo.sort(key=lambda s: float(np.linalg.norm(s[1] - here)))
+            w.go(*todo.pop(0), turn=True)
+        if k < n - 1:
+            w.cross(by_rooms[(k, k + 1)])
+    if (n - 1, 0) in by_rooms:
+        w.cross(by_rooms[(n - 1, 0)])
+        w.go(*first, turn=True)
+    else:
+        w.cross(by_rooms[(n - 2, n - 1)], forward=False)
+        w.go(*spots(plan, n - 2)[0], turn=True)
+    return w.points
+
+
+def keyframes(points: list[tuple[np.ndarray, bool]]) -> np.ndarray:
+    """(x, y, yaw) [K, 3] of the walk: turn towards the next point, walk to it, and turn a
+    full circle (counter-clockwise) where the walk turns round. Yaw is continuous."""
+    heads = [
+        math.atan2(*(q - p)[::-1])
+        for (p, _), (q, _) in zip(points, points[1:], strict=False)
+        if np.linalg.norm(q - p) > 1e-9
+    ]
+    yaw = heads[0]
+    keys = [(*points[0][0], yaw)]
+    if points[0][1]:
+        yaw += 2 * math.pi
+        keys.append((*points[0][0], yaw))
+    for (p, _), (q, turn) in zip(points, points[1:], strict=False):
+        if np.linalg.norm(q - p) > 1e-9:
+            h = math.atan2(q[1] - p[1], q[0] - p[0])
+            yaw += (h - yaw + math.pi) % (2 * math.pi) - math.pi
+            keys += [(*p, yaw), (*q, yaw)]
+        if turn:
+            yaw += 2 * math.pi
+            keys.append((*q, yaw))
+    return np.array(keys, np.float64)
+
+
+def sample(keys: np.ndarray, views: int) -> tuple[np.ndarray, np.ndarray]:
+    """(x, y, yaw) [views, 3] spaced evenly along the keyframes, and the walk's length
+    there [views] (metres, a radian counting R_TURN)."""
+    step = np.hypot(*np.diff(keys[:, :2], axis=0).T) + R_TURN * np.abs(np.diff(keys[:, 2]))
+    cum = np.concatenate([[0.0], np.cumsum(step)])
+    s = cum[-1] * np.arange(views) / max(views - 1, 1)
+    i = np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(keys) - 2)
+    f = np.where(step[i] > 0, (s - cum[i]) / np.where(step[i] > 0, step[i], 1.0), 0.0)
+    f = np.clip(f, 0.0, 1.0)[:, None]
+    return keys[i] * (1 - f) + keys[i + 1] * f, s
+
+
+def home_path(plan: HomePlan, views: int, seed: int) -> np.ndarray:
+    """Camera-to-world poses [views, 4, 4] along the walk (OpenCV axes)."""
+    rng = np.random.default_rng([seed, 13, views])
+    ph = rng.uniform(0, 2 * np.pi, 2)
+    xyyaw, s = sample(keyframes(route(plan)), views)
+    z_mid, z_amp = (CAM_Z[0] + CAM_Z[1]) / 2, (CAM_Z[1] - CAM_Z[0]) / 2 - 0.01
+    p_mid, p_amp = (PITCH[0] + PITCH[1]) / 2, (PITCH[1] - PITCH[0]) / 2
+    poses = []
+    for (x, y, yaw), sk in zip(xyyaw, s, strict=True):
+        z = z_mid + z_amp * math.sin(2 * math.pi * sk / 7.0 + ph[0]) + rng.uniform(-0.01, 0.01)
+        pitch = p_mid + p_amp * math.sin(2 * math.pi * sk / 5.0 + ph[1])
+        yaw_j = yaw + math.radians(rng.uniform(-1.0, 1.0))
+        poses.append(look(np.array([x, y, z]), yaw_j, -math.radians(pitch)))
+    return np.stack(poses)
