@@ -1,15 +1,17 @@
 """The camera's walk through a procedural home, as a person films it room after room.
 
-The walk starts at room 0's first spot and looks round there (a full turn), goes to the
-room's other spots and looks round at each, then walks through the door or passage into
-the next room, and so on to the last room. It ends back in an earlier room (through the
-passage to room 0 when the plan has that loop, else back into the last room but one) with
-one more turn on the spot where it first looked round there, so that the walk closes a
-loop. In a room it moves from cell to cell through cell centres (so it keeps off the
-walls and round an L's inner corner) and lines up with a gap STEP_IN metres before it.
-The views are spaced evenly along the walk, a radian of turning counting as R_TURN metres;
-each looks along its heading (a turn on the spot, or the way it walks), CAM_Z high and
-pitched down by PITCH degrees, both varying slowly, with a small seeded jitter.
+The walk starts at room 0's first spot and looks round there, goes to the room's other
+spots and looks round at each, then walks through the door or passage into the next room,
+and so on to the last room. It ends back in an earlier room (through the passage to room 0
+when the plan has that loop, else back into the last room but one) and looks round once
+more where it first did there, so that the walk closes a loop. To look round it steps once
+round a small circle about the spot, looking outwards (a full turn with parallax: SfM
+registers no view of a turn on the spot that sees new walls). In a room it moves from cell
+to cell through cell centres (so it keeps off the walls and round an L's inner corner),
+turning while it walks, and lines up with a gap STEP_IN metres before it. The views are
+spaced evenly along the walk, a radian of turning counting as R_TURN metres; each looks
+along its heading, CAM_Z high and pitched down by PITCH degrees, both varying slowly, with
+a small seeded jitter.
 """
 
 from __future__ import annotations
@@ -26,6 +28,9 @@ STEP_IN = 1.0  # metres: the walk lines up with a gap this far before it and goe
 CAM_Z = (1.42, 1.58)  # camera height range (metres)
 PITCH = (8.0, 14.0)  # downward pitch range (degrees)
 SPLIT = 4.0  # metres: a one-cell room this long or longer gets two spots along its length
+RING = 0.45  # metres: the circle the walk steps round where it looks round
+RING_STEPS = 36  # keyframes round that circle
+TURN_IN = 0.6  # metres: the walk turns to a new heading over this much of the segment
 
 Cell = tuple[int, int]
 
@@ -132,26 +137,35 @@ def route(plan: HomePlan) -> list[tuple[np.ndarray, bool]]:
 
 
 def keyframes(points: list[tuple[np.ndarray, bool]]) -> np.ndarray:
-    """(x, y, yaw) [K, 3] of the walk: turn towards the next point, walk to it, and turn a
-    full circle (counter-clockwise) where the walk turns round. Yaw is continuous."""
-    heads = [
-        math.atan2(*(q - p)[::-1])
-        for (p, _), (q, _) in zip(points, points[1:], strict=False)
-        if np.linalg.norm(q - p) > 1e-9
-    ]
+    """(x, y, yaw) [K, 3] of the walk. Between points it walks straight, turning to its new
+    heading over the segment's first TURN_IN metres; where it looks round it steps once
+    round a circle of RING metres about the point, counter-clockwise, looking outwards
+    (starting and ending on the circle where its heading meets it). Never a turn on the
+    spot: every view moves, so that the photos see parallax. Yaw is continuous."""
+    pts = [p for p, _ in points]
+    turns = [t for _, t in points]
+    heads = [math.atan2(*(q - p)[::-1]) for p, q in zip(pts, pts[1:], strict=False)]
+    heads = [heads[0], *heads, heads[-1]]  # heading into and out of each point
+    keys: list[tuple[float, float, float]] = []
     yaw = heads[0]
-    keys = [(*points[0][0], yaw)]
-    if points[0][1]:
-        yaw += 2 * math.pi
-        keys.append((*points[0][0], yaw))
-    for (p, _), (q, turn) in zip(points, points[1:], strict=False):
-        if np.linalg.norm(q - p) > 1e-9:
-            h = math.atan2(q[1] - p[1], q[0] - p[0])
-            yaw += (h - yaw + math.pi) % (2 * math.pi) - math.pi
-            keys += [(*p, yaw), (*q, yaw)]
-        if turn:
+    for i, p in enumerate(pts):
+        h_in = heads[i]
+        yaw += (h_in - yaw + math.pi) % (2 * math.pi) - math.pi
+        if i > 0:  # the segment into p: turn over its first TURN_IN metres
+            a = np.asarray(keys[-1][:2])
+            end = p + RING * np.array([math.cos(h_in), math.sin(h_in)]) if turns[i] else p
+            d = float(np.linalg.norm(end - a))
+            mid = a + (end - a) * min(TURN_IN, d / 2) / max(d, 1e-12)
+            keys += [(*mid, yaw), (*end, yaw)]
+        elif turns[i]:
+            keys.append((*(p + RING * np.array([math.cos(yaw), math.sin(yaw)])), yaw))
+        else:
+            keys.append((*p, yaw))
+        if turns[i]:
+            for k in range(1, RING_STEPS + 1):
+                phi = yaw + 2 * math.pi * k / RING_STEPS
+                keys.append((*(p + RING * np.array([math.cos(phi), math.sin(phi)])), phi))
             yaw += 2 * math.pi
-            keys.append((*q, yaw))
     return np.array(keys, np.float64)
 
 

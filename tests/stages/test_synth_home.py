@@ -126,8 +126,10 @@ def test_walk_stays_inside_keeps_off_walls_and_closes_a_loop(n: int, seed: int) 
     step = np.linalg.norm(np.diff(c[:, :2], axis=0), axis=1)
     turn = np.abs(np.diff(sample(keys, 360)[0][:, 2]))
     even = sample(keys, 360)[1][-1] / 359
-    cost = step + R_TURN * turn  # less than `even` only where a step cuts a corner
-    assert cost.max() < even * (1 + 1e-6) and np.median(cost) > even * (1 - 1e-6)
+    cost = step + R_TURN * turn  # less than `even` where a step cuts a corner or an arc
+    assert cost.max() < even * (1 + 1e-6) and np.median(cost) > even * 0.99
+    # every view moves (no turn on the spot): photos two apart see parallax
+    assert np.linalg.norm(c[2:] - c[:-2], axis=1).min() > 0.015
 
 
 def test_home_capture_gt_agrees_with_its_depth(tiny: Path) -> None:
