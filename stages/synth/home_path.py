@@ -25,7 +25,7 @@ from stages.synth.render import look
 
 R_TURN = 0.8  # metres of walk a radian of turning counts for when spacing the views
 STEP_IN = 1.0  # metres: the walk lines up with a gap this far before it and goes as far past
-CAM_Z = (1.42, 1.58)  # camera height range (metres)
+CAM_Z = (1.37, 1.53)  # camera height range (metres): median 1.45, as the single room's
 PITCH = (8.0, 14.0)  # downward pitch range (degrees)
 SPLIT = 4.0  # metres: a one-cell room this long or longer gets two spots along its length
 RING = 0.45  # metres: the circle the walk steps round where it looks round
