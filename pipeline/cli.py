@@ -41,6 +41,13 @@ def _positive(s: str) -> int:
     return v
 
 
+def _whole(s: str) -> int:
+    try:
+        return int(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{s!r} is not a whole number") from None
+
+
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> None:  # type: ignore[override]
         self.exit(2, f"blunf: error: {message}\n")
@@ -75,6 +82,8 @@ def parser() -> argparse.ArgumentParser:
         "--passages", type=int, default=0, help="passages (wider gaps) in other walls (0..4)"
     )
     s.add_argument("--shape", choices=("rect", "L"), default="rect", help="room outline")
+    s.add_argument("--rooms", type=_whole, default=1,
+                   help="1: one room; 2..5: a home of that many rooms, doors between")  # fmt: skip
     s.add_argument(
         "--realism",
         default="none",
@@ -241,6 +250,7 @@ def _dispatch(args: argparse.Namespace) -> int:
             passages=args.passages,
             shape=args.shape,
             realism=Realism.parse(args.realism),
+            rooms=args.rooms,
         )
         print(out)
         return 0

@@ -9,12 +9,13 @@ from pathlib import Path
 
 import numpy as np
 
+from stages.common.camera import Intrinsics
 from stages.common.errors import BlunfError
 from stages.common.io import write_depth_png, write_image, write_json, write_label_png
 from stages.synth.layout import room_layout
 from stages.synth.realism import Realism
 from stages.synth.render import Tracer, camera_paths, intrinsics_for, render, top_down
-from stages.synth.room import CLASSES, IGNORE, scene_mesh
+from stages.synth.room import CLASSES, IGNORE, Room, scene_mesh
 from stages.synth.shape import build_shaped_room
 
 log = logging.getLogger(__name__)
@@ -34,6 +35,7 @@ def make_room(
     shape: str = "rect",
     realism: Realism | None = None,
     passages: int = 0,
+    rooms: int = 1,
 ) -> Path:
     """Render a procedural room to a capture at `out`. Returns `out`.
 
@@ -45,9 +47,18 @@ def make_room(
     realism: plain surfaces, exposure changes, blur and noise (stages/synth/realism.py);
     None = the textured room and a perfect camera (gt/realism.json holds what each view drew).
 
+    rooms: 1 is this room; 2..5 a home of that many rooms (stages/synth/home.py), where
+    doors, passages and shape do not apply.
+
     Same (views, seed, size, ceiling) -> byte-identical files. Writes into a temp sibling
     folder renamed into place at the end, so a failure leaves nothing behind.
     """
+    from stages.synth.home import check_rooms, make_home
+
+    if check_rooms(rooms) > 1:
+        if doors or passages or shape != "rect":
+            raise BlunfError("--doors, --passages and --shape apply to one room, not --rooms > 1")
+        return make_home(out, rooms, views, seed, size, photos_only, realism, ceiling)
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise BlunfError(f"{out}: exists and is not a folder")
@@ -107,62 +118,12 @@ def _write(
         room = build_shaped_room(seed, ceiling, gaps[0], shape, gaps[1])
     except ValueError as e:  # more gaps than the room has walls for
         raise BlunfError(f"--doors {gaps[0]} --passages {gaps[1]}: {e}") from None
-    tracer = Tracer(room.parts)
-    intr = intrinsics_for(*size)
     poses = camera_paths(room, views, seed)
-    stems = [f"{i:04d}" for i in range(views)]
-    t_render = 0.0
     realism = realism or Realism()
-    drawn = {}
-    for i, (stem, pose) in enumerate(zip(stems, poses, strict=True)):
-        t1 = time.perf_counter()
-        rng = np.random.default_rng([seed, 5, i])  # the view's exposure, blur and noise
-        v = render(tracer, pose, intr, realism=realism, rng=rng)
-        if v.camera:
-            drawn[stem] = v.camera
-        t_render += time.perf_counter() - t1
-        write_image(root / "images" / f"{stem}.png", v.rgb)
-        if not photos_only:
-            write_depth_png(root / "depth" / f"{stem}.png", v.depth)
-            write_label_png(root / "labels" / f"{stem}.png", v.label)
-        write_label_png(root / "gt" / "instances" / f"{stem}.png", v.instance)
-    log.info(
-        "rendered %d views of %dx%d in %.2f s (%.3f s/view)",
-        views,
-        *size,
-        t_render,
-        t_render / views,
+    drawn = write_views(
+        root, Tracer(room.parts), poses, intrinsics_for(*size), seed, realism, photos_only
     )
-
-    pose_d = {s: p.tolist() for s, p in zip(stems, poses, strict=True)}
-    if photos_only:
-        write_json(root / "cameras.json", {"intrinsics": intr.to_json()})
-    else:
-        write_json(
-            root / "cameras.json",
-            {
-                "intrinsics": intr.to_json(),
-                "frames": {s: {"pose": p} for s, p in pose_d.items()},
-                "gravity": [0.0, 0.0, -1.0],
-                "depth_scale": 1000,
-            },
-        )
-        write_json(
-            root / "labels.json",
-            {"classes": {str(k): v for k, v in CLASSES.items()}, "ignore": list(IGNORE)},
-        )
-    write_json(root / "gt" / "poses.json", pose_d)
-    write_json(
-        root / "gt" / "instances.json",
-        {
-            str(p.instance): {
-                "class": p.cls,
-                "name": p.name,
-                "bbox": [round(float(x), 6) for x in p.mesh.bounds.reshape(-1)],
-            }
-            for p in room.furniture
-        },
-    )
+    write_instances(root, room)
     write_json(
         root / "gt" / "room.json",
         {
@@ -191,4 +152,75 @@ def _write(
         views,
         len(room.furniture),
         time.perf_counter() - t0,
+    )
+
+
+def write_views(
+    root: Path,
+    tracer: Tracer,
+    poses: np.ndarray,
+    intr: Intrinsics,
+    seed: int,
+    realism: Realism,
+    photos_only: bool,
+) -> dict:
+    """Render and write each view (images, depth, labels, gt/instances), then cameras.json,
+    labels.json and gt/poses.json; returns the camera effects each view drew (realism)."""
+    views = len(poses)
+    stems = [f"{i:04d}" for i in range(views)]
+    t_render = 0.0
+    drawn = {}
+    for i, (stem, pose) in enumerate(zip(stems, poses, strict=True)):
+        t1 = time.perf_counter()
+        rng = np.random.default_rng([seed, 5, i])  # the view's exposure, blur and noise
+        v = render(tracer, pose, intr, realism=realism, rng=rng)
+        if v.camera:
+            drawn[stem] = v.camera
+        t_render += time.perf_counter() - t1
+        write_image(root / "images" / f"{stem}.png", v.rgb)
+        if not photos_only:
+            write_depth_png(root / "depth" / f"{stem}.png", v.depth)
+            write_label_png(root / "labels" / f"{stem}.png", v.label)
+        write_label_png(root / "gt" / "instances" / f"{stem}.png", v.instance)
+    log.info(
+        "rendered %d views of %dx%d in %.2f s (%.3f s/view)",
+        views,
+        intr.width,
+        intr.height,
+        t_render,
+        t_render / views,
+    )
+    pose_d = {s: p.tolist() for s, p in zip(stems, poses, strict=True)}
+    if photos_only:
+        write_json(root / "cameras.json", {"intrinsics": intr.to_json()})
+    else:
+        write_json(
+            root / "cameras.json",
+            {
+                "intrinsics": intr.to_json(),
+                "frames": {s: {"pose": p} for s, p in pose_d.items()},
+                "gravity": [0.0, 0.0, -1.0],
+                "depth_scale": 1000,
+            },
+        )
+        write_json(
+            root / "labels.json",
+            {"classes": {str(k): v for k, v in CLASSES.items()}, "ignore": list(IGNORE)},
+        )
+    write_json(root / "gt" / "poses.json", pose_d)
+    return drawn
+
+
+def write_instances(root: Path, room: Room) -> None:
+    """gt/instances.json: each piece of furniture's class, name and bounding box."""
+    write_json(
+        root / "gt" / "instances.json",
+        {
+            str(p.instance): {
+                "class": p.cls,
+                "name": p.name,
+                "bbox": [round(float(x), 6) for x in p.mesh.bounds.reshape(-1)],
+            }
+            for p in room.furniture
+        },
     )
