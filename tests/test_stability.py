@@ -29,7 +29,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from pipeline.config import stage_configs
+from pipeline.config import PASSED, stage_configs
 from stages.common.blueprint import Blueprint, Grid
 from stages.common.capture import UNKNOWN, Capture, read_layout
 from stages.common.io import read_depth, write_json
@@ -89,7 +89,7 @@ def scaled_sets(s: float) -> list[str]:
             obj = getattr(obj, part)
         for name, power in fields.items():
             v = VOXEL if (prefix, name) == ("fusion", "voxel") else getattr(obj, name)
-            if v is not None:
+            if v is not None and f"{prefix}.{name}" not in PASSED:  # those follow their source
                 sets += ["--set", f"{prefix}.{name}={v * s**power!r}"]
     return sets
 

@@ -155,6 +155,7 @@ class PointWallsConfig:
     dist: float = 0.05  # metres: a reading this close to the plane lies on it
     min_height: float = 0.5  # metres in z (5-95 %) the readings span at least
     max_beyond: float = 0.2  # readings beyond the plane per reading on it
+
     # m²: the 10 cm cells (along it x height) its readings cover at least
     # (docs/figures.md#semantics-point-walls-area)
     min_area: float = 1.0
