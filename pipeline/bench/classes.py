@@ -31,15 +31,16 @@ from pipeline.bench.real import confusion, observed, run_plan, stripped_copy
 from pipeline.bench.runs import run_poses
 from stages.common.blueprint import Blueprint
 from stages.common.capture import UNKNOWN
+from stages.common.classes import CEILING_NAME, FLOOR_NAME, OBJECT_NAME, WALL_NAME
 from stages.common.errors import BlunfError
 from stages.common.gt_frame import plan_frame
 from stages.common.io import write_json
 from stages.common.plan_metrics import evaluate_plan
 
-THREE = {0: "floor", 1: "wall", 2: "object"}
-AS_FLOOR = ("floor", "rug", "mat")
-AS_WALL = ("wall", "window", "door", "pillar", "blinds", "panel", "curtain")
-AS_NONE = ("ceiling", "unlabelled", "undefined", "")  # left unknown
+THREE = {0: FLOOR_NAME, 1: WALL_NAME, 2: OBJECT_NAME}
+AS_FLOOR = (FLOOR_NAME, "rug", "mat")  # Replica's class names as ours
+AS_WALL = (WALL_NAME, "window", "door", "pillar", "blinds", "panel", "curtain")
+AS_NONE = (CEILING_NAME, "unlabelled", "undefined", "")  # left unknown
 
 
 def three_classes(bp: Blueprint) -> Blueprint:

@@ -40,12 +40,13 @@ from scipy import ndimage
 
 from pipeline.bench.runs import run_poses
 from stages.common.capture import Capture
+from stages.common.classes import FLOOR_NAME, OBJECT_NAME, WALL_NAME
 from stages.common.errors import BlunfError
 from stages.common.gt_frame import pose_similarity
 from stages.common.io import read_depth, read_json, read_label
 
 SOURCES = {1: "stereo", 2: "planes", 3: "field"}  # sources/<stem>.png codes (0: none)
-CLASSES = ("floor", "wall", "object")
+CLASSES = (FLOOR_NAME, WALL_NAME, OBJECT_NAME)
 NEAR_M = 0.05  # within_5cm
 BANDS = (0.0, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0, float("inf"))  # metres of sensor depth
 DEPTH_STAGES = ("depth", "nerf")  # the stage that writes a photos-only run's depth maps

@@ -39,6 +39,7 @@ from pipeline.bench.depth import at_centres, depth_folder, sensor_views
 from pipeline.bench.real import run_plan, score
 from pipeline.bench.runs import run_poses
 from stages.common.capture import Frame, write_layout
+from stages.common.classes import FLOOR_NAME, KEPT, OBJECT_NAME, WALL_NAME
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth, read_label, write_depth_png, write_json
 
@@ -124,7 +125,7 @@ def build(real: Path, rung: str, out: Path) -> tuple[Path, float]:
     ref_run, folder = real / "sfm-ref", depth_folder(real / "photos")
     cap, labels, classes = sensor_views(ref_run)
     poses = run_poses(ref_run)  # the reference's SfM poses, in its aligned room
-    floor_wall = {c for c, n in classes.items() if n in ("floor", "wall")}
+    floor_wall = {c for c, n in classes.items() if n in KEPT}
     tmp = out.parent / f".{out.name}.depth"
     tmp.mkdir(parents=True, exist_ok=True)
     frames, kept, total = [], 0, 0
@@ -202,7 +203,8 @@ def main(argv: list[str] | None = None) -> int:
     for r, v in res["rungs"].items():
         p = v["plan"]
         per = " ".join(
-            f"{c} {p['per_class'].get(c, float('nan')):.1f}" for c in ("floor", "wall", "object")
+            f"{c} {p['per_class'].get(c, float('nan')):.1f}"
+            for c in (FLOOR_NAME, WALL_NAME, OBJECT_NAME)
         )
         o1 = v.get("plan_vs_O1", {}).get("fwiou", float("nan"))
         print(
