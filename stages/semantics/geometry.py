@@ -44,7 +44,8 @@ from stages.semantics.pointwalls import (
     point_walls,
     room_directions,
 )
-from stages.semantics.segment import MoreWalls, Segmentation, segment, triangles
+from stages.semantics.segment import MoreWalls, segment, triangles
+from stages.semantics.segmentation import Segmentation
 from stages.semantics.wallfill import wall_through
 
 log = logging.getLogger(__name__)

@@ -9,8 +9,6 @@ into pieces where its top steps (pieces.py).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 import open3d as o3d
 
@@ -19,9 +17,7 @@ from stages.common.classes import OBJECT
 from stages.common.rows import unique_rows
 from stages.semantics.config import SemanticsConfig
 from stages.semantics.pieces import split_by_top
-
-if TYPE_CHECKING:
-    from stages.semantics.segment import Segmentation
+from stages.semantics.segmentation import Segmentation
 
 
 def _table_top(

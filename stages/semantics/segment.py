@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
 
 import numpy as np
 import open3d as o3d
@@ -53,35 +52,12 @@ from stages.common.classes import (
 )
 from stages.semantics.config import SemanticsConfig
 from stages.semantics.objects import objects
+from stages.semantics.segmentation import Segmentation
 
 log = logging.getLogger(__name__)
 
 SPAN_PCT = (5.0, 95.0)  # robust extent of a plane's inliers (percentiles)
 HANGS = 0.1  # metres: a surface before a wall whose lowest inliers (5 %) lie higher hangs
-
-
-@dataclass
-class Segmentation:
-    """Per-triangle class and instance, with what was found."""
-
-    cls: np.ndarray  # [T] uint8 class id or UNKNOWN
-    instance: np.ndarray  # [T] int32 object instance (1.., by decreasing area); 0 = none
-    area: np.ndarray  # [T] triangle areas (m²)
-    planes: list[dict] = field(default_factory=list)  # accepted planes: kind, normal, d, area
-    rejected: list[dict] = field(default_factory=list)  # vertical planes that were not walls
-    noise_clusters: int = 0  # clusters below object_min_area (unknown)
-    noise_triangles: int = 0  # triangles DBSCAN calls noise (unknown)
-    floating_clusters: int = 0  # clusters above object_max_gap (unknown)
-    resting_clusters: int = 0  # clusters above it that rest on a standing object (objects)
-    hanger_triangles: int = 0  # by a surface hanging before a wall, its frame (unknown)
-    outside_triangles: int = 0  # object triangles outside the room (outside_unknown)
-    floor_z: float = 0.0  # median height of the floor triangles (0 when no floor was found)
-    object_base_z: float = 0.0  # height object clusters' lowest points are measured from
-
-    @property
-    def has_floor(self) -> bool:
-        """Whether any triangle is labelled floor (a floor plane was found)."""
-        return bool((self.cls == FLOOR).any())
 
 
 def triangles(verts: np.ndarray, tris: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -19,10 +19,10 @@ import numpy as np
 
 from stages.common.errors import BlunfError
 from stages.common.io import write_json
+from stages.synth.files import PLAN_CELL, PLAN_MARGIN, is_int, write_instances, write_views
 from stages.synth.home_path import home_path, keyframes, route
 from stages.synth.home_plan import TEMPLATES, draw_plan
 from stages.synth.home_scene import home_layout, home_parts, home_room
-from stages.synth.make import PLAN_CELL, PLAN_MARGIN, write_instances, write_views
 from stages.synth.realism import Realism
 from stages.synth.render import Tracer, intrinsics_for, top_down
 from stages.synth.room import scene_mesh
@@ -54,8 +54,6 @@ def make_home(
 
     Same arguments -> byte-identical files; writes into a temp sibling folder renamed into
     place at the end, so a failure leaves nothing behind (as make_room)."""
-    from stages.synth.make import _is_int  # the room writer's checks of the same values
-
     out = Path(out)
     rooms = check_rooms(rooms)
     if rooms < ROOMS[0]:
@@ -64,12 +62,12 @@ def make_home(
         raise BlunfError(f"{out}: exists and is not a folder")
     if out.exists() and any(out.iterdir()):
         raise BlunfError(f"{out}: output folder exists and is not empty")
-    if not _is_int(views) or views < 1:
+    if not is_int(views) or views < 1:
         raise BlunfError(f"--views must be a positive integer, got {views!r}")
-    if not _is_int(seed) or seed < 0:
+    if not is_int(seed) or seed < 0:
         raise BlunfError(f"--seed must be a non-negative integer, got {seed!r}")
     w, h = size
-    if not (_is_int(w) and _is_int(h) and w >= 8 and h >= 8):
+    if not (is_int(w) and is_int(h) and w >= 8 and h >= 8):
         raise BlunfError(f"--size must be whole pixels, at least 8x8, got {w}x{h}")
     tmp = out.parent / f".{out.name}.synth-tmp"
     shutil.rmtree(tmp, ignore_errors=True)

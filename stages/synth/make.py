@@ -7,21 +7,17 @@ import shutil
 import time
 from pathlib import Path
 
-import numpy as np
-
-from stages.common.camera import Intrinsics
 from stages.common.errors import BlunfError
-from stages.common.io import write_depth_png, write_image, write_json, write_label_png
+from stages.common.io import write_json
+from stages.synth.files import PLAN_CELL, PLAN_MARGIN, is_int, write_instances, write_views
+from stages.synth.home import check_rooms, make_home
 from stages.synth.layout import room_layout
 from stages.synth.realism import Realism
-from stages.synth.render import Tracer, camera_paths, intrinsics_for, render, top_down
-from stages.synth.room import CLASSES, IGNORE, Room, scene_mesh
+from stages.synth.render import Tracer, camera_paths, intrinsics_for, top_down
+from stages.synth.room import scene_mesh
 from stages.synth.shape import build_shaped_room
 
 log = logging.getLogger(__name__)
-
-PLAN_CELL = 0.02  # ground-truth blueprint cell (metres)
-PLAN_MARGIN = 0.1  # the plan covers the room with its walls plus this margin (metres)
 
 
 def make_room(
@@ -53,8 +49,6 @@ def make_room(
     Same (views, seed, size, ceiling) -> byte-identical files. Writes into a temp sibling
     folder renamed into place at the end, so a failure leaves nothing behind.
     """
-    from stages.synth.home import check_rooms, make_home
-
     if check_rooms(rooms) > 1:
         if doors or passages or shape != "rect":
             raise BlunfError("--doors, --passages and --shape apply to one room, not --rooms > 1")
@@ -64,18 +58,18 @@ def make_room(
         raise BlunfError(f"{out}: exists and is not a folder")
     if out.exists() and any(out.iterdir()):
         raise BlunfError(f"{out}: output folder exists and is not empty")
-    if not _is_int(views) or views < 1:
+    if not is_int(views) or views < 1:
         raise BlunfError(f"--views must be a positive integer, got {views!r}")
-    if not _is_int(seed) or seed < 0:
+    if not is_int(seed) or seed < 0:
         raise BlunfError(f"--seed must be a non-negative integer, got {seed!r}")
-    if not _is_int(doors) or not 0 <= doors <= 4:
+    if not is_int(doors) or not 0 <= doors <= 4:
         raise BlunfError(f"doors must be a whole number in 0..4, got {doors!r}")
-    if not _is_int(passages) or not 0 <= passages <= 4:
+    if not is_int(passages) or not 0 <= passages <= 4:
         raise BlunfError(f"passages must be a whole number in 0..4, got {passages!r}")
     if shape not in ("rect", "L"):
         raise BlunfError(f"--shape must be rect or L, got {shape!r}")
     w, h = size
-    if not (_is_int(w) and _is_int(h) and w >= 8 and h >= 8):
+    if not (is_int(w) and is_int(h) and w >= 8 and h >= 8):
         raise BlunfError(f"--size must be whole pixels, at least 8x8, got {w}x{h}")
     views, seed, w, h = int(views), int(seed), int(w), int(h)
     tmp = out.parent / f".{out.name}.synth-tmp"
@@ -89,10 +83,6 @@ def make_room(
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return out
-
-
-def _is_int(x: object) -> bool:
-    return isinstance(x, int | np.integer) and not isinstance(x, bool)
 
 
 def _write(
@@ -152,75 +142,4 @@ def _write(
         views,
         len(room.furniture),
         time.perf_counter() - t0,
-    )
-
-
-def write_views(
-    root: Path,
-    tracer: Tracer,
-    poses: np.ndarray,
-    intr: Intrinsics,
-    seed: int,
-    realism: Realism,
-    photos_only: bool,
-) -> dict:
-    """Render and write each view (images, depth, labels, gt/instances), then cameras.json,
-    labels.json and gt/poses.json; returns the camera effects each view drew (realism)."""
-    views = len(poses)
-    stems = [f"{i:04d}" for i in range(views)]
-    t_render = 0.0
-    drawn = {}
-    for i, (stem, pose) in enumerate(zip(stems, poses, strict=True)):
-        t1 = time.perf_counter()
-        rng = np.random.default_rng([seed, 5, i])  # the view's exposure, blur and noise
-        v = render(tracer, pose, intr, realism=realism, rng=rng)
-        if v.camera:
-            drawn[stem] = v.camera
-        t_render += time.perf_counter() - t1
-        write_image(root / "images" / f"{stem}.png", v.rgb)
-        if not photos_only:
-            write_depth_png(root / "depth" / f"{stem}.png", v.depth)
-            write_label_png(root / "labels" / f"{stem}.png", v.label)
-        write_label_png(root / "gt" / "instances" / f"{stem}.png", v.instance)
-    log.info(
-        "rendered %d views of %dx%d in %.2f s (%.3f s/view)",
-        views,
-        intr.width,
-        intr.height,
-        t_render,
-        t_render / views,
-    )
-    pose_d = {s: p.tolist() for s, p in zip(stems, poses, strict=True)}
-    if photos_only:
-        write_json(root / "cameras.json", {"intrinsics": intr.to_json()})
-    else:
-        write_json(
-            root / "cameras.json",
-            {
-                "intrinsics": intr.to_json(),
-                "frames": {s: {"pose": p} for s, p in pose_d.items()},
-                "gravity": [0.0, 0.0, -1.0],
-                "depth_scale": 1000,
-            },
-        )
-        write_json(
-            root / "labels.json",
-            {"classes": {str(k): v for k, v in CLASSES.items()}, "ignore": list(IGNORE)},
-        )
-    write_json(root / "gt" / "poses.json", pose_d)
-    return drawn
-
-
-def write_instances(root: Path, room: Room) -> None:
-    """gt/instances.json: each piece of furniture's class, name and bounding box."""
-    write_json(
-        root / "gt" / "instances.json",
-        {
-            str(p.instance): {
-                "class": p.cls,
-                "name": p.name,
-                "bbox": [round(float(x), 6) for x in p.mesh.bounds.reshape(-1)],
-            }
-            for p in room.furniture
-        },
     )
