@@ -47,3 +47,31 @@ def test_ray_cells_runs_in_bounded_chunks_and_marks_the_same_cells(monkeypatch) 
     inputs = big[0].nbytes * 6  # the per-ray arrays (lengths, ends, segments) do grow
     assert p_big < p_small + inputs, (p_small, p_big)
     assert p_big < 30e6
+
+
+def _labelled(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-0.2, 8.2, size=(n, 2))  # some points off the plan
+    lab = rng.choice(np.array([0, 3, 4, 7, 200], np.uint8), n, p=[0.4, 0.3, 0.1, 0.1, 0.1])
+    return xy, lab
+
+
+def test_majority_vote_counts_in_chunks_into_a_table_the_size_of_the_plan(monkeypatch) -> None:
+    from stages.blueprint import mvr
+
+    grid = Grid((0.0, 0.0), 0.05, (160, 160))
+    xy, lab = _labelled(60_000, 0)
+    at_once = mvr._vote_at_once(xy, lab, grid, 2)
+    monkeypatch.setattr(mvr, "CHUNK", 7_000, raising=False)  # chunks end mid-cell
+    got = mvr.majority_vote(xy, lab, grid, 2)
+    assert np.array_equal(got[0], at_once[0]) and got[1] == at_once[1]
+    monkeypatch.setattr(mvr, "TABLE_MAX", 10, raising=False)  # too large a table: at once
+    assert np.array_equal(mvr.majority_vote(xy, lab, grid, 2)[0], at_once[0])
+    monkeypatch.setattr(mvr, "TABLE_MAX", 1 << 23, raising=False)
+    monkeypatch.setattr(mvr, "CHUNK", 1 << 16, raising=False)
+    # 4x the points (views) must not take 4x the memory: without the chunks every point's
+    # cell, class and sort order were held at once (~60 MB at 800 000 points)
+    small, big = _labelled(200_000, 1), _labelled(800_000, 2)
+    p_small = _peak(mvr.majority_vote, *small, grid)
+    p_big = _peak(mvr.majority_vote, *big, grid)
+    assert p_big < 1.3 * p_small, (p_small, p_big)
