@@ -226,12 +226,14 @@ def markdown(r: dict) -> str:
 
 
 def plot(r: dict, path: Path) -> Path:
-    """Seconds and added memory against views, log-log, a dotted line of slope 1 for scale."""
+    """Seconds, CPU-s and added memory against views, log-log, a dotted line of slope 1."""
     plt = _plt()
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
+    from matplotlib.ticker import NullFormatter
+
+    fig, axes = plt.subplots(1, 3, figsize=(16, 5))
     views = np.asarray(r["views"], float)
     by_v = {x["views"]: x for x in r["runs"]}
-    for ax, f in zip(axes, ("seconds", "added_mb"), strict=True):
+    for ax, f in zip(axes, ("seconds", "cpu_s", "added_mb"), strict=True):
         for i, st in enumerate(r["slopes"]):
             ys = [_figure(by_v[int(v)], st, f) for v in views]
             pts = [(v, y) for v, y in zip(views, ys, strict=True) if y is not None and y > 0]
@@ -247,10 +249,11 @@ def plot(r: dict, path: Path) -> Path:
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xticks(views, [str(int(v)) for v in views])
+        ax.xaxis.set_minor_formatter(NullFormatter())
         ax.set_xlabel("views")
         ax.set_ylabel(LABELS[f])
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=6.5)
     fig.suptitle(
         f"cost against views: {r['rooms']} room(s), {r['size'][0]}x{r['size'][1]}, "
         f"{'photos only' if r['photos_only'] else 'sensor depth and poses'}, "
