@@ -85,3 +85,11 @@ def test_scale_bench_bad_arguments_fail_in_one_line(tmp_path, capsys) -> None:
     assert "--rooms must be in 1..5" in capsys.readouterr().err
     assert main(["bench", "--set", "fusion.voxel=0.1", "--out", str(tmp_path / "s")]) == 2
     assert not (tmp_path / "s").exists()
+
+
+def test_matching_bench_refuses_unknown_kinds_before_any_work(tmp_path, capsys) -> None:
+    from pipeline.bench.matching import main as matching_main
+
+    out = tmp_path / "m"
+    assert matching_main([str(tmp_path), "--out", str(out), "--kinds", "sequential,vocab"]) == 2
+    assert "vocab" in capsys.readouterr().err and not out.exists()
