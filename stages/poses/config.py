@@ -20,7 +20,7 @@ class RetrievalConfig:
     image's SIFT descriptors over visual words trained on the capture's own descriptors."""
 
     neighbours: int = 5  # each image is also matched with this many most similar images
-    #                      outside its sequential window (the loop pairs)
+    #                      beyond its next `overlap` and sequential pairs (the loop pairs)
     words: int = 64  # visual words (seeded k-means of the capture's descriptors)
     sample: int = 20000  # at most this many descriptors train the words (spread over images)
     iterations: int = 15  # k-means iterations
@@ -43,18 +43,23 @@ class MatchingConfig:
     """Which image pairs SIFT matches are sought between (matching.py)."""
 
     kind: Literal["auto", "sequential", "exhaustive", "retrieval"] = "auto"  # "auto" =
-    #   exhaustive up to exhaustive_max_images, else retrieval; "sequential": the capture
-    #   order's neighbours only (no loop closes); "retrieval": sequential plus each image's
-    #   `retrieval.neighbours` most similar images (a walk that returns closes its loop)
+    #   exhaustive up to exhaustive_max_images, sequential up to retrieval_above, else
+    #   retrieval; "sequential": the capture order's neighbours only (no loop closes);
+    #   "retrieval": sequential plus each image's `retrieval.neighbours` most similar images
+    #   (a walk that returns closes its loop)
     exhaustive_max_images: int = 40
-    overlap: int = 10  # sequential: each image with this many next (+ 2^k steps beyond)
+    retrieval_above: int = 150  # auto: retrieval above this many images. 7-Scenes kitchen,
+    #   100 views: retrieval ATE 4.6 against 4.9 cm, but its sparse points put the floor
+    #   (poses.scale_from=priors) 1.48 m below the cameras against 1.42 (truth 1.39)
+    overlap: int = 10  # sequential: each image with those 1, 2, 4 ... 2^(overlap - 1) on
+    #                    (pycolmap 4's quadratic overlap)
 
     retrieval: RetrievalConfig = dataclasses.field(default_factory=RetrievalConfig)
 
     def __post_init__(self) -> None:
         if self.kind not in MATCHINGS:
             raise BlunfError(f"poses.matching.kind: {self.kind!r} is not one of {MATCHINGS}")
-        for name in ("exhaustive_max_images", "overlap"):
+        for name in ("exhaustive_max_images", "overlap", "retrieval_above"):
             if getattr(self, name) < 1:
                 raise BlunfError(f"poses.matching.{name}: must be >= 1, got {getattr(self, name)}")
 

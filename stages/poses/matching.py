@@ -1,17 +1,18 @@
 """Which image pairs SIFT matches are sought between, and the matching (pycolmap).
 
 - exhaustive: every pair, n (n - 1) / 2.
-- sequential: each image with its `overlap` next in capture order and those 2^k steps on
-  (COLMAP's quadratic overlap): a walk that comes back to where it started is not closed.
+- sequential: each image with those 1, 2, 4 ... 2^(overlap - 1) steps on in capture order
+  (pycolmap 4's sequential pairing with quadratic overlap): a walk that comes back to where
+  it started is not closed unless it is a power of two long.
 - retrieval: the sequential pairs, plus each image with its `neighbours` most similar images
   outside its window (the loop pairs). Similarity is the dot product of VLAD vectors
   (Jégou et al., CVPR 2010): RootSIFT descriptors, their residuals to visual words summed per
   word, normalised per word, square-rooted and normalised. The words are a seeded k-means of
   the capture's own descriptors, so no vocabulary is downloaded. The pairs grow as
-  n (overlap + log2 n + neighbours), not n^2.
+  n (min(overlap, log2 n) + neighbours), not n^2.
 
-All pairs of a kind go to pycolmap's `match_image_pairs` at once; two-view geometry is
-verified by pycolmap as for its own pairings.
+The sequential pairs are pycolmap's own sequential pairing; the loop pairs then go to its
+`match_image_pairs` as a list. Two-view geometry is verified by pycolmap as for any pairing.
 """
 
 from __future__ import annotations
@@ -34,13 +35,16 @@ def kind_for(cfg: MatchingConfig, n: int) -> str:
     """The kind of matching used for n images ("auto" resolved)."""
     if cfg.kind != "auto":
         return cfg.kind
-    return "exhaustive" if n <= cfg.exhaustive_max_images else "retrieval"
+    if n <= cfg.exhaustive_max_images:
+        return "exhaustive"
+    return "sequential" if n <= cfg.retrieval_above else "retrieval"
 
 
 def sequential_pairs(n: int, overlap: int) -> set[tuple[int, int]]:
-    """(i, j), i < j: j - i in 1..overlap or a power of two below 2^overlap (COLMAP's
-    sequential pairing with quadratic overlap)."""
-    steps = set(range(1, overlap + 1)) | {2**k for k in range(overlap)}
+    """(i, j), i < j: j - i a power of two below 2^overlap (pycolmap 4's sequential pairing
+    with quadratic overlap, which this module runs; tests/stages/test_sfm_matching.py holds
+    them equal)."""
+    steps = {2**k for k in range(overlap)}
     return {(i, i + d) for i in range(n) for d in steps if i + d < n}
 
 
@@ -127,12 +131,15 @@ def read_descriptors(db: Path, names: list[str]) -> list[np.ndarray]:
 def retrieval_pairs(
     db: Path, names: list[str], cfg: MatchingConfig, seed: int
 ) -> tuple[set[tuple[int, int]], set[tuple[int, int]]]:
-    """(sequential pairs, loop pairs) of the images `names` (indices into it)."""
+    """(sequential pairs, loop pairs) of the images `names` (indices into it): the loop
+    pairs are the most similar outside the sequential pairs and the next `overlap` views."""
     seq = sequential_pairs(len(names), cfg.overlap)
+    n = len(names)  # the loop pairs look beyond the next `overlap` views too
+    near = {(i, j) for i in range(n) for j in range(i + 1, min(n, i + cfg.overlap + 1))}
     descs = [root_sift(d) for d in read_descriptors(db, names)]
     words = train_words(descs, cfg.retrieval, seed)
     vecs = np.stack([vlad(d, words) for d in descs]) if descs else np.zeros((0, 1))
-    return seq, loop_pairs(vecs, seq, cfg.retrieval.neighbours)
+    return seq, loop_pairs(vecs, seq | near, cfg.retrieval.neighbours)
 
 
 def verified(db: Path, names: list[str]) -> dict[tuple[int, int], int]:
@@ -184,29 +191,45 @@ def match(cfg: PosesConfig, db: Path, names: list[str], threads: int) -> dict:
         )
         facts |= {"detail": f"all {n * (n - 1) // 2} pairs", "pairs": n * (n - 1) // 2}
         return facts | closure(verified(db, names), set(), n)
-    loops: set[tuple[int, int]] = set()
-    if kind == "sequential":
-        pairs = sequential_pairs(n, m.overlap)
-        detail = f"overlap {m.overlap} (+ quadratic), no loop detection"
-    else:
-        seq, loops = retrieval_pairs(db, names, m, cfg.seed)
-        pairs = seq | loops
-        r = m.retrieval
-        detail = (
-            f"overlap {m.overlap} (+ quadratic) and {r.neighbours} retrieved a view "
-            f"(VLAD over {r.words} words of the capture's own SIFT)"
-        )
-        facts["loop_pairs"] = len(loops)
-    facts |= {"detail": detail, "pairs": len(pairs)}
-    lst = Path(db).parent / "pairs.txt"
-    lst.write_text("".join(f"{names[i]} {names[j]}\n" for i, j in sorted(pairs)))
-    po = pycolmap.ImportedPairingOptions()
-    po.match_list_path = str(lst)
-    pycolmap.match_image_pairs(
+    # the sequential pairs by pycolmap's own pairing (as before retrieval existed: the same
+    # database, the same model), then the loop pairs from a list
+    po = pycolmap.SequentialPairingOptions()
+    po.overlap = m.overlap
+    po.quadratic_overlap = True
+    po.loop_detection = False
+    po.num_threads = threads
+    pycolmap.match_sequential(
         db,
         matching_options=mo,
         pairing_options=po,
         verification_options=vo,
         device=pycolmap.Device.cpu,
     )
+    loops: set[tuple[int, int]] = set()
+    detail = f"steps 1, 2, 4 ... 2^{m.overlap - 1} (quadratic overlap), no loop detection"
+    if kind == "retrieval":
+        loops = retrieval_pairs(db, names, m, cfg.seed)[1]
+        r = m.retrieval
+        detail = (
+            f"steps 1, 2, 4 ... 2^{m.overlap - 1} and {r.neighbours} retrieved a view "
+            f"(VLAD over {r.words} words of the capture's own SIFT)"
+        )
+        facts["loop_pairs"] = len(loops)
+        lst = Path(db).parent / "pairs.txt"
+        lst.write_text("".join(f"{names[i]} {names[j]}\n" for i, j in sorted(loops)))
+        ip = pycolmap.ImportedPairingOptions()
+        ip.match_list_path = str(lst)
+        pycolmap.match_image_pairs(
+            db,
+            matching_options=mo,
+            pairing_options=ip,
+            verification_options=vo,
+            device=pycolmap.Device.cpu,
+        )
+    d = pycolmap.Database.open(db)
+    try:
+        facts["pairs"] = int(d.num_matched_image_pairs())
+    finally:
+        d.close()
+    facts["detail"] = detail
     return facts | closure(verified(db, names), loops, n)

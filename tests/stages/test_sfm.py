@@ -358,12 +358,11 @@ def _seven_scenes(n: int) -> tuple[Capture, dict[str, np.ndarray]]:
 
 @pytest.mark.slow
 def test_sfm_seven_scenes_100_frames(tmp_path: Path) -> None:
-    # 100 frames -> auto picks sequential matching with retrieved loop pairs; depth gives the
-    # metric scale.
+    # 100 frames -> auto picks sequential matching; depth gives the metric scale.
     cap, gt = _seven_scenes(100)
     got, facts = _run_sfm(cap, tmp_path)
     m = pose_metrics({f.stem: f.pose for f in got.frames}, gt)
-    assert facts["matching"] == "retrieval"
+    assert facts["matching"] == "sequential"
     assert m["registered"] >= 95
     assert m["ate_rmse_m"] <= 0.05
     assert m["align_scale"] == pytest.approx(1.0, abs=0.05)

@@ -22,17 +22,19 @@ from stages.synth.make import make_room
 
 
 def test_sequential_pairs_are_colmaps_quadratic_overlap() -> None:
-    # overlap 3: steps 1, 2, 3 and the powers of two 1, 2, 4
+    # overlap 3: steps 1, 2, 4 (pycolmap 4 pairs powers of two only with quadratic overlap;
+    # the real run below holds the database's pairs equal to these)
     got = sequential_pairs(10, 3)
-    want = {(i, j) for i in range(10) for j in range(i + 1, 10) if j - i in (1, 2, 3, 4)}
+    want = {(i, j) for i in range(10) for j in range(i + 1, 10) if j - i in (1, 2, 4)}
     assert got == want
     assert max(j - i for i, j in sequential_pairs(100, 10)) == 64  # 2^6: 2^7 is past the end
     assert len(sequential_pairs(1, 5)) == 0
 
 
-def test_auto_is_exhaustive_for_few_images_then_retrieval() -> None:
+def test_auto_is_exhaustive_for_few_images_then_sequential_then_retrieval() -> None:
     m = MatchingConfig()
-    assert kind_for(m, 40) == "exhaustive" and kind_for(m, 41) == "retrieval"
+    assert kind_for(m, 40) == "exhaustive" and kind_for(m, 41) == "sequential"
+    assert kind_for(m, 150) == "sequential" and kind_for(m, 151) == "retrieval"
     assert kind_for(MatchingConfig(kind="sequential"), 5) == "sequential"
 
 
@@ -69,7 +71,8 @@ def test_vlad_tells_a_place_from_another() -> None:
 def test_retrieval_closes_the_walk_and_registers_every_view(tmp_path: Path) -> None:
     # The procedural room's camera walks once round an ellipse: its last views look where
     # its first did. Sequential pairs with overlap 3 reach 4 views on (gap <= 4); only the
-    # retrieved loop pairs can join the walk's two ends (gap n - 1 .. n - 4).
+    # retrieved loop pairs can join the walk's two ends (gap n - 1 .. n - 4). The pairs
+    # matched (the database's count) are this module's sequential pairs plus the loop pairs.
     n = 36
     room = make_room(tmp_path / "room", views=n, size=(160, 120), seed=0)
     (tmp_path / "ingest").mkdir()
