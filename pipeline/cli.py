@@ -31,6 +31,16 @@ def _size(s: str) -> tuple[int, int]:
     return w, h
 
 
+def _views(s: str) -> tuple[int, ...]:
+    try:
+        v = tuple(int(x) for x in s.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--views {s!r}: expected counts, e.g. 60,120") from None
+    if not v or min(v) < 2:
+        raise argparse.ArgumentTypeError(f"--views {s!r}: each count must be >= 2")
+    return v
+
+
 def _positive(s: str) -> int:
     try:
         v = int(s)
@@ -99,6 +109,17 @@ def parser() -> argparse.ArgumentParser:
     b.add_argument("--targets", action="store_true",
                    help="each speed target's figure, reference and ratio (targets.md)")  # fmt: skip
     b.add_argument("--only", metavar="1,5,7", help="with --targets: the targets to measure")
+    b.add_argument("--scale", action="store_true",
+                   help="cost curve: each stage's seconds, CPU-s, memory by views")  # fmt: skip
+    b.add_argument("--views", type=_views, default=(60, 120, 240, 480),
+                   help="with --scale: view counts (default 60,120,240,480)")  # fmt: skip
+    b.add_argument("--rooms", type=_positive, default=1, help="with --scale: rooms (1..5)")
+    b.add_argument("--size", type=_size, default=(320, 240), help="with --scale: WxH")
+    b.add_argument("--seed", type=int, default=0, help="with --scale: the scene's seed")
+    b.add_argument("--photos-only", action="store_true",
+                   help="with --scale: images only (SfM poses, depth from the photos)")  # fmt: skip
+    b.add_argument("--config", type=Path, help="with --scale: YAML for every run")
+    b.add_argument("--set", dest="sets", action="append", default=[], metavar="STAGE.KEY=VALUE")
 
     a = sub.add_parser("batch", help="run many captures as Dask tasks (local or a cluster)")
     a.add_argument("captures", nargs="+", type=Path, metavar="CAPTURE")
@@ -279,6 +300,27 @@ def _dispatch(args: argparse.Namespace) -> int:
         print(json.dumps({k: v for k, v in facts.items() if k != "outcomes"}, indent=1))
         return 0 if facts["failed"] == 0 else 1
     if args.cmd == "bench":
+        if args.scale:
+            from pipeline.bench.curve import scale_bench, table
+
+            setup_runtime(args.threads or 1)
+            out = args.out or Path("runs/scale")
+            r = scale_bench(
+                out,
+                args.views,
+                args.rooms,
+                args.seed,
+                args.size,
+                args.photos_only,
+                args.threads or 1,
+                args.config,
+                args.sets,
+            )
+            print(table(r))
+            print(f"{out / 'scale.json'}, {out / 'scale.md'}, {out / 'scale.svg'}")
+            return 0
+        if args.sets or args.config:
+            raise BlunfError("--set and --config apply to --scale runs only")
         if args.targets:
             from pipeline.bench.targets import parse_only, targets
 

@@ -62,6 +62,10 @@ def test_grids_are_well_formed():
         assert {"blueprint", "poses", "depth"} <= {v.group for v in grid}
         assert len({v.frames for v in grid if v.cost == "frames"}) >= 3
         assert len({v.capture for v in grid if v.cost == "pixels"}) >= 3
+    from pipeline.config import load_config
+
+    for v in full_grid():  # every variant's settings are keys of today's configs
+        load_config(None, list(v.sets))
     encodings = {s for v in full_grid() for s in v.sets if "blunf.encoding=" in s}
     assert encodings == {f"blueprint.blunf.encoding={e}" for e in ("pe", "hash", "siren", "none")}
 

@@ -156,7 +156,7 @@ def sfm(mapper: str, matching: str, frames: int, capture: str = "room") -> Varia
             "run.methods=mvr",
             "poses.impl=sfm",
             f"poses.mapper={mapper}",
-            f"poses.matching={matching}",
+            f"poses.matching.kind={matching}",
         ),
         frames,
         fresh_from="poses",

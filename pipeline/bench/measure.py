@@ -96,9 +96,18 @@ def harvest(run_dir: Path, warm: Path, stages: tuple[str, ...]) -> None:
                 link_tree(entry.parent, warm / stage / entry.parent.name)
 
 
-def child_run(capture: Path, run_dir: Path, sets: list[str], threads: int, log_file: Path) -> dict:
+def child_run(
+    capture: Path,
+    run_dir: Path,
+    sets: list[str],
+    threads: int,
+    log_file: Path,
+    config: Path | None = None,
+) -> dict:
     """Run the pipeline in a child process; returns its result (see child.py)."""
     spec = {"capture": str(capture), "out": str(run_dir), "sets": sets, "threads": threads}
+    if config is not None:
+        spec["config"] = str(config)
     spec_file = run_dir / ".bench-spec.json"
     write_json(spec_file, spec)
     env = dict(os.environ, BLUNF_THREADS=str(threads), OMP_NUM_THREADS=str(threads))

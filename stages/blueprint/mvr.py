@@ -1,7 +1,9 @@
 """MVR baseline: every cell takes the most frequent label among the points projected into it.
 
-Vectorised: votes are counted with one bincount over (occupied cell, class) pairs; cells with
-fewer than `min_votes` points stay unknown (255). Ties go to the lowest class id.
+Vectorised: votes are counted with a bincount over (cell, class) pairs, CHUNK points at a
+time into one table of the plan's cells by the classes present, so the memory follows the
+plan's area, not the number of points (views); cells with fewer than `min_votes` points stay
+unknown (255). Ties go to the lowest class id.
 """
 
 from __future__ import annotations
@@ -21,6 +23,9 @@ from stages.common.io import write_json
 from stages.common.points import read_grid, read_instances, read_points
 
 log = logging.getLogger(__name__)
+
+CHUNK = 1 << 20  # points counted at a time
+TABLE_MAX = 1 << 23  # cells x classes counted in one table; a larger plan counts at once
 
 
 def run(cfg: BlueprintConfig, inputs: BlueprintInputs, out: Path) -> BlueprintOutputs:
@@ -61,6 +66,36 @@ def majority_vote(
     Returns (labels uint8 [H, W] with UNKNOWN where fewer than min_votes points fell,
     number of cells with at least one point).
     """
+    h, w = grid.shape
+    plan = np.full(h * w, UNKNOWN, np.uint8)
+    label = np.asarray(label)
+    if len(label) == 0:
+        return plan.reshape(h, w), 0
+    present = np.bincount(label.astype(np.int64), minlength=256) > 0  # class ids are < 256
+    ids = np.flatnonzero(present)  # [K] sorted: the first maximum is the lowest id
+    if h * w * len(ids) > TABLE_MAX:
+        return _vote_at_once(xy, label, grid, min_votes)
+    index = np.cumsum(present) - 1  # class id -> its column
+    votes = np.zeros((h * w) * len(ids), np.int64)  # [H W K]
+    for s in range(0, len(label), CHUNK):
+        row, col, inside = grid.cell_of(xy[s : s + CHUNK])
+        cell = (row * w + col)[inside]
+        k = index[label[s : s + CHUNK][inside].astype(np.int64)]
+        votes += np.bincount(cell * len(ids) + k, minlength=len(votes))
+    votes = votes.reshape(h * w, len(ids))  # [H W, K]
+    total = votes.sum(axis=1)
+    cells = np.flatnonzero(total)  # occupied cells
+    win = ids[votes[cells].argmax(axis=1)].astype(np.uint8)  # [C]
+    enough = total[cells] >= min_votes
+    plan[cells[enough]] = win[enough]
+    return plan.reshape(h, w), int(len(cells))
+
+
+def _vote_at_once(
+    xy: np.ndarray, label: np.ndarray, grid: Grid, min_votes: int
+) -> tuple[np.ndarray, int]:
+    """majority_vote over the occupied cells only, every point at once (plans too large for
+    one table of every cell by every class)."""
     h, w = grid.shape
     row, col, inside = grid.cell_of(xy)
     cell = (row * w + col)[inside]  # [M] flat cell of each point inside

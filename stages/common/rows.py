@@ -28,3 +28,24 @@ def unique_rows(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         packed = packed * span[c] + (keys[:, c].astype(np.int64) - lo[c])
     _, first, inv = np.unique(packed, return_index=True, return_inverse=True)
     return keys[first], first, inv.reshape(-1)
+
+
+def distinct(a: np.ndarray) -> np.ndarray:
+    """np.unique(a) of a 1-D array, by one sort: numpy 2.4's np.unique hashes, ~10x slower
+    on millions of mostly distinct integers (2.2 M: 1.7 CPU-s against 0.14)."""
+    s = np.sort(np.asarray(a).reshape(-1))
+    if len(s) == 0:
+        return s
+    return s[np.concatenate(([True], s[1:] != s[:-1]))]
+
+
+def distinct_mm(xy: np.ndarray) -> np.ndarray:
+    """np.unique(np.round(xy, 3), axis=0) of plan points xy [N, 2] (metres), float64 [M, 2]:
+    each point packed into one int64 of millimetres, then `distinct`."""
+    mm = np.rint(np.asarray(xy, np.float64) * 1000.0).astype(np.int64)  # [N, 2]
+    if len(mm) == 0:
+        return np.zeros((0, 2))
+    lo = mm.min(axis=0)
+    span = int(mm[:, 1].max() - lo[1]) + 1
+    u = distinct((mm[:, 0] - lo[0]) * span + (mm[:, 1] - lo[1]))
+    return np.stack([u // span + lo[0], u % span + lo[1]], axis=1) / 1000.0

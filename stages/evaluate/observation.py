@@ -28,7 +28,7 @@ from stages.common.blueprint import Blueprint, read_observed
 from stages.common.capture import UNKNOWN
 from stages.common.io import read_json
 from stages.common.points import read_points
-from stages.common.rows import unique_rows
+from stages.common.rows import distinct_mm, unique_rows
 
 INVENTED_RADIUS = 0.25  # metres
 SUPPORT_RADIUS = 0.10  # metres
@@ -42,7 +42,9 @@ def _tree(xy: np.ndarray) -> cKDTree | None:
     """A KD-tree over the distinct xy [N, 2] (rounded to 1 mm: millions of points repeat)."""
     if len(xy) == 0:
         return None
-    return cKDTree(np.unique(np.round(xy, 3), axis=0))
+    # unbalanced (sliding-midpoint) build: the same exact queries, 2.4x faster to build on
+    # the 4.3 M distinct points of a 480-view room
+    return cKDTree(distinct_mm(xy), balanced_tree=False, compact_nodes=False)
 
 
 def invented_pct(bp: Blueprint, xy: np.ndarray, radius: float = INVENTED_RADIUS) -> float:

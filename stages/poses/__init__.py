@@ -1,7 +1,7 @@
 """Poses stage: camera-to-world poses for every frame, given by the capture or from SfM.
 
 `IMPLS[cfg.impl]` picks the implementation; with `impl = "sfm"`, `cfg.mapper` picks COLMAP's
-incremental mapper or the global one (GLOMAP), and `cfg.matching` the image pairs.
+incremental mapper or the global one (GLOMAP), and `cfg.matching` the image pairs (matching.py).
 """
 
 from stages.poses import given, sfm

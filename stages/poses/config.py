@@ -2,15 +2,91 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
-from typing import ClassVar
+from typing import ClassVar, Literal
 
 from stages.common.errors import BlunfError
 
 MAPPERS = ("incremental", "global")
-MATCHINGS = ("auto", "sequential", "exhaustive")
+MATCHINGS = ("auto", "sequential", "exhaustive", "retrieval")
 SCALE_FROM = ("auto", "depth", "distance", "camera_height", "priors", "none")
+
+
+@dataclass(frozen=True)
+class RetrievalConfig:
+    """Loop pairs found without a downloaded vocabulary (matching.py): VLAD vectors of each
+    image's SIFT descriptors over visual words trained on the capture's own descriptors."""
+
+    neighbours: int = 5  # each image is also matched with this many most similar images
+    #                      beyond its next `overlap` and sequential pairs (the loop pairs)
+    words: int = 64  # visual words (seeded k-means of the capture's descriptors)
+    sample: int = 20000  # at most this many descriptors train the words (spread over images)
+    iterations: int = 15  # k-means iterations
+
+    def __post_init__(self) -> None:
+        for name in ("neighbours", "words", "sample", "iterations"):
+            if getattr(self, name) < 1:
+                raise BlunfError(
+                    f"poses.matching.retrieval.{name}: must be >= 1, got {getattr(self, name)}"
+                )
+        if self.sample < self.words:
+            raise BlunfError(
+                f"poses.matching.retrieval.sample: must be >= words ({self.words}), "
+                f"got {self.sample}"
+            )
+
+
+@dataclass(frozen=True)
+class MatchingConfig:
+    """Which image pairs SIFT matches are sought between (matching.py)."""
+
+    kind: Literal["auto", "sequential", "exhaustive", "retrieval"] = "auto"  # "auto" =
+    #   exhaustive up to exhaustive_max_images, sequential up to retrieval_above, else
+    #   retrieval; "sequential": the capture order's neighbours only (no loop closes);
+    #   "retrieval": sequential plus each image's `retrieval.neighbours` most similar images
+    #   (a walk that returns closes its loop)
+    exhaustive_max_images: int = 40
+    retrieval_above: int = 150  # auto: retrieval above this many images. 7-Scenes kitchen,
+    #   100 views: retrieval ATE 4.6 against 4.9 cm, but its sparse points put the floor
+    #   (poses.scale_from=priors) 1.48 m below the cameras against 1.42 (truth 1.39)
+    overlap: int = 10  # sequential: each image with those 1, 2, 4 ... 2^(overlap - 1) on
+    #                    (pycolmap 4's quadratic overlap)
+
+    retrieval: RetrievalConfig = dataclasses.field(default_factory=RetrievalConfig)
+
+    def __post_init__(self) -> None:
+        if self.kind not in MATCHINGS:
+            raise BlunfError(f"poses.matching.kind: {self.kind!r} is not one of {MATCHINGS}")
+        for name in ("exhaustive_max_images", "overlap", "retrieval_above"):
+            if getattr(self, name) < 1:
+                raise BlunfError(f"poses.matching.{name}: must be >= 1, got {getattr(self, name)}")
+
+
+@dataclass(frozen=True)
+class BundleAdjustmentConfig:
+    """The incremental mapper's bundle adjustments."""
+
+    global_max_refinements: int = 5  # global adjustments rerun at most this often after
+    #                                  filtering outliers
+    local_max_refinements: int = 2  # ...and local ones (COLMAP's defaults: 5 and 2)
+    global_growth: float = 1.4  # the next global adjustment once the model has this many
+    #                             times the images or the points it had at the last
+    #                             (COLMAP's frames and points ratios, 1.1). The 60-view demo
+    #                             room at 320x240, mapping alone: 20.3 -> 12.2 s, ATE 0.118
+    #                             -> 0.113 cm; 7-Scenes kitchen, 100 views
+    #                             (pipeline.bench.sfm, one thread): the stage 28.0 -> 19.9 s,
+    #                             ATE 4.74 -> 4.79 cm (pycolmap 4.92)
+
+    def __post_init__(self) -> None:
+        for name in ("global_max_refinements", "local_max_refinements"):
+            if getattr(self, name) < 1:
+                raise BlunfError(f"poses.ba.{name}: must be >= 1, got {getattr(self, name)}")
+        if not 1.0 < self.global_growth < float("inf"):
+            raise BlunfError(
+                f"poses.ba.global_growth: must be a finite number > 1, got {self.global_growth}"
+            )
 
 
 @dataclass(frozen=True)
@@ -19,10 +95,10 @@ class PosesConfig:
 
     impl: str = "auto"  # "given" (the capture's poses) | "sfm" (pycolmap from the photos) |
     #                     "auto" = given when the capture has poses, else sfm (the planner picks)
-    mapper: str = "incremental"  # "incremental" (COLMAP) or "global" (GLOMAP in pycolmap)
-    matching: str = "auto"  # "auto" | "sequential" | "exhaustive"; see exhaustive_max_images
-    exhaustive_max_images: int = 40  # matching=auto: exhaustive up to this many images
-    sequential_overlap: int = 10  # sequential: match each image to this many next
+    mapper: Literal["incremental", "global"] = "incremental"  # COLMAP's incremental mapper
+    #                                                            or the global one (GLOMAP)
+    matching: MatchingConfig = dataclasses.field(default_factory=MatchingConfig)
+    ba: BundleAdjustmentConfig = dataclasses.field(default_factory=BundleAdjustmentConfig)
     max_features: int = 8192  # SIFT features kept per image
     max_image_size: int = 1600  # SIFT runs on images downscaled to this longest side (pixels)
     double_below: int = 640  # SIFT doubles the images first (COLMAP's default first octave
@@ -31,16 +107,6 @@ class PosesConfig:
     #                          0 = never double). 7-Scenes kitchen, 100 views at 640 px: 26
     #                          against 68 CPU-s, ATE 4.7 against 4.5 cm; the 60-view demo room
     #                          at 320 px, undoubled: ATE 0.62 against 0.11 cm, 1/3 the points
-    ba_global_max_refinements: int = 5  # incremental mapper: global bundle adjustments
-    #                                     rerun at most this often after filtering outliers
-    ba_local_max_refinements: int = 2  # ...and local ones (COLMAP's defaults: 5 and 2)
-    ba_global_growth: float = 1.4  # incremental mapper: the next global bundle adjustment
-    #                                once the model has this many times the images or the
-    #                                points it had at the last (COLMAP's frames and points
-    #                                ratios, 1.1). The 60-view demo room at 320x240, mapping
-    #                                alone: 20.3 -> 12.2 s, ATE 0.118 -> 0.113 cm; 7-Scenes
-    #                                kitchen, 100 views (pipeline.bench.sfm, one thread): the
-    #                                stage 28.0 -> 19.9 s, ATE 4.74 -> 4.79 cm (pycolmap 4.92)
     full_size_images: bool = True  # SIFT on the capture's own images when ingest downscaled
     #                                them; poses, intrinsics and the model are given at the
     #                                working size either way
@@ -60,22 +126,29 @@ class PosesConfig:
     #                             with SIFT or mapping on two threads, and were identical so,
     #                             in 5.0-6.0 s against 5.8-6.2 (two runs each, a busy
     #                             machine). false: every part on `threads`
-    scale_from: str = "auto"  # metric scale: "depth" | "distance" | "camera_height" |
-    #                           "priors" (camera height of a hand-held capture above the floor
-    #                           found in the sparse points, and the ceiling height when seen:
-    #                           scale.scale_from_priors) | "none"; "auto" = "depth" when every
-    #                           frame has depth, else camera_height or distance when given,
-    #                           else "priors"
+    scale_from: Literal["auto", "depth", "distance", "camera_height", "priors", "none"] = "auto"
+    #   metric scale: "depth" | "distance" | "camera_height" | "priors" (camera height of a
+    #   hand-held capture above the floor found in the sparse points, and the ceiling height
+    #   when seen: scale.scale_from_priors) | "none"; "auto" = "depth" when every frame has
+    #   depth, else camera_height or distance when given, else "priors"
     known_distance: float | None = None  # scale_from="distance": metres between the first and
     #                                      last frames' camera centres (capture order)
     camera_height: float | None = None  # scale_from="camera_height": metres from the camera
     #                                     centres down to the floor (lowest sparse points)
 
+    # the flat keys of earlier versions -> their place now (an old key fails naming it)
+    RENAMED: ClassVar[dict[str, str]] = {
+        "matching": "matching.kind",
+        "exhaustive_max_images": "matching.exhaustive_max_images",
+        "sequential_overlap": "matching.overlap",
+        "ba_global_max_refinements": "ba.global_max_refinements",
+        "ba_local_max_refinements": "ba.local_max_refinements",
+        "ba_global_growth": "ba.global_growth",
+    }
+
     def __post_init__(self) -> None:
         if self.mapper not in MAPPERS:
             raise BlunfError(f"poses.mapper: {self.mapper!r} is not one of {MAPPERS}")
-        if self.matching not in MATCHINGS:
-            raise BlunfError(f"poses.matching: {self.matching!r} is not one of {MATCHINGS}")
         if self.scale_from not in SCALE_FROM:
             raise BlunfError(f"poses.scale_from: {self.scale_from!r} is not one of {SCALE_FROM}")
         if self.scale_from == "distance" and not (self.known_distance or 0) > 0:
@@ -86,19 +159,8 @@ class PosesConfig:
             raise BlunfError(
                 f"poses.min_registered_frac: must be in [0, 1], got {self.min_registered_frac}"
             )
-        for name in (
-            "exhaustive_max_images",
-            "sequential_overlap",
-            "max_features",
-            "ba_global_max_refinements",
-            "ba_local_max_refinements",
-        ):
-            if getattr(self, name) < 1:
-                raise BlunfError(f"poses.{name}: must be >= 1, got {getattr(self, name)}")
-        if not 1.0 < self.ba_global_growth < float("inf"):
-            raise BlunfError(
-                f"poses.ba_global_growth: must be a finite number > 1, got {self.ba_global_growth}"
-            )
+        if self.max_features < 1:
+            raise BlunfError(f"poses.max_features: must be >= 1, got {self.max_features}")
         if self.max_image_size < 64:
             raise BlunfError(f"poses.max_image_size: must be >= 64 px, got {self.max_image_size}")
         if self.full_size_max_side < 0:

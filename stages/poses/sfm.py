@@ -23,7 +23,7 @@ from stages.common.capture import Capture, Frame
 from stages.common.errors import BlunfError
 from stages.common.io import image_size, write_depth_npy, write_json
 from stages.common.progress import progress
-from stages.poses import calib, fullsize
+from stages.poses import calib, fullsize, matching
 from stages.poses import models as models_detail
 from stages.poses.config import PosesConfig, PosesInputs, PosesOutputs
 from stages.poses.models import metric_scale, sparse_depth
@@ -70,7 +70,9 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
             facts["camera"] = _extract(sift_cfg, octave, seen, names, db, img_dir, threads)
         clock.append((time.perf_counter(), time.process_time()))
         with progress("sfm match"):
-            facts["matching"], facts["matching_detail"] = _match(cfg, db, n, threads)
+            m = matching.match(cfg, db, names, threads)
+            facts["matching"], facts["matching_detail"] = m.pop("kind"), m.pop("detail")
+            facts["match_pairs"] = m
         clock.append((time.perf_counter(), time.process_time()))
         recs = _map(cfg, db, img_dir, work / "models", threads, refine)
         clock.append((time.perf_counter(), time.process_time()))
@@ -275,38 +277,6 @@ def first_octave(cfg: PosesConfig, frames: tuple[Frame, ...]) -> int:
     return -1 if longest < cfg.double_below else 0
 
 
-def _match(cfg: PosesConfig, db: Path, n: int, threads: int) -> tuple[str, str]:
-    """Match SIFT features. Returns (kind used, its settings in words)."""
-    mo = pycolmap.FeatureMatchingOptions()
-    mo.num_threads = threads
-    mo.use_gpu = False
-    vo = pycolmap.TwoViewGeometryOptions()
-    if cfg.deterministic:  # each pair's RANSAC from the seed, whichever thread runs it
-        vo.ransac.random_seed = cfg.seed
-    kind = cfg.matching
-    if kind == "auto":
-        kind = "exhaustive" if n <= cfg.exhaustive_max_images else "sequential"
-    log.info("sfm: %s matching", kind)
-    if kind == "exhaustive":
-        pycolmap.match_exhaustive(
-            db, matching_options=mo, verification_options=vo, device=pycolmap.Device.cpu
-        )
-        return kind, f"all {n * (n - 1) // 2} pairs"
-    po = pycolmap.SequentialPairingOptions()
-    po.overlap = cfg.sequential_overlap
-    po.quadratic_overlap = True
-    po.loop_detection = False
-    po.num_threads = threads
-    pycolmap.match_sequential(
-        db,
-        matching_options=mo,
-        pairing_options=po,
-        verification_options=vo,
-        device=pycolmap.Device.cpu,
-    )
-    return kind, f"overlap {cfg.sequential_overlap} (+ quadratic), no loop detection"
-
-
 def _map(
     cfg: PosesConfig, db: Path, img_dir: Path, models: Path, threads: int, refine: bool
 ) -> list[pycolmap.Reconstruction]:
@@ -323,10 +293,10 @@ def _map(
         o.random_seed = cfg.seed
         o.mapper.random_seed = o.triangulation.random_seed = cfg.seed
         o.min_model_size = MIN_REGISTERED
-        o.ba_global_max_refinements = cfg.ba_global_max_refinements
-        o.ba_local_max_refinements = cfg.ba_local_max_refinements
-        o.ba_global_frames_ratio = cfg.ba_global_growth
-        o.ba_global_points_ratio = cfg.ba_global_growth
+        o.ba_global_max_refinements = cfg.ba.global_max_refinements
+        o.ba_local_max_refinements = cfg.ba.local_max_refinements
+        o.ba_global_frames_ratio = cfg.ba.global_growth
+        o.ba_global_points_ratio = cfg.ba.global_growth
         if fixed:
             o.ba_refine_focal_length = False
             o.ba_refine_principal_point = False

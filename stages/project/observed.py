@@ -20,6 +20,7 @@ from stages.common.blueprint import Grid
 # cells between samples along a ray's plan projection (kitchen: 0.5 took 3x the time for 3
 # cells more inside, of 37 076)
 RAY_STEP = 1.0
+RAY_CHUNK = 1 << 18  # samples along rays held at once: memory bounded, whatever the views
 
 
 def point_distance(grid: Grid, xy: np.ndarray) -> np.ndarray:
@@ -36,20 +37,32 @@ def point_distance(grid: Grid, xy: np.ndarray) -> np.ndarray:
 
 def ray_cells(grid: Grid, start: np.ndarray, end: np.ndarray) -> np.ndarray:
     """Cells crossed by the plan segments start [R, 2] -> end [R, 2] (world metres), sampled
-    every RAY_STEP cells. bool [H, W]."""
+    every RAY_STEP cells. bool [H, W]. The rays go in runs of about RAY_CHUNK samples, so
+    the samples held at once do not grow with the number of rays (views)."""
     out = np.zeros(grid.shape, bool)
     if len(start) == 0:
         return out
     seg = end - start  # [R, 2]
     n = np.ceil(np.linalg.norm(seg, axis=1) / (RAY_STEP * grid.cell)).astype(np.int64) + 1
-    total = int(n.sum())
+    ends = np.cumsum(n)
+    a = 0
+    while a < len(n):  # rays a..b-1: about RAY_CHUNK samples (one ray at least)
+        b = max(a + 1, int(np.searchsorted(ends, ends[a] - n[a] + RAY_CHUNK, "right")))
+        _mark_rays(grid, start[a:b], seg[a:b], n[a:b], out)
+        a = b
+    return out
+
+
+def _mark_rays(
+    grid: Grid, start: np.ndarray, seg: np.ndarray, n: np.ndarray, out: np.ndarray
+) -> None:
+    """Set in `out` the cells of n [R] samples along each segment (start [R, 2], seg [R, 2])."""
     ray = np.repeat(np.arange(len(start)), n)  # [S] the ray of each sample
     first = np.cumsum(n) - n
-    t = (np.arange(total) - first[ray]) / np.maximum(n[ray] - 1, 1)  # [S] in [0, 1]
+    t = (np.arange(int(n.sum())) - first[ray]) / np.maximum(n[ray] - 1, 1)  # [S] in [0, 1]
     xy = start[ray] + t[:, None] * seg[ray]  # [S, 2]
     row, col, inside = grid.cell_of(xy)
     out[row[inside], col[inside]] = True
-    return out
 
 
 def observed(

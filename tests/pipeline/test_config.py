@@ -200,6 +200,10 @@ def test_nested_nerf_settings_and_renamed_keys(tmp_path):
     p.write_text("depth:\n  stereo:\n    planes: 32\nnerf:\n  field:\n    kind: pe\n")
     cfg = load_config(p)
     assert cfg["depth"].stereo.planes == 32 and cfg["nerf"].field.kind == "pe"
+    poses = load_config(None, ["poses.matching.kind=sequential", "poses.ba.global_growth=1.2"])
+    assert poses["poses"].matching.kind == "sequential" and poses["poses"].ba.global_growth == 1.2
+    with pytest.raises(BlunfError, match=r"poses.matching.kind: 'vocab' is not one of"):
+        load_config(None, ["poses.matching.kind=vocab"])
     # the cache key sees a nested value, in both of the depth stage's implementations
     for impl in ("stereo", "field"):
         a = stage_view(default_config()["depth"], impl)
@@ -209,6 +213,11 @@ def test_nested_nerf_settings_and_renamed_keys(tmp_path):
         ("nerf.max_steps=10", "nerf.train.max_steps"),
         ("nerf.field=pe", "nerf.field.kind"),
         ("nerf.occ_res=64", "nerf.occupancy.res"),
+        ("poses.matching=sequential", "poses.matching.kind"),
+        ("poses.sequential_overlap=5", "poses.matching.overlap"),
+        ("poses.exhaustive_max_images=5", "poses.matching.exhaustive_max_images"),
+        ("poses.ba_global_growth=1.2", "poses.ba.global_growth"),
+        ("poses.ba_local_max_refinements=1", "poses.ba.local_max_refinements"),
     ]:
         key = old.partition("=")[0]
         with pytest.raises(BlunfError, match=rf"{key}: renamed to {new}$") as e:

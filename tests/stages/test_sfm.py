@@ -16,6 +16,7 @@ from stages.common.errors import BlunfError
 from stages.common.io import read_json
 from stages.evaluate.poses import pose_metrics
 from stages.poses import IMPLS, PosesConfig, PosesInputs, PosesOutputs
+from stages.poses.config import BundleAdjustmentConfig, MatchingConfig, RetrievalConfig
 from stages.poses.models import metric_scale
 from stages.poses.scale import (
     depth_ratios,
@@ -94,20 +95,34 @@ def test_scale_from_camera_height_ignores_stray_low_points() -> None:
     ("bad", "field"),
     [
         ({"mapper": "hierarchical"}, "mapper"),
-        ({"matching": "vocabtree"}, "matching"),
         ({"scale_from": "gps"}, "scale_from"),
         ({"scale_from": "distance"}, "known_distance"),
         ({"scale_from": "camera_height", "camera_height": -1.0}, "camera_height"),
         ({"min_registered_frac": 1.5}, "min_registered_frac"),
         ({"double_below": -1}, "double_below"),
-        ({"ba_global_max_refinements": 0}, "ba_global_max_refinements"),
-        ({"ba_global_growth": 1.0}, "ba_global_growth"),
-        ({"ba_global_growth": float("nan")}, "ba_global_growth"),
+        ({"max_features": 0}, "max_features"),
     ],
 )
 def test_bad_config_names_the_field(bad: dict, field: str) -> None:
     with pytest.raises(BlunfError, match=f"^poses.{field}:"):
         PosesConfig(**bad)
+
+
+@pytest.mark.parametrize(
+    ("cls", "bad", "field"),
+    [
+        (MatchingConfig, {"kind": "vocabtree"}, "matching.kind"),
+        (MatchingConfig, {"overlap": 0}, "matching.overlap"),
+        (RetrievalConfig, {"neighbours": 0}, "matching.retrieval.neighbours"),
+        (RetrievalConfig, {"words": 64, "sample": 10}, "matching.retrieval.sample"),
+        (BundleAdjustmentConfig, {"global_max_refinements": 0}, "ba.global_max_refinements"),
+        (BundleAdjustmentConfig, {"global_growth": 1.0}, "ba.global_growth"),
+        (BundleAdjustmentConfig, {"global_growth": float("nan")}, "ba.global_growth"),
+    ],
+)
+def test_bad_nested_config_names_the_field(cls: type, bad: dict, field: str) -> None:
+    with pytest.raises(BlunfError, match=f"^poses.{field}:"):
+        cls(**bad)
 
 
 def test_colmap_camera_shifts_the_principal_point() -> None:

@@ -1,0 +1,235 @@
+"""Which image pairs SIFT matches are sought between, and the matching (pycolmap).
+
+- exhaustive: every pair, n (n - 1) / 2.
+- sequential: each image with those 1, 2, 4 ... 2^(overlap - 1) steps on in capture order
+  (pycolmap 4's sequential pairing with quadratic overlap): a walk that comes back to where
+  it started is not closed unless it is a power of two long.
+- retrieval: the sequential pairs, plus each image with its `neighbours` most similar images
+  outside its window (the loop pairs). Similarity is the dot product of VLAD vectors
+  (Jégou et al., CVPR 2010): RootSIFT descriptors, their residuals to visual words summed per
+  word, normalised per word, square-rooted and normalised. The words are a seeded k-means of
+  the capture's own descriptors, so no vocabulary is downloaded. The pairs grow as
+  n (min(overlap, log2 n) + neighbours), not n^2.
+
+The sequential pairs are pycolmap's own sequential pairing; the loop pairs then go to its
+`match_image_pairs` as a list. Two-view geometry is verified by pycolmap as for any pairing.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np  # noqa: I001  (numpy must be loaded before pycolmap, see stages/__init__.py)
+import pycolmap
+
+from stages.poses.config import MatchingConfig, PosesConfig, RetrievalConfig
+
+log = logging.getLogger(__name__)
+
+MIN_INLIERS = 15  # a pair with this many verified matches counts as matched (COLMAP's own)
+CHUNK = 4096  # descriptors assigned to words at a time (bounds the distance matrix)
+
+
+def kind_for(cfg: MatchingConfig, n: int) -> str:
+    """The kind of matching used for n images ("auto" resolved)."""
+    if cfg.kind != "auto":
+        return cfg.kind
+    if n <= cfg.exhaustive_max_images:
+        return "exhaustive"
+    return "sequential" if n <= cfg.retrieval_above else "retrieval"
+
+
+def sequential_pairs(n: int, overlap: int) -> set[tuple[int, int]]:
+    """(i, j), i < j: j - i a power of two below 2^overlap (pycolmap 4's sequential pairing
+    with quadratic overlap, which this module runs; tests/stages/test_sfm_matching.py holds
+    them equal)."""
+    steps = {2**k for k in range(overlap)}
+    return {(i, i + d) for i in range(n) for d in steps if i + d < n}
+
+
+def root_sift(d: np.ndarray) -> np.ndarray:
+    """RootSIFT (Arandjelović & Zisserman 2012): L1-normalise, square-root; float32."""
+    x = d.astype(np.float32)
+    x /= np.maximum(x.sum(1, keepdims=True), 1e-12)
+    return np.sqrt(x)
+
+
+def assign(x: np.ndarray, words: np.ndarray) -> np.ndarray:
+    """Index of the nearest word of each row of x, CHUNK rows at a time."""
+    ww = (words**2).sum(1)
+    out = np.empty(len(x), np.int64)
+    for s in range(0, len(x), CHUNK):
+        c = x[s : s + CHUNK]
+        out[s : s + CHUNK] = np.argmin(ww[None] - 2.0 * c @ words.T, axis=1)
+    return out
+
+
+def train_words(descs: list[np.ndarray], cfg: RetrievalConfig, seed: int) -> np.ndarray:
+    """Visual words [k, 128]: Lloyd's k-means of at most cfg.sample RootSIFT descriptors,
+    spread evenly over the images, from k distinct seeded rows; an emptied word keeps its
+    place."""
+    rng = np.random.default_rng(seed)
+    per = max(1, cfg.sample // max(1, len(descs)))
+    parts = [d[rng.choice(len(d), min(per, len(d)), replace=False)] for d in descs if len(d)]
+    x = np.concatenate(parts) if parts else np.zeros((0, 128), np.float32)
+    k = min(cfg.words, len(x))
+    if k == 0:
+        return np.zeros((0, 128), np.float32)
+    words = x[rng.choice(len(x), k, replace=False)].copy()
+    for _ in range(cfg.iterations):
+        a = assign(x, words)
+        sums = np.zeros_like(words)
+        np.add.at(sums, a, x)
+        counts = np.bincount(a, minlength=k)
+        filled = counts > 0
+        words[filled] = sums[filled] / counts[filled, None]
+    return words
+
+
+def vlad(d: np.ndarray, words: np.ndarray) -> np.ndarray:
+    """The image's VLAD vector [k * 128], unit length (zeros for an image with no features)."""
+    v = np.zeros_like(words)
+    if len(d) and len(words):
+        a = assign(d, words)
+        np.add.at(v, a, d - words[a])
+        v /= np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)  # per word
+    v = v.ravel()
+    v = np.sign(v) * np.sqrt(np.abs(v))
+    return v / max(float(np.linalg.norm(v)), 1e-12)
+
+
+def loop_pairs(vecs: np.ndarray, window: set[tuple[int, int]], neighbours: int) -> set:
+    """Each image with its `neighbours` most similar images (dot product of vecs [n, D])
+    among those it is not already paired with in `window`; (i, j), i < j."""
+    n = len(vecs)
+    sim = vecs @ vecs.T
+    np.fill_diagonal(sim, -np.inf)
+    for i, j in window:
+        sim[i, j] = sim[j, i] = -np.inf
+    out = set()
+    for i in range(n):
+        row = sim[i]
+        k = min(neighbours, int(np.isfinite(row).sum()))
+        if k <= 0:
+            continue
+        for j in np.argpartition(-row, k - 1)[:k]:
+            out.add((min(i, int(j)), max(i, int(j))))
+    return out
+
+
+def read_descriptors(db: Path, names: list[str]) -> list[np.ndarray]:
+    """Each image's SIFT descriptors [N, 128] (uint8) from the database, in `names` order."""
+    d = pycolmap.Database.open(db)
+    try:
+        ids = {im.name: im.image_id for im in d.read_all_images()}
+        return [np.asarray(d.read_descriptors(ids[nm]).data) for nm in names]
+    finally:
+        d.close()
+
+
+def retrieval_pairs(
+    db: Path, names: list[str], cfg: MatchingConfig, seed: int
+) -> tuple[set[tuple[int, int]], set[tuple[int, int]]]:
+    """(sequential pairs, loop pairs) of the images `names` (indices into it): the loop
+    pairs are the most similar outside the sequential pairs and the next `overlap` views."""
+    seq = sequential_pairs(len(names), cfg.overlap)
+    n = len(names)  # the loop pairs look beyond the next `overlap` views too
+    near = {(i, j) for i in range(n) for j in range(i + 1, min(n, i + cfg.overlap + 1))}
+    descs = [root_sift(d) for d in read_descriptors(db, names)]
+    words = train_words(descs, cfg.retrieval, seed)
+    vecs = np.stack([vlad(d, words) for d in descs]) if descs else np.zeros((0, 1))
+    return seq, loop_pairs(vecs, seq | near, cfg.retrieval.neighbours)
+
+
+def verified(db: Path, names: list[str]) -> dict[tuple[int, int], int]:
+    """(i, j) -> verified matches, i < j indices into `names`, of the pairs with MIN_INLIERS."""
+    d = pycolmap.Database.open(db)
+    try:
+        index = {im.image_id: names.index(im.name) for im in d.read_all_images()}
+        pair_ids, inliers = d.read_two_view_geometry_num_inliers()
+    finally:
+        d.close()
+    out = {}
+    for pid, k in zip(pair_ids, inliers, strict=True):
+        if k >= MIN_INLIERS:
+            a, b = (index[x] for x in pycolmap.pair_id_to_image_pair(pid))
+            out[(min(a, b), max(a, b))] = int(k)
+    return out
+
+
+def closure(good: dict[tuple[int, int], int], loops: set[tuple[int, int]], n: int) -> dict:
+    """Facts of the matched pairs: how many, the longest gap in capture order among them
+    (a walk that returns to its start: about n), and the loop pairs among them."""
+    facts = {
+        "verified_pairs": len(good),
+        "longest_gap": max((j - i for i, j in good), default=0),
+        "images": n,
+    }
+    if loops:
+        facts["loop_pairs_verified"] = sum(p in good for p in loops)
+    return facts
+
+
+def match(cfg: PosesConfig, db: Path, names: list[str], threads: int) -> dict:
+    """Match SIFT features between the chosen pairs. Returns the facts: kind, detail, pairs
+    tried, loop_pairs (retrieval), and closure()'s."""
+    n = len(names)
+    mo = pycolmap.FeatureMatchingOptions()
+    mo.num_threads = threads
+    mo.use_gpu = False
+    vo = pycolmap.TwoViewGeometryOptions()
+    if cfg.deterministic:  # each pair's RANSAC from the seed, whichever thread runs it
+        vo.ransac.random_seed = cfg.seed
+    m = cfg.matching
+    kind = kind_for(m, n)
+    log.info("sfm: %s matching", kind)
+    facts: dict = {"kind": kind, "exhaustive_pairs": n * (n - 1) // 2}
+    if kind == "exhaustive":
+        pycolmap.match_exhaustive(
+            db, matching_options=mo, verification_options=vo, device=pycolmap.Device.cpu
+        )
+        facts |= {"detail": f"all {n * (n - 1) // 2} pairs", "pairs": n * (n - 1) // 2}
+        return facts | closure(verified(db, names), set(), n)
+    # the sequential pairs by pycolmap's own pairing (as before retrieval existed: the same
+    # database, the same model), then the loop pairs from a list
+    po = pycolmap.SequentialPairingOptions()
+    po.overlap = m.overlap
+    po.quadratic_overlap = True
+    po.loop_detection = False
+    po.num_threads = threads
+    pycolmap.match_sequential(
+        db,
+        matching_options=mo,
+        pairing_options=po,
+        verification_options=vo,
+        device=pycolmap.Device.cpu,
+    )
+    loops: set[tuple[int, int]] = set()
+    detail = f"steps 1, 2, 4 ... 2^{m.overlap - 1} (quadratic overlap), no loop detection"
+    if kind == "retrieval":
+        loops = retrieval_pairs(db, names, m, cfg.seed)[1]
+        r = m.retrieval
+        detail = (
+            f"steps 1, 2, 4 ... 2^{m.overlap - 1} and {r.neighbours} retrieved a view "
+            f"(VLAD over {r.words} words of the capture's own SIFT)"
+        )
+        facts["loop_pairs"] = len(loops)
+        lst = Path(db).parent / "pairs.txt"
+        lst.write_text("".join(f"{names[i]} {names[j]}\n" for i, j in sorted(loops)))
+        ip = pycolmap.ImportedPairingOptions()
+        ip.match_list_path = str(lst)
+        pycolmap.match_image_pairs(
+            db,
+            matching_options=mo,
+            pairing_options=ip,
+            verification_options=vo,
+            device=pycolmap.Device.cpu,
+        )
+    d = pycolmap.Database.open(db)
+    try:
+        facts["pairs"] = int(d.num_matched_image_pairs())
+    finally:
+        d.close()
+    facts["detail"] = detail
+    return facts | closure(verified(db, names), loops, n)

@@ -1,0 +1,93 @@
+"""The poses stage's image pairs (stages/poses/matching.py): sequential, retrieval, loops."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from stages.common.io import read_json
+from stages.ingest import load
+from stages.poses import IMPLS, PosesConfig, PosesInputs
+from stages.poses.config import MatchingConfig, RetrievalConfig
+from stages.poses.matching import (
+    kind_for,
+    loop_pairs,
+    root_sift,
+    sequential_pairs,
+    train_words,
+    vlad,
+)
+from stages.synth.make import make_room
+
+
+def test_sequential_pairs_are_colmaps_quadratic_overlap() -> None:
+    # overlap 3: steps 1, 2, 4 (pycolmap 4 pairs powers of two only with quadratic overlap;
+    # the real run below holds the database's pairs equal to these)
+    got = sequential_pairs(10, 3)
+    want = {(i, j) for i in range(10) for j in range(i + 1, 10) if j - i in (1, 2, 4)}
+    assert got == want
+    assert max(j - i for i, j in sequential_pairs(100, 10)) == 64  # 2^6: 2^7 is past the end
+    assert len(sequential_pairs(1, 5)) == 0
+
+
+def test_auto_is_exhaustive_for_few_images_then_sequential_then_retrieval() -> None:
+    m = MatchingConfig()
+    assert kind_for(m, 40) == "exhaustive" and kind_for(m, 41) == "sequential"
+    assert kind_for(m, 150) == "sequential" and kind_for(m, 151) == "retrieval"
+    assert kind_for(MatchingConfig(kind="sequential"), 5) == "sequential"
+
+
+def test_loop_pairs_take_the_most_similar_outside_the_window() -> None:
+    rng = np.random.default_rng(0)
+    v = rng.normal(size=(12, 32))
+    v[11] = v[0] + 0.01 * rng.normal(size=32)  # the walk's end looks like its start
+    v[1] = v[0]  # and its next view too, but that pair is in the window already
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    window = sequential_pairs(12, 1)  # (i, i + 1)
+    got = loop_pairs(v, window, 1)
+    assert (0, 11) in got and (1, 11) in got  # each's most similar outside its window
+    assert not got & window
+    assert all(i < j for i, j in got)
+
+
+def test_vlad_tells_a_place_from_another() -> None:
+    # two "places" whose descriptors come from distinct halves of the descriptor space
+    rng = np.random.default_rng(1)
+    a = rng.integers(0, 60, size=(400, 128)).astype(np.uint8)
+    b = rng.integers(0, 60, size=(400, 128)).astype(np.uint8)
+    b[:, :64] += 120
+    views = [root_sift(x[rng.choice(400, 200, replace=False)]) for x in (a, a, b, b)]
+    cfg = RetrievalConfig(words=8, sample=400, iterations=10)
+    w = train_words(views, cfg, seed=0)
+    assert np.array_equal(w, train_words(views, cfg, seed=0))  # seeded
+    vec = np.stack([vlad(x, w) for x in views])
+    assert np.allclose(np.linalg.norm(vec, axis=1), 1.0)
+    sim = vec @ vec.T
+    assert sim[0, 1] > sim[0, 2] and sim[2, 3] > sim[1, 3]
+    assert np.all(np.isfinite(vlad(np.zeros((0, 128), np.float32), w)))
+
+
+def test_retrieval_closes_the_walk_and_registers_every_view(tmp_path: Path) -> None:
+    # The procedural room's camera walks once round an ellipse: its last views look where
+    # its first did. Sequential pairs with overlap 3 reach 4 views on (gap <= 4); only the
+    # retrieved loop pairs can join the walk's two ends (gap n - 1 .. n - 4). The pairs
+    # matched (the database's count) are this module's sequential pairs plus the loop pairs.
+    n = 36
+    room = make_room(tmp_path / "room", views=n, size=(160, 120), seed=0)
+    (tmp_path / "ingest").mkdir()
+    cap = load(room, tmp_path / "ingest")
+    cap.save(tmp_path / "ingest" / "frames.json")
+    m = MatchingConfig(kind="retrieval", overlap=3, retrieval=RetrievalConfig(neighbours=3))
+    cfg = PosesConfig(impl="sfm", scale_from="none", threads=1, matching=m)
+    out = tmp_path / "out"
+    out.mkdir()
+    IMPLS["sfm"](cfg, PosesInputs(tmp_path / "ingest" / "frames.json"), out)
+    f = read_json(out / "sfm.json")
+    p = f["match_pairs"]
+    assert f["matching"] == "retrieval"
+    assert f["registered"] == n and f["models"] == 1
+    assert p["pairs"] == len(sequential_pairs(n, 3)) + p["loop_pairs"]
+    assert p["pairs"] < p["exhaustive_pairs"] / 2  # cheaper than every pair
+    assert p["loop_pairs_verified"] >= n // 2  # most retrieved pairs see the same surfaces
+    assert p["longest_gap"] >= n - 4  # the walk's end matched with its start: the loop closes
