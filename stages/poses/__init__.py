@@ -4,9 +4,9 @@
 incremental mapper or the global one (GLOMAP), and `cfg.matching` the image pairs (matching.py).
 """
 
-from stages.poses import given, sfm
+from stages.common.registry import LazyImpls
 from stages.poses.config import PosesConfig, PosesInputs, PosesOutputs
 
-IMPLS = {"given": given.run, "sfm": sfm.run}
+IMPLS = LazyImpls({"given": "stages.poses.given:run", "sfm": "stages.poses.sfm:run"})
 
 __all__ = ["IMPLS", "PosesConfig", "PosesInputs", "PosesOutputs"]

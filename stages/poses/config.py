@@ -48,9 +48,8 @@ class MatchingConfig:
     #   "retrieval": sequential plus each image's `retrieval.neighbours` most similar images
     #   (a walk that returns closes its loop)
     exhaustive_max_images: int = 40
-    retrieval_above: int = 150  # auto: retrieval above this many images. 7-Scenes kitchen,
-    #   100 views: retrieval ATE 4.6 against 4.9 cm, but its sparse points put the floor
-    #   (poses.scale_from=priors) 1.48 m below the cameras against 1.42 (truth 1.39)
+    retrieval_above: int = 150  # auto: retrieval above this many images
+    #                             (docs/figures.md#poses-retrieval-above)
     overlap: int = 10  # sequential: each image with those 1, 2, 4 ... 2^(overlap - 1) on
     #                    (pycolmap 4's quadratic overlap)
 
@@ -73,11 +72,7 @@ class BundleAdjustmentConfig:
     local_max_refinements: int = 2  # ...and local ones (COLMAP's defaults: 5 and 2)
     global_growth: float = 1.4  # the next global adjustment once the model has this many
     #                             times the images or the points it had at the last
-    #                             (COLMAP's frames and points ratios, 1.1). The 60-view demo
-    #                             room at 320x240, mapping alone: 20.3 -> 12.2 s, ATE 0.118
-    #                             -> 0.113 cm; 7-Scenes kitchen, 100 views
-    #                             (pipeline.bench.sfm, one thread): the stage 28.0 -> 19.9 s,
-    #                             ATE 4.74 -> 4.79 cm (pycolmap 4.92)
+    #                             (COLMAP's 1.1; docs/figures.md#poses-ba-growth)
 
     def __post_init__(self) -> None:
         for name in ("global_max_refinements", "local_max_refinements"):
@@ -102,30 +97,21 @@ class PosesConfig:
     max_features: int = 8192  # SIFT features kept per image
     max_image_size: int = 1600  # SIFT runs on images downscaled to this longest side (pixels)
     double_below: int = 640  # SIFT doubles the images first (COLMAP's default first octave
-    #                          -1: features under 2 px) when their longest side as read is
-    #                          below this many pixels, else starts at their size (octave 0;
-    #                          0 = never double). 7-Scenes kitchen, 100 views at 640 px: 26
-    #                          against 68 CPU-s, ATE 4.7 against 4.5 cm; the 60-view demo room
-    #                          at 320 px, undoubled: ATE 0.62 against 0.11 cm, 1/3 the points
+    #                          -1) when their longest side is below this many pixels; 0 = never
+    #                          (docs/figures.md#poses-double-below)
     full_size_images: bool = True  # SIFT on the capture's own images when ingest downscaled
     #                                them; poses, intrinsics and the model are given at the
     #                                working size either way
     full_size_max_side: int = 480  # ...read at most this long (never below the working size;
-    #                                0 = up to max_image_size). 7-Scenes kitchen, 20 frames at
-    #                                240 px: 320-480 px register 20 of 20 (ATE 4.3 cm); at its
-    #                                full 640 px its stated focal, 11 % long, flips the model
+    #                                0 = up to max_image_size; docs/figures.md#poses-full-size)
     self_calibrate: bool = False  # estimate intrinsics (unreliable indoors)
     threads: int = 0  # CPU threads for extraction, matching and mapping; 0 = every core we may use
     min_registered_frac: float = 0.5  # fail when fewer than this fraction of the images register
     seed: int = 0  # random seed of pycolmap's RANSAC and mapper (same inputs -> same poses)
     deterministic: bool = True  # the same photos give the same poses, bit for bit: SIFT
-    #                             and mapping (bundle adjustment) on one thread, every pair's
-    #                             two-view RANSAC from `seed` (matching keeps `threads`).
-    #                             Measured on a 20-view 160x120 room on two threads: two runs
-    #                             differed (reprojection error 0.15935 against 0.15925 px)
-    #                             with SIFT or mapping on two threads, and were identical so,
-    #                             in 5.0-6.0 s against 5.8-6.2 (two runs each, a busy
-    #                             machine). false: every part on `threads`
+    #                             and mapping on one thread, every pair's two-view RANSAC from
+    #                             `seed`; false: every part on `threads`
+    #                             (docs/figures.md#poses-deterministic)
     scale_from: Literal["auto", "depth", "distance", "camera_height", "priors", "none"] = "auto"
     #   metric scale: "depth" | "distance" | "camera_height" | "priors" (camera height of a
     #   hand-held capture above the floor found in the sparse points, and the ceiling height

@@ -12,7 +12,7 @@ import pytest
 from stages.common.registry import LazyImpls
 
 LAZY = ("align", "blueprint", "depth", "edit", "evaluate", "export", "fusion", "ingest",
-        "layout", "nerf", "project", "semantics")  # fmt: skip
+        "layout", "nerf", "poses", "project", "semantics")  # fmt: skip
 
 
 @pytest.mark.parametrize("stage", LAZY)
@@ -25,9 +25,10 @@ def test_a_stage_registry_is_lazy(stage):
 
 def test_importing_a_stage_package_imports_none_of_its_implementations():
     code = (
-        "import sys; import stages.evaluate, stages.export, stages.ingest, stages.project; "
-        "print(sorted(m for m in ('stages.evaluate.gt', 'stages.export.files', "
-        "'stages.ingest.select', 'stages.project.points') if m in sys.modules))"
+        "import sys; import stages.evaluate, stages.export, stages.ingest, stages.poses, "
+        "stages.project; print(sorted(m for m in ('stages.evaluate.gt', 'stages.export.files', "
+        "'stages.ingest.select', 'stages.poses.sfm', 'pycolmap', 'stages.project.points') "
+        "if m in sys.modules))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
