@@ -19,6 +19,7 @@ import time
 import numpy as np
 
 from stages.common.camera import depth_to_points
+from stages.common.classes import CEILING_NAME
 from stages.common.errors import BlunfError
 from stages.common.progress import track
 from stages.common.threads import side_by_side, torch_threads
@@ -77,7 +78,7 @@ def fill(
     allp = np.concatenate(pts)
     planes = find_planes(allp, np.concatenate(nrm), cfg)
     hists = plane_colours(planes, allp, np.concatenate(col), cfg.band)
-    ceil = [p.offset for p in planes if p.kind == "ceiling"]
+    ceil = [p.offset for p in planes if p.kind == CEILING_NAME]
     ceiling = ceil[0] if ceil else None
     order = neighbours(views, cfg.neighbours)
 

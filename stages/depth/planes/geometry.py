@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from stages.common.classes import FLOOR_NAME
 from stages.depth.planes.hypotheses import Plane
 
 MIN_DEPTH = 0.05  # metres: a plane closer than this along a ray is not a surface seen
@@ -58,7 +59,7 @@ def plane_valid(
     (margin: one for all, or (floor, wall and ceiling; top and front))."""
     ok = t > 0
     m2 = margin if isinstance(margin, tuple) else (margin, margin)
-    floor = next((p for p in planes if p.kind == "floor"), None)
+    floor = next((p for p in planes if p.kind == FLOOR_NAME), None)
     up, base = (floor.normal, floor.offset) if floor else (np.array([0.0, 0.0, 1.0]), 0.0)
     for k, p in enumerate(planes):
         x = centre + t[k][:, None] * r  # [N, 3]

@@ -19,10 +19,11 @@ from scipy.ndimage import gaussian_filter1d
 from scipy.signal import find_peaks
 
 from stages.common.camera import pixel_grid, unproject
+from stages.common.classes import CEILING_NAME, FLOOR_NAME, WALL_NAME
 from stages.common.rows import unique_rows
 from stages.depth.planes.config import PlanesConfig
 
-KINDS = ("floor", "ceiling", "wall", "top", "front")
+KINDS = (FLOOR_NAME, CEILING_NAME, WALL_NAME, "top", "front")
 FLOOR_SEARCH = 0.3  # metres: the floor is sought this far either side of z = 0
 
 
@@ -245,12 +246,12 @@ def _kinds(found: list) -> list[Plane]:
     planes = []
     for i, (n, d, sup, lo, hi) in enumerate(found):
         if i == 0:
-            kind = "floor"
+            kind = FLOOR_NAME
         elif i == ceiling:
-            kind = "ceiling"
+            kind = CEILING_NAME
         elif i in horiz:
             kind = "top"
         else:
-            kind = "wall" if i in walls else "front"
+            kind = WALL_NAME if i in walls else "front"
         planes.append(Plane(np.asarray(n, np.float64), float(d), kind, lo, hi, int(sup)))
     return planes
