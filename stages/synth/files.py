@@ -4,12 +4,15 @@ labels and instances, cameras.json, labels.json, gt/poses.json and gt/instances.
 from __future__ import annotations
 
 import logging
+import shutil
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from stages.common.camera import Intrinsics
+from stages.common.errors import BlunfError
 from stages.common.io import write_depth_png, write_image, write_json, write_label_png
 from stages.synth.realism import Realism
 from stages.synth.render import Tracer, render
@@ -23,6 +26,40 @@ PLAN_MARGIN = 0.1  # the plan covers the room with its walls plus this margin (m
 
 def is_int(x: object) -> bool:
     return isinstance(x, int | np.integer) and not isinstance(x, bool)
+
+
+def checked(
+    out: Path, views: object, seed: object, size: tuple
+) -> tuple[int, int, tuple[int, int]]:
+    """The capture's folder, views, seed and size checked as `blunf synth` takes them (a
+    one-line error naming the value at fault); returns (views, seed, (w, h)) as ints."""
+    if out.exists() and not out.is_dir():
+        raise BlunfError(f"{out}: exists and is not a folder")
+    if out.exists() and any(out.iterdir()):
+        raise BlunfError(f"{out}: output folder exists and is not empty")
+    if not is_int(views) or views < 1:  # type: ignore[operator]
+        raise BlunfError(f"--views must be a positive integer, got {views!r}")
+    if not is_int(seed) or seed < 0:  # type: ignore[operator]
+        raise BlunfError(f"--seed must be a non-negative integer, got {seed!r}")
+    w, h = size
+    if not (is_int(w) and is_int(h) and w >= 8 and h >= 8):
+        raise BlunfError(f"--size must be whole pixels, at least 8x8, got {w}x{h}")
+    return int(views), int(seed), (int(w), int(h))  # type: ignore[call-overload]
+
+
+def written_whole(out: Path, write: Callable[[Path], None]) -> Path:
+    """Run `write` into a temp sibling of `out` and rename it into place: a failure leaves
+    nothing behind. Returns `out`."""
+    tmp = out.parent / f".{out.name}.synth-tmp"
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        write(tmp)
+        if out.exists():
+            out.rmdir()
+        tmp.rename(out)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return out
 
 
 def write_views(

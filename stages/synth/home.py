@@ -11,7 +11,6 @@ with the home's figures (the rooms' polygons and the walk's points among them).
 from __future__ import annotations
 
 import logging
-import shutil
 import time
 from pathlib import Path
 
@@ -19,7 +18,14 @@ import numpy as np
 
 from stages.common.errors import BlunfError
 from stages.common.io import write_json
-from stages.synth.files import PLAN_CELL, PLAN_MARGIN, is_int, write_instances, write_views
+from stages.synth.files import (
+    PLAN_CELL,
+    PLAN_MARGIN,
+    checked,
+    write_instances,
+    write_views,
+    written_whole,
+)
 from stages.synth.home_path import home_path, keyframes, route
 from stages.synth.home_plan import TEMPLATES, draw_plan
 from stages.synth.home_scene import home_layout, home_parts, home_room
@@ -58,36 +64,13 @@ def make_home(
     rooms = check_rooms(rooms)
     if rooms < ROOMS[0]:
         raise BlunfError(f"--rooms must be in {ROOMS[0]}..{ROOMS[1]} for a home, got {rooms}")
-    if out.exists() and not out.is_dir():
-        raise BlunfError(f"{out}: exists and is not a folder")
-    if out.exists() and any(out.iterdir()):
-        raise BlunfError(f"{out}: output folder exists and is not empty")
-    if not is_int(views) or views < 1:
-        raise BlunfError(f"--views must be a positive integer, got {views!r}")
-    if not is_int(seed) or seed < 0:
-        raise BlunfError(f"--seed must be a non-negative integer, got {seed!r}")
-    w, h = size
-    if not (is_int(w) and is_int(h) and w >= 8 and h >= 8):
-        raise BlunfError(f"--size must be whole pixels, at least 8x8, got {w}x{h}")
-    tmp = out.parent / f".{out.name}.synth-tmp"
-    shutil.rmtree(tmp, ignore_errors=True)
-    try:
-        _write(
-            tmp,
-            rooms,
-            int(views),
-            int(seed),
-            (int(w), int(h)),
-            photos_only,
-            realism or Realism(),
-            ceiling,
-        )
-        if out.exists():
-            out.rmdir()
-        tmp.rename(out)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-    return out
+    views, seed, size = checked(out, views, seed, size)
+    return written_whole(
+        out,
+        lambda tmp: _write(
+            tmp, rooms, views, seed, size, photos_only, realism or Realism(), ceiling
+        ),
+    )
 
 
 def _write(

@@ -3,13 +3,20 @@
 from __future__ import annotations
 
 import logging
-import shutil
 import time
 from pathlib import Path
 
 from stages.common.errors import BlunfError
 from stages.common.io import write_json
-from stages.synth.files import PLAN_CELL, PLAN_MARGIN, is_int, write_instances, write_views
+from stages.synth.files import (
+    PLAN_CELL,
+    PLAN_MARGIN,
+    checked,
+    is_int,
+    write_instances,
+    write_views,
+    written_whole,
+)
 from stages.synth.home import check_rooms, make_home
 from stages.synth.layout import room_layout
 from stages.synth.realism import Realism
@@ -54,35 +61,20 @@ def make_room(
             raise BlunfError("--doors, --passages and --shape apply to one room, not --rooms > 1")
         return make_home(out, rooms, views, seed, size, photos_only, realism, ceiling)
     out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise BlunfError(f"{out}: exists and is not a folder")
-    if out.exists() and any(out.iterdir()):
-        raise BlunfError(f"{out}: output folder exists and is not empty")
-    if not is_int(views) or views < 1:
-        raise BlunfError(f"--views must be a positive integer, got {views!r}")
-    if not is_int(seed) or seed < 0:
-        raise BlunfError(f"--seed must be a non-negative integer, got {seed!r}")
+    views, seed, (w, h) = checked(out, views, seed, size)
     if not is_int(doors) or not 0 <= doors <= 4:
         raise BlunfError(f"doors must be a whole number in 0..4, got {doors!r}")
     if not is_int(passages) or not 0 <= passages <= 4:
         raise BlunfError(f"passages must be a whole number in 0..4, got {passages!r}")
     if shape not in ("rect", "L"):
         raise BlunfError(f"--shape must be rect or L, got {shape!r}")
-    w, h = size
-    if not (is_int(w) and is_int(h) and w >= 8 and h >= 8):
-        raise BlunfError(f"--size must be whole pixels, at least 8x8, got {w}x{h}")
-    views, seed, w, h = int(views), int(seed), int(w), int(h)
-    tmp = out.parent / f".{out.name}.synth-tmp"
-    shutil.rmtree(tmp, ignore_errors=True)
-    try:
-        gaps = (doors, passages)
-        _write(tmp, views, seed, (w, h), ceiling, photos_only, gaps, shape, realism or Realism())
-        if out.exists():
-            out.rmdir()
-        tmp.rename(out)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-    return out
+    gaps = (doors, passages)
+    return written_whole(
+        out,
+        lambda tmp: _write(
+            tmp, views, seed, (w, h), ceiling, photos_only, gaps, shape, realism or Realism()
+        ),
+    )
 
 
 def _write(
