@@ -108,9 +108,9 @@ class PosesConfig:
     threads: int = 0  # CPU threads for extraction, matching and mapping; 0 = every core we may use
     min_registered_frac: float = 0.5  # fail when fewer than this fraction of the images register
     seed: int = 0  # random seed of pycolmap's RANSAC and mapper (same inputs -> same poses)
-    deterministic: bool = True  # the same photos give the same poses, bit for bit: SIFT
-    #                             and mapping on one thread, every pair's two-view RANSAC from
-    #                             `seed`; false: every part on `threads`
+    deterministic: bool = True  # the same photos give the same poses, bit for bit: SIFT,
+    #                             matching and mapping on one thread, every pair's two-view
+    #                             RANSAC from `seed`; false: every part on `threads`
     #                             (docs/figures.md#poses-deterministic)
     scale_from: Literal["auto", "depth", "distance", "camera_height", "priors", "none"] = "auto"
     #   metric scale: "depth" | "distance" | "camera_height" | "priors" (camera height of a
