@@ -146,7 +146,8 @@ def verified(db: Path, names: list[str]) -> dict[tuple[int, int], int]:
     """(i, j) -> verified matches, i < j indices into `names`, of the pairs with MIN_INLIERS."""
     d = pycolmap.Database.open(db)
     try:
-        index = {im.image_id: names.index(im.name) for im in d.read_all_images()}
+        at = {name: i for i, name in enumerate(names)}
+        index = {im.image_id: at[im.name] for im in d.read_all_images()}
         pair_ids, inliers = d.read_two_view_geometry_num_inliers()
     finally:
         d.close()
