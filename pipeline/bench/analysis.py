@@ -41,7 +41,7 @@ def linear_fit(x: Sequence[float], y: Sequence[float]) -> tuple[float, float, fl
     return float(a), float(b), r2
 
 
-def _plt():  # noqa: ANN202 (matplotlib's pyplot module)
+def pyplot():  # noqa: ANN202 (matplotlib's pyplot module)
     import matplotlib
 
     matplotlib.use("Agg")
@@ -77,7 +77,7 @@ def plot_fronts(
     """One figure per (group, capture) of `fronts(rows)`: stage seconds (log x) against
     error, every variant a point (references as squares), the Pareto front drawn and its
     points labelled."""
-    plt = _plt()
+    plt = pyplot()
     files = []
     for (group, capture), pts in sorted(groups.items()):
         fig, ax = plt.subplots(figsize=(7, 4.5))
@@ -132,7 +132,7 @@ def plot_cost(fits: dict[str, tuple], axis: str, folder: Path) -> Path | None:
     """Seconds against frames (or pixels) per stage, with the fitted line and its R²."""
     if not fits:
         return None
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 4.5))
     for i, (st, (x, y, (a, b, r2))) in enumerate(sorted(fits.items())):
         c = f"C{i}"

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.bench.analysis import _plt
+from pipeline.bench.analysis import linear_fit, pyplot
 from pipeline.bench.measure import child_run, timestamp
 from stages.common.errors import BlunfError
 from stages.common.io import read_json, write_json
@@ -67,9 +67,9 @@ def make_capture(
 def loglog_slope(x: Sequence[float], y: Sequence[float]) -> float:
     """Least-squares slope of log y against log x (y = c x^k gives k)."""
     lx, ly = np.log(np.asarray(x, float)), np.log(np.asarray(y, float))
-    if len(lx) < 2 or not np.all(np.isfinite(ly)) or np.ptp(lx) == 0:
+    if not np.all(np.isfinite(ly)):
         raise ValueError("a slope needs two distinct x and positive y")
-    return float(np.polyfit(lx, ly, 1)[0])
+    return linear_fit(lx, ly)[0]
 
 
 def fit_range(views: Sequence[int]) -> list[int]:
@@ -227,7 +227,7 @@ def markdown(r: dict) -> str:
 
 def plot(r: dict, path: Path) -> Path:
     """Seconds, CPU-s and added memory against views, log-log, a dotted line of slope 1."""
-    plt = _plt()
+    plt = pyplot()
     from matplotlib.ticker import NullFormatter
 
     fig, axes = plt.subplots(1, 3, figsize=(16, 5))
