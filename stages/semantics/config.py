@@ -172,7 +172,7 @@ class SemanticsConfig:
     impl: Literal["geometry", "height"] = "geometry"  # "geometry": planes and clusters of the
     #                         fused mesh; "height": no stage, the project stage labels points
     #                         by height bands
-    seed: int = 0  # seed of the RANSAC sample and of Open3D's RANSAC
+    seed: int = 0  # seed of the RANSAC sample and of its hypotheses
     planes: PlanesConfig = field(default_factory=PlanesConfig)
     walls: WallsConfig = field(default_factory=WallsConfig)
     objects: ObjectsConfig = field(default_factory=ObjectsConfig)

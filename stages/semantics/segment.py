@@ -3,10 +3,11 @@
 Every triangle gets a class (semantics.config CLASSES, or UNKNOWN) and an object instance
 id (0 = none), from its centre, unit normal and area:
 
-1. Floor: RANSAC planes (Open3D `segment_plane`) over the horizontal triangles facing up
-   whose centre is within `planes.floor_max_z` of z = 0; ceiling: the same over horizontal
-   triangles facing down above `planes.ceiling_min_z`. A plane counts when its inliers (within
-   `planes.plane_dist`, normal within `planes.max_tilt_deg`) cover `planes.min_area`.
+1. Floor: RANSAC planes (stages.common.ransac: seeded, the same planes every run) over the
+   horizontal triangles facing up whose centre is within `planes.floor_max_z` of z = 0;
+   ceiling: the same over horizontal triangles facing down above `planes.ceiling_min_z`. A
+   plane counts when its inliers (within `planes.plane_dist`, normal within
+   `planes.max_tilt_deg`) cover `planes.min_area`.
 2. Walls: RANSAC planes over the remaining vertical triangles; a plane is a wall when its
    inliers span `walls.min_height` in z, `walls.min_length` along the floor and cover
    `walls.min_area` (a cabinet front is too low, a chair back too small), and no other such
@@ -39,7 +40,6 @@ import logging
 from collections.abc import Callable, Iterator
 
 import numpy as np
-import open3d as o3d
 
 from stages.common.capture import UNKNOWN
 from stages.common.classes import (
@@ -50,6 +50,7 @@ from stages.common.classes import (
     WALL,
     WALL_NAME,
 )
+from stages.common.ransac import plane_ransac
 from stages.semantics.config import SemanticsConfig
 from stages.semantics.objects import objects
 from stages.semantics.segmentation import Segmentation
@@ -85,7 +86,6 @@ def segment(
         more_walls: walls found elsewhere (the views' points); one that lies on a wall the
             mesh gave (facing the same way, within its dist) is dropped.
     """
-    o3d.utility.random.seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
     c, n, area = triangles(verts, tris)
     t = len(c)
@@ -173,10 +173,10 @@ def _planes(
             else rng.choice(idx, cfg.planes.ransac_points, False)
         )
         sample = np.sort(sample)
-        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(c[sample]))
-        model, raw = pc.segment_plane(cfg.planes.plane_dist, 3, cfg.planes.ransac_iters)
-        plane = np.asarray(model, np.float64)
-        plane /= np.linalg.norm(plane[:3])
+        plane, raw = plane_ransac(c[sample], cfg.planes.plane_dist, cfg.planes.ransac_iters, rng)
+        if not raw.size:  # the sample spans no plane (all on a line)
+            pool[sample] = False
+            continue
         inl = _inliers(plane, c, n, idx, cfg.planes.plane_dist, cos_t)
         if len(inl) >= 3:
             plane = _refit(c[inl])
