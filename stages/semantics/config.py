@@ -161,6 +161,7 @@ class PointWallsConfig:
     min_area: float = 1.0
     # the walls between rooms too: every face of readings, per plane and stretch, that no
     # ray from the cameras on its side crossed (innerwalls.py)
+    # (docs/figures.md#semantics-point-walls-inner)
     inner: bool = True
 
     def __post_init__(self) -> None:
