@@ -11,8 +11,10 @@ import open3d as o3d
 import pytest
 import trimesh
 
+from stages.semantics import SemanticsConfig
 from stages.semantics.innerwalls import inner_walls
 from stages.semantics.pointwalls import PointWallOptions, point_walls, room_directions
+from stages.semantics.segment import segment
 
 T = 0.12  # wall thickness
 W, D, H = 6.0, 4.0, 2.5  # the home: x in [0, W], y in [0, D], walls H high
@@ -42,7 +44,7 @@ OPT = PointWallOptions(dist=0.05, min_length=1.0, min_height=0.5, min_area=1.0, 
                        top=1.9)  # fmt: skip
 
 
-def _readings(boxes, n_rays: int = 40_000) -> tuple[np.ndarray, np.ndarray]:
+def _readings(boxes, n_rays: int = 20_000) -> tuple[np.ndarray, np.ndarray]:
     """What rays from every camera in CAMS (every direction) hit: (points, their cameras)."""
     scene = o3d.t.geometry.RaycastingScene()
     for lo, hi in boxes:
@@ -98,3 +100,21 @@ def test_one_room_with_its_furniture_gets_no_wall_inside():
     p, eyes = _readings(OUTER + FURNITURE)
     outer, inner = _walls(p, eyes)
     assert len(outer) == 4 and inner == []
+
+
+def test_the_stretches_of_one_face_either_side_of_a_doorway_are_both_walls():
+    """The segmentation keeps every stretch the readings give, not the first of a plane: a
+    wall found twice (the same plane, overlapping) is one, a doorway's two sides are two."""
+    floor = trimesh.creation.box(bounds=[(0.0, 0.0, -0.05), (W, D, 0.0)])
+    p, eyes = _readings(OUTER + INNER + FURNITURE)
+    _, inner = _walls(p, eyes)
+    west = [w for w in inner if w["normal"][0] < -0.99]
+    assert len(west) == 2  # south and north of the doorway
+    seg = segment(
+        np.asarray(floor.vertices, np.float64),
+        np.asarray(floor.faces, np.int64),
+        SemanticsConfig(),
+        lambda c, n, area, floor_z: [*west, west[0]],  # the south one twice
+    )
+    walls = [pl for pl in seg.planes if pl["kind"] == "wall"]
+    assert sorted(w["box"][0] for w in walls) == sorted(w["box"][0] for w in west)
