@@ -159,6 +159,10 @@ class PointWallsConfig:
     # m²: the 10 cm cells (along it x height) its readings cover at least
     # (docs/figures.md#semantics-point-walls-area)
     min_area: float = 1.0
+    # the walls between rooms too: every face of readings, per plane and stretch, that no
+    # ray from the cameras on its side crossed (innerwalls.py)
+    # (docs/figures.md#semantics-point-walls-inner)
+    inner: bool = True
 
     def __post_init__(self) -> None:
         _positive(self, "point_walls", ("dist", "min_height"))

@@ -38,9 +38,10 @@ from stages.semantics.config import (
     SemanticsOutputs,
 )
 from stages.semantics.floorfill import Footprint, Reach, floor_through
+from stages.semantics.innerwalls import inner_walls
 from stages.semantics.pointwalls import (
     PointWallOptions,
-    evidence_points,
+    evidence_readings,
     point_walls,
     room_directions,
 )
@@ -228,7 +229,7 @@ def _point_walls(cfg: SemanticsConfig, inputs: SemanticsInputs, cap: Capture
     point_walls is off or no readings are given."""
     if not (cfg.point_walls.enabled and inputs.evidence):
         return None
-    pts = evidence_points([Capture.load(p) for p in inputs.evidence])
+    pts, eyes = evidence_readings([Capture.load(p) for p in inputs.evidence])
     cams = np.array([f.pose[:3, 3] for f in cap.frames if f.pose is not None])  # [N, 3]
     opt = PointWallOptions(
         dist=cfg.point_walls.dist,
@@ -243,7 +244,11 @@ def _point_walls(cfg: SemanticsConfig, inputs: SemanticsInputs, cap: Capture
     def more(c: np.ndarray, n: np.ndarray, area: np.ndarray, floor_z: float) -> list[dict]:
         if len(pts) == 0:
             return []
-        return point_walls(pts, cams, room_directions(pts, opt.dist), floor_z, opt)
+        dirs = room_directions(pts, opt.dist)
+        walls = point_walls(pts, cams, dirs, floor_z, opt)
+        if cfg.point_walls.inner:
+            walls += inner_walls(pts, eyes, dirs, floor_z, opt, cfg.walls.behind, walls)
+        return walls
 
     return more
 

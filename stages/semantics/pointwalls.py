@@ -59,7 +59,13 @@ def evidence_points(frames: list[Capture], stride: int = 2) -> np.ndarray:
     """World points [N, 3] of every depth reading of the frames (every `stride`-th pixel each
     way), thinned to one per VOXEL. Depth maps at another resolution than the intrinsics
     (stereo's sweep resolution) are read with the intrinsics scaled to them."""
-    out = [np.zeros((0, 3))]
+    return evidence_readings(frames, stride)[0]
+
+
+def evidence_readings(frames: list[Capture], stride: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """As evidence_points, with the centre of the camera each kept reading was taken from:
+    (points [N, 3], cameras [N, 3])."""
+    out, eye = [np.zeros((0, 3))], [np.zeros((0, 3))]
     for cap in frames:
         for f in cap.frames:
             if f.depth is None or f.pose is None:
@@ -71,13 +77,16 @@ def evidence_points(frames: list[Capture], stride: int = 2) -> np.ndarray:
             v, u = np.nonzero(d[::step, ::step] > 0)
             v, u = v * step, u * step
             uv = np.stack([u, v], axis=1).astype(np.float64)
-            out.append(unproject(uv, d[v, u], k, np.asarray(f.pose, np.float64)))
-    p = np.concatenate(out)
+            pose = np.asarray(f.pose, np.float64)
+            out.append(unproject(uv, d[v, u], k, pose))
+            eye.append(np.broadcast_to(pose[:3, 3], (len(v), 3)))
+    p, c = np.concatenate(out), np.concatenate(eye)
     if len(p) == 0:
-        return p
+        return p, c
     keys = np.floor(p / VOXEL).astype(np.int64)
     _, first, _ = unique_rows(keys)
-    return p[np.sort(first)]
+    first = np.sort(first)
+    return p[first], c[first]
 
 
 def room_directions(points: np.ndarray, bin_m: float) -> np.ndarray:

@@ -288,13 +288,16 @@ def _describe(plane: np.ndarray, inl: np.ndarray, kind: str, c: np.ndarray, area
 
 
 def _same_wall(a: dict, b: dict) -> bool:
-    """Whether two wall planes are parallel (within 15 degrees) and lie within the first's
-    dist of each other (a fitted plane's normal may face either way)."""
+    """Whether two wall planes are parallel (within 15 degrees), lie within the first's
+    dist of each other (a fitted plane's normal may face either way) and overlap along it
+    (the stretches of one plane either side of a doorway are two walls)."""
     na, nb = np.asarray(a["normal"]), np.asarray(b["normal"])
     sign = 1.0 if na @ nb >= 0 else -1.0
     if sign * (na @ nb) < np.cos(np.radians(15.0)):
         return False
-    return abs(a["d"] - sign * b["d"]) < a.get("dist", 0.0)
+    lo, hi = sorted([sign * b["box"][0], sign * b["box"][2]])  # b's box on a's axis
+    overlap = min(a["box"][2], hi) - max(a["box"][0], lo)
+    return abs(a["d"] - sign * b["d"]) < a.get("dist", 0.0) and overlap > 0
 
 
 def _absorb(seg: Segmentation, c: np.ndarray, cfg: SemanticsConfig) -> None:
