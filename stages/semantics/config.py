@@ -95,7 +95,7 @@ class ObjectsConfig:
     # 0 = off: a cluster is one instance (docs/figures.md#semantics-pieces)
     piece_step: float = 0.1  # metres
     piece_cell: float = 0.05  # metres
-    piece_min_width: float = 0.4  # metres
+    piece_min_width: float = 0.3  # metres
     # object triangles outside the room's footprint (the floor fill's) are unknown
     # (docs/figures.md#semantics-outside-unknown)
     outside_unknown: bool = False
