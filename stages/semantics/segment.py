@@ -17,7 +17,8 @@ id (0 = none), from its centre, unit normal and area:
    to the wall behind it, along the stretches it covers (its frame, legs and stand).
 3. Unlabelled triangles within `planes.plane_dist` of an accepted plane, inside its extent, join it
    whatever their normal: the rounded seams of the TSDF surface where a wall meets the
-   floor would otherwise form thin "objects" along every wall.
+   floor would otherwise form thin "objects" along every wall. A wall takes none that faces
+   up: that is the top of what stands against it (a sofa's back, a counter).
 4. Objects: the rest, clustered by DBSCAN (Open3D `cluster_dbscan`) on voxels of
    cluster_eps / 2. A cluster is an object instance when it covers `objects.min_area` and its
    lowest point is within `objects.max_gap` of the floor; smaller clusters, DBSCAN noise and
@@ -138,7 +139,7 @@ def segment(
             if not any(_same_wall(w, p) for p in seg.planes if p["kind"] == WALL_NAME):
                 seg.planes.append(w)
                 log.debug("semantics: wall from points %s", w)
-    _absorb(seg, c, cfg)
+    _absorb(seg, c, n, cfg)
     by = _by_hangers(c, hangers, cfg.walls.hanger_slab) & (seg.cls == UNKNOWN) & ~hung
     seg.hanger_triangles = int(by.sum())
     objects(seg, c, n, area, ok & ~hung & ~by, cfg)
@@ -297,12 +298,16 @@ def _same_wall(a: dict, b: dict) -> bool:
     return abs(a["d"] - sign * b["d"]) < a.get("dist", 0.0)
 
 
-def _absorb(seg: Segmentation, c: np.ndarray, cfg: SemanticsConfig) -> None:
+def _absorb(seg: Segmentation, c: np.ndarray, n: np.ndarray, cfg: SemanticsConfig) -> None:
     """Unlabelled triangles near an accepted plane (its "dist", else plane_dist), inside its
-    box, join it (any normal)."""
+    box, join it (any normal), except triangles facing up near a wall: a wall has no face
+    that looks up, and its seam with the floor lies within the floor's reach (the floor
+    comes first); they are the top of what stands against it (a sofa's back, a counter),
+    which painted a strip of wall over the furniture on the plan."""
     ids = {FLOOR_NAME: FLOOR, WALL_NAME: WALL, CEILING_NAME: CEILING}
+    up = n[:, 2] > np.cos(np.radians(cfg.planes.max_tilt_deg))  # [T]
     for pl in seg.planes:
-        free = np.flatnonzero(seg.cls == UNKNOWN)
+        free = np.flatnonzero((seg.cls == UNKNOWN) & ~(up & (pl["kind"] == WALL_NAME)))
         p = c[free]
         dist = pl.get("dist", cfg.planes.plane_dist)
         near = np.abs(p @ np.asarray(pl["normal"]) + pl["d"]) < dist
