@@ -130,9 +130,14 @@ class FloorFillConfig:
     # with hull and a floor plane found, rays are bounded by that reach as without one
     # (docs/figures.md#semantics-floor-fill-hull-reach)
     hull_reach: bool = True
+    # metres: a view's own reading on the floor plane this far or more beyond the surface its
+    # ray hits is floor seen past the surface's fattened rim (floorfill.floor_past; needs the
+    # readings input); 0 = off (docs/figures.md#semantics-floor-fill-past)
+    past: float = 0.1
 
     def __post_init__(self) -> None:
         _positive(self, "floor_fill", ("cell", "reach"))
+        _non_negative(self, "floor_fill", ("past",))
         if not 0 <= self.min_drop_deg < 90:
             raise BlunfError(
                 f"semantics.floor_fill.min_drop_deg: must be in [0, 90), got {self.min_drop_deg}"
@@ -231,6 +236,8 @@ class SemanticsInputs:
     mesh: Path  # mesh.ply: the fused surface, world frame (z up, floor at z = 0)
     evidence: tuple[Path, ...] = ()  # frames.json files (same world) whose depth readings
     #                                  the point walls are found in (when point_walls.enabled)
+    readings: Path | None = None  # frames.json whose depth the fusion read (the sensor's or
+    #                               stereo's), same views: the floor seen past the surface
 
 
 @dataclass(frozen=True)
