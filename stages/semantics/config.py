@@ -58,8 +58,8 @@ class WallsConfig:
     # (docs/figures.md#semantics-walls-behind)
     behind: float = 0.6
     # metres: what lies from this close before a surface hanging before a wall to the wall
-    # behind it is its frame or stand, unknown as it is; 0 = off
-    # (docs/figures.md#semantics-hanger-slab)
+    # behind it is its frame or stand, unknown as it is; a surface hanging this close to the
+    # wall (blinds) is wall; 0 = off (docs/figures.md#semantics-hanger-slab)
     hanger_slab: float = 0.1
     # rays that hit nothing and cross a wall inside its extent are wall there (wallfill.py;
     # needs floor_fill) (docs/figures.md#semantics-wall-fill)

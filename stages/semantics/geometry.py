@@ -195,7 +195,7 @@ def _render(
             got = reading(f.stem) if cfg.floor_fill.past > 0 else None  # past a fattened rim
             if got is not None:
                 past = floor_past(r, t, got, seg.floor_z, room, cfg.floor_fill.past, margin)
-                floor = np.where(floor > 0, floor, past)
+                floor = np.where((floor > 0) | (label == WALL), floor, past)  # not past a wall
             wall = (
                 wall_through(r, t, fill_walls, seg.floor_z, room, margin)[0]
                 if fill_walls

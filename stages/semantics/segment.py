@@ -14,7 +14,9 @@ id (0 = none), from its centre, unit normal and area:
    tall cabinets against a wall: the wall is the outermost surface). Planes that fail stay
    in the object pool, except one before a wall that hangs clear of the floor (blinds, a
    curtain, a whiteboard: unknown), and with it what lies from `walls.hanger_slab` before it
-   to the wall behind it, along the stretches it covers (its frame, legs and stand).
+   to the wall behind it, along the stretches it covers (its frame, legs and stand); one that
+   hangs within `walls.hanger_slab` of that wall (blinds, a curtain over a window) closes it:
+   wall, with what lies by it.
 3. Unlabelled triangles within `planes.plane_dist` of an accepted plane, inside its extent, join it
    whatever their normal: the rounded seams of the TSDF surface where a wall meets the
    floor would otherwise form thin "objects" along every wall. A wall takes none that faces
@@ -142,6 +144,10 @@ def segment(
     _absorb(seg, c, n, cfg)
     by = _by_hangers(c, hangers, cfg.walls.hanger_slab) & (seg.cls == UNKNOWN) & ~hung
     seg.hanger_triangles = int(by.sum())
+    # one hanging within hanger_slab of the wall behind it (blinds, a curtain over a window)
+    # closes that wall: nothing stands in the gap, and the plan draws the wall to its face
+    close = [h for h in hangers if h[2] <= cfg.walls.hanger_slab]
+    seg.cls[(hung | by) & _by_hangers(c, close, cfg.walls.hanger_slab)] = WALL
     objects(seg, c, n, area, ok & ~hung & ~by, cfg)
     return seg
 

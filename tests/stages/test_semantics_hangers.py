@@ -7,7 +7,7 @@ import numpy as np
 import trimesh
 
 from stages.common.capture import UNKNOWN
-from stages.common.classes import OBJECT
+from stages.common.classes import OBJECT, WALL
 from stages.semantics import SemanticsConfig
 from stages.semantics.segment import segment, triangles
 from tests.stages.test_semantics import EDGE, X, Y, Z, _quad
@@ -68,3 +68,30 @@ def test_a_plant_beside_a_board_is_an_object_though_a_leaf_lies_in_its_plane():
     in_pot &= c[:, 2] < 0.81  # above the floor's 3 cm seam, which the floor takes
     seg = segment(verts, tris, SemanticsConfig())
     assert (seg.cls[in_pot] == OBJECT).all() and seg.instance.max() == 1
+
+
+def test_blinds_close_before_a_wall_close_it_a_board_does_not():
+    # blinds hang 6 cm before the wall at y = Y (0.3-2.3 m up): within hanger_slab of it,
+    # they close the wall there (wall class; nothing stands in the gap), while the wall
+    # plane stays the one behind. A board 0.3 m before it hangs, unknown
+    for gap, want in ((0.06, WALL), (0.3, UNKNOWN)):
+        yb = Y - gap
+        parts = [
+            _quad([(0, 0, 0), (X, 0, 0), (X, Y, 0), (0, Y, 0)], (0, 0, 1)),
+            _quad([(0, Y, 0), (X, Y, 0), (X, Y, Z), (0, Y, Z)], (0, -1, 0)),
+            _quad([(0.25, yb, 0.3), (3.75, yb, 0.3), (3.75, yb, 2.3), (0.25, yb, 2.3)],
+                  (0, -1, 0)),
+        ]  # fmt: skip
+        verts, tris, k = [], [], 0
+        for v, f in parts:
+            v, f = trimesh.remesh.subdivide_to_size(v, f, max_edge=EDGE)
+            verts.append(v)
+            tris.append(f + k)
+            k += len(v)
+        verts, tris = np.concatenate(verts), np.concatenate(tris)
+        c, _, _ = triangles(verts, tris)
+        hanging = np.abs(c[:, 1] - yb) < 1e-6
+        seg = segment(verts, tris, SemanticsConfig())
+        assert (seg.cls[hanging] == want).all(), gap
+        walls = [-p["d"] * np.sign(p["normal"][1]) for p in seg.planes if p["kind"] == "wall"]
+        assert np.allclose(walls, [Y], atol=0.01)
