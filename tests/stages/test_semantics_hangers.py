@@ -71,7 +71,7 @@ def test_a_plant_beside_a_board_is_an_object_though_a_leaf_lies_in_its_plane():
 
 
 def test_blinds_close_before_a_wall_close_it_a_board_does_not():
-    # blinds hang 6 cm before the wall at y = Y (0.3-2.3 m up): within hanger_slab of it,
+    # blinds hang 6 cm before the wall at y = Y (0.3-2.3 m up, 2 m wide): within hanger_slab,
     # they close the wall there (wall class; nothing stands in the gap), while the wall
     # plane stays the one behind. A board 0.3 m before it hangs, unknown
     for gap, want in ((0.06, WALL), (0.3, UNKNOWN)):
@@ -79,7 +79,7 @@ def test_blinds_close_before_a_wall_close_it_a_board_does_not():
         parts = [
             _quad([(0, 0, 0), (X, 0, 0), (X, Y, 0), (0, Y, 0)], (0, 0, 1)),
             _quad([(0, Y, 0), (X, Y, 0), (X, Y, Z), (0, Y, Z)], (0, -1, 0)),
-            _quad([(0.25, yb, 0.3), (3.75, yb, 0.3), (3.75, yb, 2.3), (0.25, yb, 2.3)],
+            _quad([(1.0, yb, 0.3), (3.0, yb, 0.3), (3.0, yb, 2.3), (1.0, yb, 2.3)],
                   (0, -1, 0)),
         ]  # fmt: skip
         verts, tris, k = [], [], 0
