@@ -80,11 +80,12 @@ def _recipe(r: Runner, pub: Publication, capture: Path, cfg: Config, spec: EditS
     # SfM's world has an arbitrary turn about z: the first camera fixes the plan's frame then
     frames = r.step(plan.get("align"), AlignInputs(frames, free_yaw=posed is not None)).frames
     depth = r.step(plan.get("depth"), DepthInputs(frames=frames))  # photos only: stereo, fills
-    fused = r.step(plan.get("fusion"), FusionInputs(frames=depth.frames if depth else frames))
+    read = depth.frames if depth else frames  # the depth the fusion reads
+    fused = r.step(plan.get("fusion"), FusionInputs(frames=read))
     # what the views saw, for the point walls: the SfM tracks (the aligned frames) and what
     # fusion read; the semantics stage alone decides whether to use it (semantics.point_walls)
     seen = (frames, depth.frames) if depth else ()
-    sem = r.step(plan.get("semantics"), SemanticsInputs(fused.frames, fused.mesh, seen))
+    sem = r.step(plan.get("semantics"), SemanticsInputs(fused.frames, fused.mesh, seen, read))
     labelled = sem.frames if sem else fused.frames  # the frames the plan is projected from
     # on the fused (dense, clean) depth and the labels: for the NeRF baseline and edits
     nerf = r.step(plan.get("nerf"), NerfInputs(frames=labelled))

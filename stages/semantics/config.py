@@ -57,8 +57,9 @@ class WallsConfig:
     # its length, is no wall (blinds, cubicle panels, tall cabinets before the wall); 0 = off
     # (docs/figures.md#semantics-walls-behind)
     behind: float = 0.6
-    # metres: what lies this close to a surface hanging before a wall is its frame or stand,
-    # unknown as it is; 0 = off (docs/figures.md#semantics-hanger-slab)
+    # metres: what lies from this close before a surface hanging before a wall to the wall
+    # behind it is its frame or stand, unknown as it is; a surface hanging this close to the
+    # wall (blinds) is wall; 0 = off (docs/figures.md#semantics-hanger-slab)
     hanger_slab: float = 0.1
     # rays that hit nothing and cross a wall inside its extent are wall there (wallfill.py;
     # needs floor_fill) (docs/figures.md#semantics-wall-fill)
@@ -94,7 +95,7 @@ class ObjectsConfig:
     # 0 = off: a cluster is one instance (docs/figures.md#semantics-pieces)
     piece_step: float = 0.1  # metres
     piece_cell: float = 0.05  # metres
-    piece_min_width: float = 0.4  # metres
+    piece_min_width: float = 0.3  # metres
     # object triangles outside the room's footprint (the floor fill's) are unknown
     # (docs/figures.md#semantics-outside-unknown)
     outside_unknown: bool = False
@@ -129,9 +130,14 @@ class FloorFillConfig:
     # with hull and a floor plane found, rays are bounded by that reach as without one
     # (docs/figures.md#semantics-floor-fill-hull-reach)
     hull_reach: bool = True
+    # metres: a view's own reading on the floor plane this far or more beyond the surface its
+    # ray hits is floor seen past the surface's fattened rim (floorfill.floor_past; needs the
+    # readings input); 0 = off (docs/figures.md#semantics-floor-fill-past)
+    past: float = 0.1
 
     def __post_init__(self) -> None:
         _positive(self, "floor_fill", ("cell", "reach"))
+        _non_negative(self, "floor_fill", ("past",))
         if not 0 <= self.min_drop_deg < 90:
             raise BlunfError(
                 f"semantics.floor_fill.min_drop_deg: must be in [0, 90), got {self.min_drop_deg}"
@@ -234,6 +240,8 @@ class SemanticsInputs:
     mesh: Path  # mesh.ply: the fused surface, world frame (z up, floor at z = 0)
     evidence: tuple[Path, ...] = ()  # frames.json files (same world) whose depth readings
     #                                  the point walls are found in (when point_walls.enabled)
+    readings: Path | None = None  # frames.json whose depth the fusion read (the sensor's or
+    #                               stereo's), same views: the floor seen past the surface
 
 
 @dataclass(frozen=True)

@@ -27,12 +27,16 @@ floor under it; the project stage's top view lets the counter top seen above it 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
 from skimage.morphology import convex_hull_image
 
+from stages.common.capture import Capture
+from stages.common.io import read_depth
 from stages.semantics.segment import in_extent
 
 
@@ -138,3 +142,61 @@ def floor_through(
     for wall in walls:
         ok &= ~_through(wall, o, d, t, margin)
     return np.where(ok, t, 0.0).astype(np.float32)
+
+
+def floor_past(
+    rays: np.ndarray,
+    t_hit: np.ndarray,
+    reading: np.ndarray,
+    floor_z: float,
+    room: Footprint,
+    past: float,
+    tol: float,
+) -> np.ndarray:
+    """Depth at which each ray meets the floor plane, where the view's own reading lies on it
+    (within `tol` metres in height), `past` metres or more beyond the surface the ray hits;
+    0 elsewhere.
+
+    The fused surface is fatter than what it fused at a silhouette (the TSDF's voxels and
+    truncation): the rim of a chair's seat or a table's edge hangs over the floor the views
+    saw past it. A reading on the floor plane beyond the hit is that floor: the ray reached
+    it, so nothing stood in the way.
+
+    Args:
+        rays: [H, W, 6] origin and direction (camera z = 1: the ray parameter is the depth).
+        t_hit: [H, W] ray parameter of the first surface hit (inf: none).
+        reading: [h, w] the view's depth in metres (0: none), read at the nearest pixel when
+            its size differs. floor_z: height of the floor plane. room: where the floor may
+            be. past: metres, along the ray, beyond the hit.
+    """
+    h, w = t_hit.shape
+    if reading.shape != (h, w):
+        rows = np.minimum((np.arange(h) + 0.5) * reading.shape[0] / h, reading.shape[0] - 1)
+        cols = np.minimum((np.arange(w) + 0.5) * reading.shape[1] / w, reading.shape[1] - 1)
+        reading = reading[rows.astype(np.int64)[:, None], cols.astype(np.int64)[None, :]]
+    o, d = rays[..., :3].astype(np.float64), rays[..., 3:].astype(np.float64)
+    down = d[..., 2] < 0
+    t = np.where(down, (floor_z - o[..., 2]) / np.where(down, d[..., 2], -1.0), 0.0)
+    step = past / np.maximum(np.linalg.norm(d, axis=-1), 1e-12)  # `past` metres in t
+    ok = down & (reading > 0) & np.isfinite(t_hit) & (t > t_hit + step)
+    ok &= np.abs(o[..., 2] + reading * d[..., 2] - floor_z) <= tol
+    ok &= room.contains(o[..., :2] + t[..., None] * d[..., :2])
+    return np.where(ok, t, 0.0).astype(np.float32)
+
+
+def readings_of(path: Path | None) -> Callable[[str], np.ndarray | None]:
+    """The depth reading (metres, [h, w]) of each view by its stem, from frames.json `path`
+    (the depth the fusion read); None for a view without one, or for every view without
+    `path`."""
+    if path is None:
+        return lambda stem: None
+    cap = Capture.load(path)
+    by = {f.stem: f for f in cap.frames}
+
+    def reading(stem: str) -> np.ndarray | None:
+        f = by.get(stem)
+        if f is None or f.depth is None:
+            return None
+        return read_depth(f.depth, cap.depth_scale, cap.depth_invalid)
+
+    return reading

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -37,7 +38,7 @@ from stages.semantics.config import (
     SemanticsInputs,
     SemanticsOutputs,
 )
-from stages.semantics.floorfill import Footprint, Reach, floor_through
+from stages.semantics.floorfill import Footprint, Reach, floor_past, floor_through, readings_of
 from stages.semantics.innerwalls import inner_walls
 from stages.semantics.pointwalls import (
     PointWallOptions,
@@ -84,7 +85,7 @@ def run(cfg: SemanticsConfig, inputs: SemanticsInputs, out: Path) -> SemanticsOu
         seg.instance[out_obj] = 0
         seg.outside_triangles = int(out_obj.sum())
     t0 = time.perf_counter()
-    frames, pixels = _render(mesh, seg, cap, outs, (room, reach), cfg)
+    frames, pixels = _render(mesh, seg, cap, outs, (room, reach), cfg, readings_of(inputs.readings))
     t_render = time.perf_counter() - t0
     sem = replace(cap, frames=tuple(frames), classes=dict(CLASSES), ignore=IGNORE)
     sem.save(outs.frames)
@@ -157,6 +158,7 @@ def _render(
     outs: SemanticsOutputs,
     fill: tuple[Footprint | None, Reach | None],
     cfg: SemanticsConfig,
+    reading: Callable[[str], np.ndarray | None] = lambda stem: None,
 ) -> tuple[list[Frame], dict[str, float]]:
     """Class and instance maps of every view; returns the frames pointing at them and the
     fraction of pixels per class over all views (and of floor seen through the surface).
@@ -164,7 +166,8 @@ def _render(
     With a room (fill: the room and the rays' reach, floorfill.py), the floor seen through
     the surface within it (plane_dist metres beyond the plane) is labelled floor, and each
     view's depth is written with it; with walls.fill, so are the walls seen through it
-    (wallfill.py), the nearer crossing winning."""
+    (wallfill.py), the nearer crossing winning; and the floor a view's own `reading` lies on
+    past the surface (floorfill.floor_past)."""
     room, reach = fill
     margin = cfg.planes.plane_dist
     scene = o3d.t.geometry.RaycastingScene()
@@ -190,6 +193,10 @@ def _render(
             t = hit["t_hit"].numpy()  # [H, W]: the depth (Open3D's rays have camera z = 1)
             r = rays.numpy()
             floor = floor_through(r, t, seg.floor_z, room, margin, walls, reach)  # [H, W]
+            got = reading(f.stem) if cfg.floor_fill.past > 0 else None  # past a fattened rim
+            if got is not None:
+                past = floor_past(r, t, got, seg.floor_z, room, cfg.floor_fill.past, margin)
+                floor = np.where((floor > 0) | (label == WALL), floor, past)  # not past a wall
             wall = (
                 wall_through(r, t, fill_walls, seg.floor_z, room, margin)[0]
                 if fill_walls

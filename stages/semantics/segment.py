@@ -14,11 +14,14 @@ id (0 = none), from its centre, unit normal and area:
    plane stands behind it within `walls.behind` (blinds before a window wall, cubicle panels,
    tall cabinets against a wall: the wall is the outermost surface). Planes that fail stay
    in the object pool, except one before a wall that hangs clear of the floor (blinds, a
-   curtain, a whiteboard: unknown), and with it what lies within `walls.hanger_slab` of it
-   (its frame, legs and stand).
+   curtain, a whiteboard: unknown), and with it what lies from `walls.hanger_slab` before it
+   to the wall behind it, along the stretches it covers (its frame, legs and stand); one that
+   hangs within `walls.hanger_slab` of that wall (blinds, a curtain over a window) closes it:
+   wall, with what lies by it.
 3. Unlabelled triangles within `planes.plane_dist` of an accepted plane, inside its extent, join it
    whatever their normal: the rounded seams of the TSDF surface where a wall meets the
-   floor would otherwise form thin "objects" along every wall.
+   floor would otherwise form thin "objects" along every wall. A wall takes none that faces
+   up: that is the top of what stands against it (a sofa's back, a counter).
 4. Objects: the rest, clustered by DBSCAN (Open3D `cluster_dbscan`) on voxels of
    cluster_eps / 2. A cluster is an object instance when it covers `objects.min_area` and its
    lowest point is within `objects.max_gap` of the floor; smaller clusters, DBSCAN noise and
@@ -117,11 +120,11 @@ def segment(
         else:
             seg.rejected.append(_describe(plane, inl, "vertical", c, area))
             log.debug("semantics: not a wall %s", seg.rejected[-1])
-    outer = _outermost(found, c, n, cfg.walls.behind)
+    behind = _behind(found, c, n, cfg.walls.behind)
     hung = np.zeros(t, bool)  # surfaces hanging before a wall: in no object
-    hangers: list[tuple[np.ndarray, float, float]] = []  # their planes and extents along
-    for (plane, inl), is_outer in zip(found, outer, strict=True):
-        if is_outer:
+    hangers: list[tuple[np.ndarray, np.ndarray, float]] = []  # see _by_hangers
+    for (plane, inl), (gap, facing) in zip(found, behind, strict=True):
+        if gap == 0:
             _accept(seg, plane, inl, WALL_NAME, WALL, c, area)
             continue
         # in front of a wall: furniture standing on the floor is left to the object
@@ -131,16 +134,20 @@ def segment(
         log.debug("semantics: in front of a wall %s", seg.rejected[-1])
         if np.percentile(c[inl, 2], SPAN_PCT[0]) - seg.floor_z > HANGS:
             hung[inl] = True
-            along = c[inl] @ _axes(plane)
-            hangers.append((plane, float(along.min()), float(along.max())))
+            along = c[inl] @ _axes(facing)
+            hangers.append((facing, _stretches(along, area[inl], cfg.walls.hanger_slab), gap))
     if more_walls is not None:
         for w in more_walls(c, n, area, seg.floor_z):
             if not any(_same_wall(w, p) for p in seg.planes if p["kind"] == WALL_NAME):
                 seg.planes.append(w)
                 log.debug("semantics: wall from points %s", w)
-    _absorb(seg, c, cfg)
+    _absorb(seg, c, n, cfg)
     by = _by_hangers(c, hangers, cfg.walls.hanger_slab) & (seg.cls == UNKNOWN) & ~hung
     seg.hanger_triangles = int(by.sum())
+    # one hanging within hanger_slab of the wall behind it (blinds, a curtain over a window)
+    # closes that wall: nothing stands in the gap, and the plan draws the wall to its face
+    close = [h for h in hangers if h[2] <= cfg.walls.hanger_slab]
+    seg.cls[(hung | by) & _by_hangers(c, close, cfg.walls.hanger_slab)] = WALL
     objects(seg, c, n, area, ok & ~hung & ~by, cfg)
     return seg
 
@@ -225,34 +232,34 @@ def _is_wall(plane: np.ndarray, c: np.ndarray, area: np.ndarray, cfg: SemanticsC
     )
 
 
-def _outermost(
+def _behind(
     found: list[tuple[np.ndarray, np.ndarray]], c: np.ndarray, n: np.ndarray, behind: float
-) -> list[bool]:
-    """For each wall plane (plane [4], inlier indices): whether it is the outermost surface
-    there, i.e. no other wall plane facing the same way lies behind it (away from the room,
-    the side its triangles do not face) by 2 cm to `behind` metres along at least half its
-    length (5-95 % of its inliers). Blinds before a window wall, cubicle panels or a row of
-    tall cabinets before the wall they stand against are no wall. behind 0: all are."""
-    if behind <= 0 or len(found) < 2:
-        return [True] * len(found)
+) -> list[tuple[float, np.ndarray]]:
+    """For each wall plane (plane [4], inlier indices): how far behind it (metres, away from
+    the room, the side its triangles do not face) the nearest other wall plane facing the
+    same way lies, between 2 cm and `behind`, along at least half its length (5-95 % of its
+    inliers): 0 when none does (the plane is the outermost surface there, a wall), and the
+    plane facing the room [4]. Blinds before a window wall, cubicle panels or a row of tall
+    cabinets before the wall they stand against are no wall. behind 0: all are."""
     facing = []  # [unit normal facing the room, d]
     for plane, inl in found:
         sign = 1.0 if (n[inl] @ plane[:3]).sum() >= 0 else -1.0
         facing.append(sign * plane)
+    if behind <= 0 or len(found) < 2:
+        return [(0.0, f) for f in facing]
     out = []
     for i, (_, inl) in enumerate(found):
         u = _axes(facing[i])
         lo, hi = np.percentile(c[inl] @ u, SPAN_PCT)
-        ok = True
+        gap = 0.0
         for j, (_, other) in enumerate(found):
             if j == i or facing[i][:3] @ facing[j][:3] < np.cos(np.radians(15.0)):
                 continue
             off = float(np.median(c[other] @ facing[i][:3] + facing[i][3]))  # < 0: behind
             a, b = np.percentile(c[other] @ u, SPAN_PCT)
             if -behind <= off <= -0.02 and min(hi, b) - max(lo, a) >= 0.5 * (hi - lo):
-                ok = False
-                break
-        out.append(ok)
+                gap = -off if gap == 0 else min(gap, -off)
+        out.append((gap, facing[i]))
     return out
 
 
@@ -300,12 +307,16 @@ def _same_wall(a: dict, b: dict) -> bool:
     return abs(a["d"] - sign * b["d"]) < a.get("dist", 0.0) and overlap > 0
 
 
-def _absorb(seg: Segmentation, c: np.ndarray, cfg: SemanticsConfig) -> None:
+def _absorb(seg: Segmentation, c: np.ndarray, n: np.ndarray, cfg: SemanticsConfig) -> None:
     """Unlabelled triangles near an accepted plane (its "dist", else plane_dist), inside its
-    box, join it (any normal)."""
+    box, join it (any normal), except triangles facing up near a wall: a wall has no face
+    that looks up, and its seam with the floor lies within the floor's reach (the floor
+    comes first); they are the top of what stands against it (a sofa's back, a counter),
+    which painted a strip of wall over the furniture on the plan."""
     ids = {FLOOR_NAME: FLOOR, WALL_NAME: WALL, CEILING_NAME: CEILING}
+    up = n[:, 2] > np.cos(np.radians(cfg.planes.max_tilt_deg))  # [T]
     for pl in seg.planes:
-        free = np.flatnonzero(seg.cls == UNKNOWN)
+        free = np.flatnonzero((seg.cls == UNKNOWN) & ~(up & (pl["kind"] == WALL_NAME)))
         p = c[free]
         dist = pl.get("dist", cfg.planes.plane_dist)
         near = np.abs(p @ np.asarray(pl["normal"]) + pl["d"]) < dist
@@ -324,17 +335,38 @@ def in_extent(plane: dict, p: np.ndarray, pad: float) -> np.ndarray:
     return np.asarray(((q >= lo - pad) & (q <= hi + pad)).all(axis=-1))
 
 
+def _stretches(along: np.ndarray, area: np.ndarray, slab: float) -> np.ndarray:
+    """[K, 2] the stretches (lo, hi metres) along a hanging surface that it covers: bins
+    `slab` metres wide holding at least slab² m² of its inliers (positions along [N], areas
+    [N]), consecutive bins joined. Inliers of the plane that lie apart from the surface (a
+    leaf of a plant beside it, a screen's edge in the same plane 0.5 m away) add no stretch:
+    the surface's extent is where it is, not the span of everything co-planar."""
+    if slab <= 0 or len(along) == 0:
+        return np.zeros((0, 2))
+    k = np.floor(along / slab).astype(np.int64)
+    k0 = int(k.min())
+    full = np.bincount(k - k0, weights=area) >= slab**2  # [B]
+    edges = np.diff(np.concatenate([[0], full.astype(np.int8), [0]]))
+    lo, hi = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    return np.stack([lo + k0, hi + k0], axis=1) * slab
+
+
 def _by_hangers(
-    c: np.ndarray, hangers: list[tuple[np.ndarray, float, float]], slab: float
+    c: np.ndarray, hangers: list[tuple[np.ndarray, np.ndarray, float]], slab: float
 ) -> np.ndarray:
-    """bool [T]: triangle centres c [T, 3] within `slab` metres of a surface hanging before a
-    wall (plane [4], extent along it), inside that extent grown by `slab`, at any height: its
-    frame, legs and stand (a whiteboard's, a screen's), which hang with it (unknown) and
-    would otherwise paint its whole depth object on the plan. slab 0: none."""
+    """bool [T]: triangle centres c [T, 3] by a surface hanging before a wall (its plane
+    facing the room [4], its stretches along it [K, 2], the gap to the wall behind it in
+    metres), inside one of its stretches grown by `slab`, at any height, from `slab` metres
+    before it to the wall behind it: its frame, legs and stand (a whiteboard's, a screen's)
+    and what it hides from the room, which hang with it (unknown) and would otherwise paint
+    its whole depth object on the plan. slab 0: none."""
     out = np.zeros(len(c), bool)
     if slab <= 0:
         return out
-    for plane, lo, hi in hangers:
+    for plane, runs, gap in hangers:
         s = c @ _axes(plane)
-        out |= (np.abs(c @ plane[:3] + plane[3]) <= slab) & (s >= lo - slab) & (s <= hi + slab)
+        dist = c @ plane[:3] + plane[3]  # > 0: before it, in the room
+        near = (dist <= slab) & (dist >= -gap - slab)
+        for lo, hi in runs:
+            out |= near & (s >= lo - slab) & (s <= hi + slab)
     return out
