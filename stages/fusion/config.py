@@ -34,6 +34,9 @@ class FusionConfig:
     #                       reading within support_voxels of it (fusion/carve.py: removes what
     #                       averaging disagreeing depth leaves between the readings); 0 = off
     support_voxels: float = 2.5  # ... within this many voxels, along the view's optical axis
+    region_blocks: int = 2500  # more voxel blocks touched than this: fuse region by region,
+    #                            each a box of at most this many (fusion/regions.py: the same
+    #                            surface, memory of the largest box); 0 = one grid always
     raycast: bool = True  # ray-cast the fused mesh into every view as that view's clean depth
 
     def __post_init__(self) -> None:
@@ -55,6 +58,8 @@ class FusionConfig:
             MIN_BLOCKS * self.block_resolution**3 * VOXEL_BYTES,
             f"fusion.block_resolution={self.block_resolution} (voxel {self.voxel} m)",
         )
+        if self.region_blocks < 0:
+            raise BlunfError(f"fusion.region_blocks: must be >= 0, got {self.region_blocks}")
         if self.min_support < 0:
             raise BlunfError(f"fusion.min_support: must be >= 0, got {self.min_support}")
         if not self.support_voxels > 0:
