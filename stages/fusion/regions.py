@@ -47,8 +47,9 @@ def fuse(
     Args:
         new_grid: an empty grid of n blocks; integrate: fuses (frame, blocks) pairs into a
             grid and returns Open3D's seconds; extract: a grid's (mesh, cloud).
-    Returns the unmerged-order mesh and cloud and facts (blocks held in all, regions, the
-    largest grid's blocks, Open3D's integration seconds, extraction seconds).
+    Returns the merged mesh and cloud (vertices shared by two boxes twice, the order not yet
+    canonical) and facts (blocks held in all, regions, the largest grid's blocks, Open3D's
+    integration seconds, extraction seconds).
     """
     blocks = np.unique(np.concatenate([bc.numpy() for _, bc in frames]), axis=0)
     boxes = split(blocks, budget)
