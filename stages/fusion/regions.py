@@ -2,8 +2,8 @@
 
 One voxel block grid for a whole home holds every block any view touched (80 kB a block at
 16³ voxels), and extracting its mesh allocates tables of the same size again. When the
-views touch more than `fusion.region_blocks` blocks, the blocks are split into boxes (a k-d
-split along the longest side, at the median block, until each box holds at most that many)
+views touch more voxels than `fusion.region_mb` holds, the blocks are split into boxes (a
+k-d split along the longest side, at the median block, until each box holds at most that)
 and each box is fused on its own grid: every frame integrates only its blocks inside the
 box grown by one block on every side, the mesh and cloud are extracted, what lies in the box
 itself is kept, and the grid is freed before the next box.

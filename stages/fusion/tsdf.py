@@ -104,7 +104,7 @@ def run(cfg: FusionConfig, inputs: FusionInputs, out: Path) -> FusionOutputs:
         "frames_fused": n,
         "block_count": n_blocks,  # the blocks the frames touch
         "blocks": fused["blocks"],  # held by the grid(s)
-        "regions": fused["regions"],  # grids fused in turn (fusion.region_blocks)
+        "regions": fused["regions"],  # grids fused in turn (fusion.region_mb)
         "voxel_memory_mb": round(  # of the largest grid (the one held at a time)
             fused["largest_grid"] * cfg.block_resolution**3 * VOXEL_BYTES / 2**20, 1
         ),
@@ -133,7 +133,7 @@ def _fuse(
     cap: Capture, cfg: FusionConfig, coords: list[o3c.Tensor | None], n_blocks: int
 ) -> tuple[o3d.t.geometry.TriangleMesh, o3d.t.geometry.PointCloud, dict]:
     """The mesh and cloud of every frame fused: on one grid of n_blocks, or region by region
-    (stages/fusion/regions.py) when that is more than cfg.region_blocks."""
+    (stages/fusion/regions.py) when that holds more than cfg.region_mb."""
     frames = [(f, bc) for f, bc in zip(cap.frames, coords, strict=True) if bc is not None]
     if not cfg.region_blocks or n_blocks <= cfg.region_blocks:
         vbg = _grid(cfg, n_blocks)

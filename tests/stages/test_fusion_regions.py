@@ -28,11 +28,12 @@ def test_split_boxes_cover_every_block_once_and_hold_at_most_the_budget():
 
 
 def test_tiled_fusion_gives_the_surface_of_one_grid(tmp_path):
-    """The exact room (4 x 3 m, 8 cm blocks) fused on one grid and in regions of at most 150
-    blocks (of ~700): the same vertices, triangles and points, to the bit."""
+    """The exact room (4 x 3 m, 8 cm blocks) fused on one grid and in regions of at most
+    1.5 MB of voxels (153 blocks of 8^3, of ~700): the same vertices, triangles and points,
+    to the bit."""
     frames = room_capture(tmp_path / "cap")
-    whole = fuse(frames, tmp_path / "whole", region_blocks=0)
-    tiled = fuse(frames, tmp_path / "tiled", region_blocks=150)
+    whole = fuse(frames, tmp_path / "whole", region_mb=0)
+    tiled = fuse(frames, tmp_path / "tiled", region_mb=1.5)
     s_whole = json.loads(whole.stats.read_text())
     s_tiled = json.loads(tiled.stats.read_text())
     assert s_whole["regions"] == 1 and s_tiled["regions"] >= 4, s_tiled
@@ -55,6 +56,9 @@ def test_tiled_fusion_gives_the_surface_of_one_grid(tmp_path):
         assert np.array_equal(np.load(d), np.load(tiled.depth / d.name))
 
 
-def test_region_blocks_is_checked():
-    with pytest.raises(BlunfError, match="fusion.region_blocks"):
-        FusionConfig(region_blocks=-1)
+def test_region_mb_is_checked_and_sizes_regions_by_the_block_size():
+    with pytest.raises(BlunfError, match="fusion.region_mb"):
+        FusionConfig(region_mb=-1.0)
+    assert FusionConfig().region_blocks == 2560  # 200 MB of 16^3 blocks
+    assert FusionConfig(block_resolution=8).region_blocks == 20480  # configs/phone.yaml's
+    assert FusionConfig(region_mb=0).region_blocks == 0
