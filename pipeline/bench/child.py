@@ -52,6 +52,7 @@ def main(spec_path: str) -> int:
             "ok": True,
             "wall_s": time.perf_counter() - t0,
             "cpu_s": time.process_time() - c0 + children,
+            "user_s": (k1.user - k0.user) + (k1.children_user - k0.children_user),
             "rss_start_mb": starts,
         },
     )

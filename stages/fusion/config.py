@@ -34,6 +34,10 @@ class FusionConfig:
     #                       reading within support_voxels of it (fusion/carve.py: removes what
     #                       averaging disagreeing depth leaves between the readings); 0 = off
     support_voxels: float = 2.5  # ... within this many voxels, along the view's optical axis
+    region_mb: float = 200.0  # voxels of more than this (MB) touched: fuse region by region,
+    #                           each a box of blocks holding at most this much (2560 blocks of
+    #                           16^3; fusion/regions.py: the same surface, memory of the
+    #                           largest box); 0 = one grid always
     raycast: bool = True  # ray-cast the fused mesh into every view as that view's clean depth
 
     def __post_init__(self) -> None:
@@ -55,12 +59,21 @@ class FusionConfig:
             MIN_BLOCKS * self.block_resolution**3 * VOXEL_BYTES,
             f"fusion.block_resolution={self.block_resolution} (voxel {self.voxel} m)",
         )
+        if not self.region_mb >= 0:
+            raise BlunfError(f"fusion.region_mb: must be >= 0 MB, got {self.region_mb}")
         if self.min_support < 0:
             raise BlunfError(f"fusion.min_support: must be >= 0, got {self.min_support}")
         if not self.support_voxels > 0:
             raise BlunfError(f"fusion.support_voxels: must be > 0, got {self.support_voxels}")
         if not self.weight_threshold >= 0:
             raise BlunfError(f"fusion.weight_threshold: must be >= 0, got {self.weight_threshold}")
+
+    @property
+    def region_blocks(self) -> int:
+        """Voxel blocks a region holds at most (region_mb); 0 = one grid always."""
+        if not self.region_mb:
+            return 0
+        return max(1, int(self.region_mb * 2**20 / (self.block_resolution**3 * VOXEL_BYTES)))
 
 
 @dataclass(frozen=True)

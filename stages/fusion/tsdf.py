@@ -34,6 +34,7 @@ from stages.common.errors import BlunfError
 from stages.common.io import read_depth, read_image, write_depth_npy, write_json
 from stages.common.o3d import CPU, o3d_extrinsic, o3d_intrinsic, o3d_tensor, touched_blocks
 from stages.common.progress import track
+from stages.fusion import regions
 from stages.fusion.carve import supporting_views
 from stages.fusion.config import FusionConfig, FusionInputs, FusionOutputs
 
@@ -67,28 +68,12 @@ def run(cfg: FusionConfig, inputs: FusionInputs, out: Path) -> FusionOutputs:
         notes.append(f"{len(empty)} frames with no fusable depth skipped (first {empty[0]!r})")
         log.warning("fusion: %s", notes[-1])
 
-    vbg = _grid(cfg, n_blocks)
     t0 = time.perf_counter()
-    t_o3d = 0.0
-    for f, bc in track(zip(cap.frames, coords, strict=True), "fusion", len(coords), "view"):
-        if bc is None:
-            continue
-        depth, k_depth = _depth(f, cap, cfg)
-        rgb = read_image(f.image)  # [H, W, 3] uint8
-        k_color = _fit(f.intrinsics, rgb.shape[1], rgb.shape[0])
-        color = rgb.astype(np.float32) / np.float32(255.0)  # [H, W, 3]; float depth needs it
-        ta = time.perf_counter()
-        vbg.integrate(
-            bc, _image(depth), _image(color),
-            o3d_intrinsic(k_depth), o3d_intrinsic(k_color), o3d_extrinsic(f),
-            1.0, cfg.depth_max, cfg.trunc_voxels,
-        )  # fmt: skip
-        t_o3d += time.perf_counter() - ta
-    t_integrate = time.perf_counter() - t0
+    mesh, cloud, fused = _fuse(cap, cfg, coords, n_blocks)
+    t_integrate = time.perf_counter() - t0 - fused["extract_seconds"]
+    t_o3d = fused.pop("integrate_open3d_seconds")
 
-    t0 = time.perf_counter()
-    mesh = vbg.extract_triangle_mesh(cfg.weight_threshold)
-    cloud = vbg.extract_point_cloud(cfg.weight_threshold)
+    t0 = time.perf_counter() - fused.pop("extract_seconds")
     carved: dict = {"carved_vertices": 0, "carved_points": 0}
     if cfg.min_support > 0 and mesh.vertex.positions.shape[0]:
         mesh, cloud, carved = _carve(mesh, cloud, cap, cfg, inputs.frames)
@@ -117,9 +102,12 @@ def run(cfg: FusionConfig, inputs: FusionInputs, out: Path) -> FusionOutputs:
         "trunc_m": cfg.voxel * cfg.trunc_voxels,
         "frames": len(cap.frames),
         "frames_fused": n,
-        "block_count": n_blocks,  # allocated = blocks the frames touch
-        "blocks": int(vbg.hashmap().size()),
-        "voxel_memory_mb": round(n_blocks * cfg.block_resolution**3 * VOXEL_BYTES / 2**20, 1),
+        "block_count": n_blocks,  # the blocks the frames touch
+        "blocks": fused["blocks"],  # held by the grid(s)
+        "regions": fused["regions"],  # grids fused in turn (fusion.region_mb)
+        "voxel_memory_mb": round(  # of the largest grid (the one held at a time)
+            fused["largest_grid"] * cfg.block_resolution**3 * VOXEL_BYTES / 2**20, 1
+        ),
         "blocks_seconds": round(t_blocks, 3),
         "integrate_seconds": round(t_integrate, 3),  # reading depth and colour + integration
         "integrate_open3d_seconds": round(t_o3d, 3),
@@ -139,6 +127,50 @@ def run(cfg: FusionConfig, inputs: FusionInputs, out: Path) -> FusionOutputs:
     log.info("fusion: %d frames at %.1f frames/s, %d blocks, %d vertices, %d triangles",
              n, stats["integrate_fps"], stats["blocks"], n_vert, n_tri)  # fmt: skip
     return outs
+
+
+def _fuse(
+    cap: Capture, cfg: FusionConfig, coords: list[o3c.Tensor | None], n_blocks: int
+) -> tuple[o3d.t.geometry.TriangleMesh, o3d.t.geometry.PointCloud, dict]:
+    """The mesh and cloud of every frame fused: on one grid of n_blocks, or region by region
+    (stages/fusion/regions.py) when that holds more than cfg.region_mb."""
+    frames = [(f, bc) for f, bc in zip(cap.frames, coords, strict=True) if bc is not None]
+    if not cfg.region_blocks or n_blocks <= cfg.region_blocks:
+        vbg = _grid(cfg, n_blocks)
+        t_o3d = _integrate(vbg, frames, cap, cfg, "fusion")
+        t0 = time.perf_counter()
+        mesh = vbg.extract_triangle_mesh(cfg.weight_threshold)
+        cloud = vbg.extract_point_cloud(cfg.weight_threshold)
+        facts = {"blocks": int(vbg.hashmap().size()), "regions": 1, "largest_grid": n_blocks}
+        return mesh, cloud, {**facts, "integrate_open3d_seconds": t_o3d,
+                             "extract_seconds": time.perf_counter() - t0}  # fmt: skip
+    return regions.fuse(
+        frames, cfg.region_blocks, cfg.voxel * cfg.block_resolution,
+        lambda n: _grid(cfg, n),
+        lambda vbg, mine, what: _integrate(vbg, mine, cap, cfg, what),
+        lambda vbg: (vbg.extract_triangle_mesh(cfg.weight_threshold),
+                     vbg.extract_point_cloud(cfg.weight_threshold)),
+    )  # fmt: skip
+
+
+def _integrate(
+    vbg: o3d.t.geometry.VoxelBlockGrid, frames: list, cap: Capture, cfg: FusionConfig, what: str
+) -> float:
+    """Integrate each (frame, its block coordinates) into the grid; Open3D's seconds."""
+    t_o3d = 0.0
+    for f, bc in track(frames, what, len(frames), "view"):
+        depth, k_depth = _depth(f, cap, cfg)
+        rgb = read_image(f.image)  # [H, W, 3] uint8
+        k_color = _fit(f.intrinsics, rgb.shape[1], rgb.shape[0])
+        color = rgb.astype(np.float32) / np.float32(255.0)  # [H, W, 3]; float depth needs it
+        ta = time.perf_counter()
+        vbg.integrate(
+            bc, _image(depth), _image(color),
+            o3d_intrinsic(k_depth), o3d_intrinsic(k_color), o3d_extrinsic(f),
+            1.0, cfg.depth_max, cfg.trunc_voxels,
+        )  # fmt: skip
+        t_o3d += time.perf_counter() - ta
+    return t_o3d
 
 
 def _check(cap: Capture, where: Path) -> None:

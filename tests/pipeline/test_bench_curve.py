@@ -57,12 +57,15 @@ def test_scale_bench_tiny_table_and_files(tmp_path) -> None:
     assert on_disk["slopes"] == r["slopes"] and on_disk["threads"] == 1
     for run in r["runs"]:
         assert run["wall_s"] > 0 and run["cpu_s"] > 0 and run["peak_mb"] > 0
+        assert 0 < run["user_s"] <= run["cpu_s"] + 0.01
         st = run["stages"]
         for name in ("ingest", "fusion", "project", "blueprint", "layout", "export"):
             assert name in st, name
             f = st[name]
             assert set(f) == set(FIGURES)
             assert f["seconds"] >= 0 and f["cpu_s"] >= 0
+            # the user CPU is part of the CPU (the kernel's share is the rest)
+            assert 0 <= f["user_s"] <= f["cpu_s"] + 0.01, f
             # what a stage added is within the process's high-water mark during it
             assert 0 < f["peak_mb"] and -1.0 <= f["added_mb"] <= f["peak_mb"]
         assert "poses" not in st and "depth" not in st  # sensor depth and given poses
@@ -72,6 +75,7 @@ def test_scale_bench_tiny_table_and_files(tmp_path) -> None:
     assert r["slopes"]["fusion"]["seconds"] == pytest.approx(loglog_slope([8, 16], fus), abs=1e-3)
     md = (out / "scale.md").read_text()
     assert md == markdown(r) and "| fusion |" in md and "## added MB" in md
+    assert "## user CPU-s" in md
     assert ET.parse(out / "scale.svg").getroot().tag.endswith("svg")
     assert sorted(p.name for p in (out / "reports").iterdir()) == ["v16.json", "v8.json"]
     assert not any((out / "runs").iterdir())  # run folders are not kept by default
