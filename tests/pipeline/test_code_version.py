@@ -116,16 +116,32 @@ def test_the_depth_stage_is_keyed_by_its_parts_and_the_shared_field(tree):
 def _reads(stage: str, root: Path = PROJECT_ROOT) -> set[str]:
     """Names the stage's code reads as attributes (`cfg.select.pad`: select, pad) or names as
     strings (`getattr(cfg, "pad")`), over every module its key follows but the config
-    modules (whose checks read every field)."""
+    modules (whose checks read every field); a config property the stage reads
+    (`cfg.region_blocks`) reads what its body reads of `self`."""
     names: set[str] = set()
+    props: dict[str, set[str]] = {}  # a config property: the fields of self it reads
     for path in stage_sources(stage, root):
+        tree = ast.parse(path.read_bytes())
         if path.name == "config.py":
+            for node in ast.walk(tree):
+                if isinstance(node, ast.FunctionDef) and any(
+                    isinstance(d, ast.Name) and d.id == "property" for d in node.decorator_list
+                ):
+                    props[node.name] = {
+                        a.attr
+                        for a in ast.walk(node)
+                        if isinstance(a, ast.Attribute)
+                        and isinstance(a.value, ast.Name)
+                        and a.value.id == "self"
+                    }
             continue
-        for node in ast.walk(ast.parse(path.read_bytes())):
+        for node in ast.walk(tree):
             if isinstance(node, ast.Attribute):
                 names.add(node.attr)
             elif isinstance(node, ast.Constant) and isinstance(node.value, str):
                 names.add(node.value)
+    for name in names & props.keys():
+        names |= props[name]
     return names
 
 
