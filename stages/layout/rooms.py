@@ -18,7 +18,9 @@ from collections.abc import Callable
 
 import numpy as np
 from scipy import ndimage as ndi
+from shapely import contains_xy
 from shapely.geometry import Point, Polygon
+from shapely.geometry.polygon import orient
 from skimage.morphology import h_maxima
 from skimage.segmentation import watershed
 
@@ -69,6 +71,31 @@ def _width(cells: np.ndarray) -> float:
     return float(t.max() - t.min() + 1)
 
 
+def _straighten(lab: np.ndarray, i: int, j: int, rc: np.ndarray) -> None:
+    """The boundary between labels i and j (its cells rc [K, 2]) made one straight cut along
+    the longer side of its box, in place: within the box, the cells of i and j on one side of
+    a row (a column, for a box taller than wide) take one label and the rest the other, at
+    the row and with the sides that relabel the fewest cells. The watershed line between two
+    rooms wanders off the door's line where the narrowing is uneven (a door flush with a
+    corner, ragged jambs, a partition seen in pieces); left so, the outlines keep a slanted
+    edge there and the rooms a wedge of each other's floor."""
+    (r0, c0), (r1, c1) = rc.min(0), rc.max(0)
+    sub = lab[r0 : r1 + 1, c0 : c1 + 1]
+    view = sub if c1 - c0 >= r1 - r0 else sub.T  # rows across the cut
+    a = np.concatenate([[0], np.cumsum((view == i).sum(1))])
+    b = np.concatenate([[0], np.cumsum((view == j).sum(1))])
+    i_first = b + (a[-1] - a)  # cells moved with i above row k and j from it on
+    j_first = a + (b[-1] - b)
+    if i_first.min() <= j_first.min():
+        k, up, down = int(np.argmin(i_first)), i, j
+    else:
+        k, up, down = int(np.argmin(j_first)), j, i
+    both = (view == i) | (view == j)
+    above = np.arange(view.shape[0])[:, None] < k
+    view[both & above] = up
+    view[both & ~above] = down
+
+
 def split(
     inside: np.ndarray, cell: float, h: float, door: float, min_area: float
 ) -> tuple[np.ndarray, list[tuple[int, int, np.ndarray]]]:
@@ -106,6 +133,8 @@ def split(
         lab[lab == j] = i
         area[i] += area[j]
         area[j] = 0
+    for (i, j), rc in _boundaries(lab).items():
+        _straighten(lab, i, j, rc)
     # labels 1..n in the order of their first cell
     ids = np.unique(lab[lab > 0])
     remap = np.zeros(lab.max() + 1, np.int64)
@@ -305,3 +334,42 @@ def notched(
         flags = flags[:i] + [False, False] + flags[i:]
         i += 3
     return poly
+
+
+def disjoint(
+    polys: list[np.ndarray], labels: list[int], region: np.ndarray, fr: Frame
+) -> list[np.ndarray | None]:
+    """The room outlines (frame xy, counter-clockwise) made disjoint: where two overlap (the
+    outline's simplification and the face offset carry a room over a cut between rooms, or
+    over a wall stub that the simplification merged away), the overlap stays with the room
+    whose cells (`region` == its label) fill more of it and leaves the other, whose outline
+    loses it (its largest piece; None when nothing is left). The difference of two outlines
+    along the frame's axes runs along them too."""
+    cell = fr.grid.cell
+    shapes = [Polygon(p) for p in polys]
+    for a in range(len(shapes)):
+        for b in range(a + 1, len(shapes)):
+            if shapes[a].is_empty or shapes[b].is_empty:
+                continue
+            both = shapes[a].intersection(shapes[b])
+            if both.area < 0.5 * cell**2:
+                continue
+            c = fr.grid.centers()
+            inside = contains_xy(both, c[..., 0], c[..., 1])
+            na = int((region[inside] == labels[a]).sum())
+            nb = int((region[inside] == labels[b]).sum())
+            lose, keep = (b, a) if na >= nb else (a, b)
+            rest = shapes[lose].difference(shapes[keep])
+            if rest.geom_type == "MultiPolygon":
+                rest = max(rest.geoms, key=lambda g: g.area)
+            shapes[lose] = rest if rest.geom_type == "Polygon" else Polygon()
+    out: list[np.ndarray | None] = []
+    for s, p in zip(shapes, polys, strict=True):
+        if s.is_empty or s.area < 4 * cell**2:
+            out.append(None)
+        elif s.equals(Polygon(p)):
+            out.append(p)
+        else:
+            s = orient(s.simplify(1e-6), 1.0)
+            out.append(np.asarray(s.exterior.coords)[:-1])
+    return out

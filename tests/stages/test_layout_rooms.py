@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from shapely import contains_xy
 from shapely.geometry import Polygon, box
+from shapely.ops import unary_union
 
 from stages.common.blueprint import Blueprint, Grid
 from stages.common.capture import UNKNOWN
@@ -244,3 +245,52 @@ def test_a_home_of_two_procedural_rooms_back_to_back(tmp_path):
     assert s["openings_rooms_right"] == s["openings_rooms_total"] == 3, (s, plan["openings"])
     for r in plan["rooms"]:
         assert r["area"] == pytest.approx(gt_one["rooms"][0]["area"], rel=0.02)
+
+
+def _staggered(angle: float) -> Blueprint:
+    """A 4 x 6 m home (0.12 m walls) halved by two partition stubs that do not line up: from
+    the west wall to x = 1.5 at y = 3.0 and from x = 2.5 to the east wall at y = 2.6, the
+    1 m gap between them the way through."""
+    stubs = unary_union([box(0, 3.0, 1.5, 3.12), box(2.5, 2.6, 4, 2.72)])
+    bp = _raster([box(0, 0, 4, 6)], T, [], angle)
+    c = bp.grid.centers()
+    x, y = np.moveaxis(np.asarray(_turn(c.reshape(-1, 2), -angle)).reshape(c.shape), -1, 0)
+    labels = bp.labels.copy()
+    labels[contains_xy(stubs, x, y)] = 1
+    return Blueprint(labels, bp.grid, bp.classes)
+
+
+@pytest.mark.parametrize("angle", [0.0, 23.0])
+def test_rooms_never_overlap_and_their_cut_runs_along_the_axes(angle):
+    # the watershed line between the halves runs slanted from one stub's end to the other's;
+    # each room is a Manhattan polygon in the room's frame, the two meet without overlap
+    plan = build_plan(_staggered(angle), GT_PLAN)
+    assert len(plan["rooms"]) == 2, plan["rooms"]
+    polys = [Polygon(_turn(r["polygon"], -angle)) for r in plan["rooms"]]
+    assert polys[0].intersection(polys[1]).area < 1e-3, polys
+    for p in polys:
+        xy = np.asarray(p.exterior.coords)
+        d = np.diff(xy, axis=0)
+        assert (np.minimum(np.abs(d[:, 0]), np.abs(d[:, 1])) < 0.01).all(), xy  # axis-aligned
+    # together they cover the home but for the stubs and at most the way between their ends
+    assert 24 - 0.36 - 0.6 <= polys[0].union(polys[1]).area <= 24 - 0.36 + 0.05
+
+
+def test_the_cut_between_two_rooms_is_straight_where_the_narrowing_is_uneven():
+    # two partition stubs 0.4 m apart across: the watershed line runs slanted between their
+    # ends; the cut is made of rows and columns (a step), each room's cells on its side
+    inside = np.ones((130, 80), bool)
+    inside[56:60, :22] = False  # west stub
+    inside[68:72, 40:] = False  # east stub
+    lab, cuts = split(inside, 0.05, 0.3, 1.2, 1.0)
+    assert lab.max() == 2 and len(cuts) == 1
+    top, bottom = lab[0, 0], lab[-1, 0]
+    assert top != bottom
+    # between the stubs' ends (columns 22..39) one straight row divides them
+    between = lab[60:68, 22:40]
+    rows_top = (between == top).all(1)
+    rows_bottom = (between == bottom).all(1)
+    assert (rows_top | rows_bottom).all(), between
+    assert not (rows_bottom[:-1] & rows_top[1:]).any()  # top rows above the bottom ones
+    # beside the stubs each room keeps its side: west below the west stub, east above the east
+    assert (lab[60:68, :22] == bottom).all() and (lab[60:68, 40:] == top).all()
