@@ -23,6 +23,7 @@ from stages.common.io import write_json
 from stages.layout.config import LayoutConfig, LayoutInputs, LayoutOutputs
 from stages.layout.draw import write_dxf, write_svg
 from stages.layout.extract import Line, intersect
+from stages.layout.furniture import filled_notches
 from stages.layout.openings import (
     FACE_HEIGHTS,
     FACE_SUPPORT,
@@ -57,11 +58,12 @@ def build_plan(bp: Blueprint, cfg: LayoutConfig, mesh: Path | None = None) -> di
         scene = scene_of(verts, tris)
         plan = architecture(seen_floor(bp, scene), cfg)
         plan = moved_to_faces(plan, face_offsets(scene, plan["walls"]), cfg, bp.grid.cell)
-        plan["openings"] = _distinct(mesh_openings(plan["walls"], verts, tris, cfg))
-        plan["walls"] = seen_thickness(scene, plan["walls"], cfg)
         fid = ids_named(bp.classes, FLOOR_NAME)
         floor = bp.grid.centers()[np.isin(bp.labels, fid)]
         ceil = ceiling(scene, floor[:: max(1, len(floor) // 50)])
+        plan = filled_notches(plan, scene, ceil)
+        plan["openings"] = _distinct(mesh_openings(plan["walls"], verts, tris, cfg))
+        plan["walls"] = seen_thickness(scene, plan["walls"], cfg)
         plan["objects"] = objects(
             bp, cfg, lambda xys: object_heights(scene, xys, ceil), lambda xy: solid(scene, xy, ceil)
         )
