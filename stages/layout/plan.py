@@ -133,6 +133,7 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
     faces: list[tuple[int, np.ndarray, np.ndarray]] = []
     room_of: dict[int, int] = {}  # region label -> room index
     traced: list[tuple[int, np.ndarray]] = []  # (region label, outline in the frame)
+    rooms_at = 1 + np.nonzero((area >= cfg.min_room_area) & (floor >= cfg.min_room_area))[0]
     for k in np.argsort(-area, kind="stable"):  # largest first, ties in label order
         if area[k] < cfg.min_room_area:
             break
@@ -149,7 +150,7 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
         box[sl] = small | (closed[sl] & ~wall[sl])
         lab, _ = ndi.label(box | mask)
         mask = ndi.binary_fill_holes(lab == lab[np.nonzero(mask)][0]) & (mask | box)
-        others = (region > 0) & (region != k + 1)  # the other rooms' cells stay theirs
+        others = np.isin(region, rooms_at[rooms_at != k + 1])  # other rooms' cells stay theirs
         mask |= ndi.binary_dilation(mask) & ~wall & (fr.labels != UNKNOWN) & ~others
         r = max(1, int(round(cfg.notch / cell / 2)))
         disk = np.hypot(*np.mgrid[-r : r + 1, -r : r + 1]) <= r
