@@ -36,7 +36,8 @@ from stages.layout.extract import (
     frame_of,
     outline,
 )
-from stages.layout.rooms import cut_openings, disjoint, notched, seen_pieces, split
+from stages.layout.rooms import cut_openings, disjoint, seen_pieces, split
+from stages.layout.unseen import notched, recessed
 
 SEEN_NEAR = 0.1  # metres: a face is seen where a seen wall cell lies this close to its band
 SEEN_SHARE = 0.5  # a wall is seen (not inferred) when this share of its face is
@@ -167,7 +168,7 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
                 along = _seen_along(fr, seen_face, a, b, _thickness(fr, closed, a, b, cfg))
                 return len(along) > 0 and along.mean() >= SEEN_SHARE
 
-            poly = notched(poly, mask, fr, seen_edge)
+            poly = recessed(notched(poly, mask, fr, seen_edge), mask, fr, seen_edge)
         if cfg.face_offset > 0:
             grown = Polygon(poly).buffer(cfg.face_offset * cell, join_style="mitre", mitre_limit=10)
             # kept as traced where the offset would change the outline's corners

@@ -14,8 +14,6 @@ close it (a door flush with the corner, a wall the views saw only in pieces).
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import numpy as np
 from scipy import ndimage as ndi
 from shapely import contains_xy
@@ -30,8 +28,6 @@ from stages.layout.extract import Frame
 MIN_PIECE = 0.5  # metres: a wall splits into seen and inferred pieces no shorter than this
 SEEN_GAP = 0.2  # metres: unseen stretches of a seen wall up to this long are seen (a socket,
 #                 a picture frame the views saw as no wall)
-NOTCH_MIN = 0.5  # metres: the least side of a corner cut off an outline over unseen space
-NOTCH_EMPTY = 0.9  # share of a cut-off corner that must lie outside the room's cells
 OTHER_SIDE = 0.15  # metres beyond a wall's back where the room an opening leads to is looked for
 
 
@@ -284,56 +280,6 @@ def split_seen(plan: dict) -> dict:
         for ri, r in enumerate(plan["rooms"])
     ]
     return {**plan, "rooms": rooms, "walls": walls, "openings": openings}
-
-
-def notched(
-    poly: np.ndarray, mask: np.ndarray, fr: Frame, seen: Callable[[np.ndarray, np.ndarray], bool]
-) -> np.ndarray:
-    """The outline poly (frame xy, counter-clockwise, edges along the frame's axes) with each
-    convex corner between two edges no view saw as a surface (`seen`(a, b) false for both)
-    cut back to the room's cells (`mask`, the frame's grid): the largest rectangle at the
-    corner, at least NOTCH_MIN on each side and at most 90 % of either edge, with at least
-    NOTCH_EMPTY of it outside the mask, is cut off: three corners for one. An outline closed
-    over open sides is a Manhattan polygon round what the views saw, not the box of it."""
-    cell = fr.grid.cell
-    flags = [seen(poly[i], poly[(i + 1) % len(poly)]) for i in range(len(poly))]
-    least = int(np.ceil(NOTCH_MIN / cell))
-    i = 0
-    while i < len(poly):
-        c, prev, nxt = poly[i], poly[i - 1], poly[(i + 1) % len(poly)]
-        e0, e1 = c - prev, nxt - c
-        l0, l1 = float(np.linalg.norm(e0)), float(np.linalg.norm(e1))
-        convex = e0[0] * e1[1] - e0[1] * e1[0] > 0
-        axis = abs(e0 @ e1) < 1e-6 * l0 * l1  # a right angle
-        if flags[i - 1] or flags[i] or not convex or not axis:
-            i += 1
-            continue
-        u, v = e1 / l1, -e0 / l0  # along the next edge, back along the previous one
-        nw, nh = int(0.9 * l1 / cell), int(0.9 * l0 / cell)
-        if min(nw, nh) < least:
-            i += 1
-            continue
-        jw, jh = np.meshgrid(np.arange(nw) + 0.5, np.arange(nh) + 0.5)
-        pts = c + (jw[..., None] * u + jh[..., None] * v) * cell  # [nh, nw, 2]
-        row, col, ok = fr.grid.cell_of(pts.reshape(-1, 2))
-        full = (mask[row, col] & ok).reshape(nh, nw).astype(np.int64)
-        count = full.cumsum(0).cumsum(1)  # room cells in the rectangle of (h + 1, w + 1)
-        size = np.outer(np.arange(1, nh + 1), np.arange(1, nw + 1))
-        good = (1 - count / size >= NOTCH_EMPTY) & (size > 0)
-        good[: least - 1] = False
-        good[:, : least - 1] = False
-        if not good.any():
-            i += 1
-            continue
-        h, w = np.unravel_index(np.argmax(np.where(good, size, 0)), size.shape)
-        h, w = (h + 1) * cell, (w + 1) * cell
-        step = [c + h * v, c + h * v + w * u, c + w * u]
-        poly = (
-            np.concatenate([poly[:i], step, poly[i + 1 :]]) if i else np.array([*step, *poly[1:]])
-        )
-        flags = flags[:i] + [False, False] + flags[i:]
-        i += 3
-    return poly
 
 
 def disjoint(

@@ -13,7 +13,7 @@ import ezdxf
 import numpy as np
 import pytest
 from shapely import contains_xy
-from shapely.geometry import Polygon, box
+from shapely.geometry import Point, Polygon, box
 from shapely.ops import unary_union
 
 from stages.common.blueprint import Blueprint, Grid
@@ -294,3 +294,41 @@ def test_the_cut_between_two_rooms_is_straight_where_the_narrowing_is_uneven():
     assert not (rows_bottom[:-1] & rows_top[1:]).any()  # top rows above the bottom ones
     # beside the stubs each room keeps its side: west below the west stub, east above the east
     assert (lab[60:68, :22] == bottom).all() and (lab[60:68, 40:] == top).all()
+
+
+def _open_side_with_a_gap(seen: bool) -> Blueprint:
+    """A 5 x 4 m room with walls on its west, north and east sides; the views stopped at its
+    open south side (y = 0) but for a rounded bay in its middle (half an ellipse round (2.5,
+    0), 2.4 m wide and 1.2 m deep), where they saw no floor (unknown, as beyond the side)."""
+    grid = Grid.covering(np.array([-0.3, -0.3]), np.array([5.3, 4.3]), 0.02)
+    c = grid.centers()
+    x, y = c[..., 0], c[..., 1]
+    labels = np.full(grid.shape, UNKNOWN, np.uint8)
+    bay = ((x - 2.5) / 1.2) ** 2 + (y / 1.2) ** 2 < 1
+    labels[contains_xy(box(0, 0, 5, 4), x, y) & ~bay] = 0
+    labels[contains_xy(box(-0.12, 0, 5.12, 4.12).difference(box(0, 0, 5, 4)), x, y)] = 1
+    lab = (labels != UNKNOWN).astype(np.uint8)
+    return Blueprint(labels, grid, {0: "floor", 1: "wall"}, None, lab if seen else None, lab)
+
+
+def test_a_recess_in_the_middle_of_an_open_side_is_kept_in_the_outline():
+    plan = build_plan(_open_side_with_a_gap(seen=True), GT_PLAN)
+    assert len(plan["rooms"]) == 1 and plan["rooms"][0]["continues"]
+    poly = Polygon(plan["rooms"][0]["polygon"])
+    # eight corners, all right angles: the open side steps in round the bay the views did not
+    # see (the largest rectangle in it), the rest of the side stays on its line
+    assert len(plan["rooms"][0]["polygon"]) == 8, plan["rooms"][0]["polygon"]
+    xs, ys = zip(*plan["rooms"][0]["polygon"], strict=True)
+    assert set(np.round(xs, 1)) >= {0.0, 5.0} and set(np.round(ys, 1)) >= {0.0, 4.0}
+    bay = Point(2.5, 0).buffer(1.2, 256).intersection(box(0, 0, 5, 4))
+    cut = box(0, 0, 5, 4).difference(poly)
+    assert cut.area >= 0.5 * bay.area, cut.area
+    assert cut.difference(bay).area <= 0.05 * cut.area  # the recess is unseen space only
+    # the open side's pieces and the bay's three sides inferred, the three walls seen
+    for w in plan["walls"]:
+        a, b = np.asarray(w["start"]), np.asarray(w["end"])
+        walled = max(a[0], b[0]) < 0.1 or min(a[0], b[0]) > 4.9 or min(a[1], b[1]) > 3.9
+        assert w["seen"] == walled, w
+    # a plan that does not say what was seen keeps the straight side (it cannot tell an open
+    # side from a wall)
+    assert len(build_plan(_open_side_with_a_gap(seen=False), GT_PLAN)["rooms"][0]["polygon"]) == 4
