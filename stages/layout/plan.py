@@ -112,7 +112,13 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
         floor_ = fr.labels == fid
         closed |= close_passages(wall, floor_, int(round(cfg.max_passage / cell)), run, across)
     region, cuts = split(
-        (fr.labels != UNKNOWN) & ~closed, cell, cfg.room_split_h, cfg.door_max, cfg.min_room_area
+        (fr.labels != UNKNOWN) & ~closed,
+        cell,
+        cfg.room_split_h,
+        cfg.door_max,
+        cfg.min_room_area,
+        closed,
+        cfg.min_run,
     )
     n = int(region.max())
     # a face is seen where a seen wall lies behind it, or an opening (a gap in the wall line,

@@ -78,27 +78,77 @@ def _straighten(lab: np.ndarray, i: int, j: int, rc: np.ndarray) -> None:
     (r0, c0), (r1, c1) = rc.min(0), rc.max(0)
     sub = lab[r0 : r1 + 1, c0 : c1 + 1]
     view = sub if c1 - c0 >= r1 - r0 else sub.T  # rows across the cut
-    a = np.concatenate([[0], np.cumsum((view == i).sum(1))])
-    b = np.concatenate([[0], np.cumsum((view == j).sum(1))])
-    i_first = b + (a[-1] - a)  # cells moved with i above row k and j from it on
-    j_first = a + (b[-1] - b)
-    if i_first.min() <= j_first.min():
-        k, up, down = int(np.argmin(i_first)), i, j
-    else:
-        k, up, down = int(np.argmin(j_first)), j, i
+    k, up, down = _cut_row(view, i, j)
     both = (view == i) | (view == j)
     above = np.arange(view.shape[0])[:, None] < k
     view[both & above] = up
     view[both & ~above] = down
 
 
+def _cut_row(view: np.ndarray, i: int, j: int) -> tuple[int, int, int]:
+    """(k, up, down): rows of `view` before k go to label up, the rest to down, with the
+    fewest cells of i and j relabelled."""
+    a = np.concatenate([[0], np.cumsum((view == i).sum(1))])
+    b = np.concatenate([[0], np.cumsum((view == j).sum(1))])
+    i_first = b + (a[-1] - a)  # cells moved with i above row k and j from it on
+    j_first = a + (b[-1] - b)
+    if i_first.min() <= j_first.min():
+        return int(np.argmin(i_first)), i, j
+    return int(np.argmin(j_first)), j, i
+
+
+def _partition(
+    lab: np.ndarray, i: int, j: int, rc: np.ndarray, wall: np.ndarray, cell: float, run: float
+) -> bool:
+    """Whether the boundary between labels i and j (cells rc) is a passage in a partition:
+    the straight cut across it (as _straighten draws it) runs on at one end into a wall at
+    least `run` metres long with i on one side and j on the other (a stub of the wall between
+    the rooms), and meets a wall right at its other end (the stub's other half, or the wall
+    the partition runs into at a corner). An L's arms meet across a line that runs into the
+    outer wall at one end and along one arm's outer face, the other room on neither side of
+    it, at the other: no partition."""
+    (r0, c0), (r1, c1) = rc.min(0), rc.max(0)
+    if c1 - c0 < r1 - r0:  # a cut down a column: the same on the transposed plan
+        lab, wall, rc = lab.T, wall.T, rc[:, ::-1]
+        (r0, c0), (r1, c1) = rc.min(0), rc.max(0)
+    k, up, down = _cut_row(lab[r0 : r1 + 1, c0 : c1 + 1], i, j)
+    cut = r0 + k  # between rows cut - 1 and cut
+    b = max(2, int(round(0.15 / cell)))  # the wall's band round the line
+    far = max(2, int(round(0.5 / cell)))  # the rooms looked for this far beside it
+    n = max(2, int(round(run / cell)))
+    rows = slice(max(cut - b, 0), cut + b)
+
+    def stub(cols: np.ndarray) -> bool:
+        cols = cols[(cols >= 0) & (cols < lab.shape[1])]
+        if len(cols) < n or wall[rows, cols].any(0).mean() < 0.9:
+            return False
+        above = lab[max(cut - b - far, 0) : max(cut - b, 0), cols]
+        below = lab[cut + b : cut + b + far, cols]
+        return bool((above == up).any(0).mean() >= 0.5 and (below == down).any(0).mean() >= 0.5)
+
+    def walled(cols: np.ndarray) -> bool:
+        cols = cols[(cols >= 0) & (cols < lab.shape[1])]
+        return len(cols) > 0 and bool(wall[rows, cols].any(0).all())
+
+    right, left = np.arange(c1 + 1, c1 + 1 + n), np.arange(c0 - 1, c0 - 1 - n, -1)
+    return (stub(right) and walled(left[:2])) or (stub(left) and walled(right[:2]))
+
+
 def split(
-    inside: np.ndarray, cell: float, h: float, door: float, min_area: float
+    inside: np.ndarray,
+    cell: float,
+    h: float,
+    door: float,
+    min_area: float,
+    wall: np.ndarray | None = None,
+    run: float = 0.3,
 ) -> tuple[np.ndarray, list[tuple[int, int, np.ndarray]]]:
     """Rooms of the inside cells [H, W] bool: a label per cell (0 outside, 1..n) and the cuts
     between rooms (label i, label j, the cells [K, 2] along the cut). `h` (metres): the least
     height of a room's distance maximum over its saddle; `door` (metres): neighbours sharing a
-    wider boundary are one room; `min_area` (m²): a smaller basin is no room of its own."""
+    wider boundary are one room, unless it is a passage in a partition (`wall` [H, W] bool
+    given: _partition, stubs at least `run` metres); `min_area` (m²): a smaller basin is no
+    room of its own."""
     pieces, n = ndi.label(inside)
     if h <= 0 or n == 0:
         return pieces, []
@@ -118,7 +168,11 @@ def split(
     while True:
         bounds = _boundaries(lab)
         widths = {k: _width(v) * cell for k, v in bounds.items()}
-        wide = [k for k, w in widths.items() if w > door]
+        wide = [
+            k
+            for k, w in widths.items()
+            if w > door and (wall is None or not _partition(lab, *k, bounds[k], wall, cell, run))
+        ]
         small = [k for k in widths if min(area[k[0]], area[k[1]]) < min_area and k not in wide]
         if wide:
             i, j = max(wide, key=lambda k: widths[k])

@@ -332,3 +332,28 @@ def test_a_recess_in_the_middle_of_an_open_side_is_kept_in_the_outline():
     # a plan that does not say what was seen keeps the straight side (it cannot tell an open
     # side from a wall)
     assert len(build_plan(_open_side_with_a_gap(seen=False), GT_PLAN)["rooms"][0]["polygon"]) == 4
+
+
+@pytest.mark.parametrize("width", [1.5, 1.8])
+def test_a_passage_wider_than_a_door_at_a_corner_of_a_partition_splits_the_rooms(width):
+    # a 4 x 3 m room and a 3 x 3 m one, the partition between them open from the south wall
+    # up for `width` m: wider than a door, no wall run on the corner's side to close the
+    # wall line over it, but the partition's stub runs on from its other end with a room on
+    # either side: two rooms and a passage between them
+    a, b = box(0, 0, 4, 3), box(4 + T, 0, 7, 3)
+    plan = build_plan(_raster([a, b], T, [box(3.9, 0, 4.2, width)], 0.0), GT_PLAN)
+    gt = {
+        "rooms": [
+            {"polygon": list(a.exterior.coords)[:-1]},
+            {"polygon": list(b.exterior.coords)[:-1]},
+        ],
+        "openings": [
+            {"kind": "passage", "start": (4, 0), "end": (4, width), "width": width, "rooms": [0, 1]}
+        ],
+    }
+    s = score_layout(plan, gt)
+    assert len(plan["rooms"]) == 2, plan["rooms"]
+    assert s["room_f1"] == 1.0 and s["corner_f1"] == 1.0, s
+    assert s["passages_found"] == s["passages_total"] == 1, (s, plan["openings"])
+    assert plan["openings"][0]["rooms"] == [0, 1]
+    assert plan["openings"][0]["width"] == pytest.approx(width, abs=0.05)
