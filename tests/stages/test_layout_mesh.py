@@ -307,3 +307,24 @@ def test_a_tall_cabinet_the_plan_drew_as_wall_is_no_notch_in_the_room(tmp_path, 
         assert plan["rooms"][0]["area"] == pytest.approx(12.0, abs=0.05)
     else:
         assert len(plan["rooms"][0]["polygon"]) == 8, plan["rooms"]
+
+
+def test_an_open_side_is_no_opening_across_its_whole_length(tmp_path):
+    # a 4 x 3 m room open to the south: no wall there, the fused floor running on 1 m beyond
+    # the side where the plan stops (its field called it unknown). The closing wall is
+    # inferred, all of it a gap: no door or passage spans it (the 3-room home from photos drew
+    # a 3.96 m "passage" along such a side, where a wall no view saw stands)
+    t = 0.12
+    m = _Mesh()
+    m.wall((4.0, 0.0), (4.0, 3.0))
+    m.wall((4.0, 3.0), (0.0, 3.0))
+    m.wall((0.0, 3.0), (0.0, 0.0))
+    m.floor(0.0, -1.0, 4.0, 3.0)
+    verts, tris = m.arrays()
+    _write_ply(tmp_path / "mesh.ply", verts, tris)
+    bp = _plan([(box(-t, 0, 4 + t, 3 + t), 1), (box(0, 0, 4, 3), 0)], {0: "floor", 1: "wall"})
+    plan = build_plan(bp, LayoutConfig(face_offset=0.0), tmp_path / "mesh.ply")
+    assert len(plan["rooms"]) == 1
+    south = [w for w in plan["walls"] if max(w["start"][1], w["end"][1]) < 0.1]
+    assert len(south) == 1 and not south[0]["seen"], plan["walls"]
+    assert plan["openings"] == [], plan["openings"]
