@@ -6,10 +6,13 @@ of each inside cell to the nearest cell outside (wall, unknown) has one regional
 room (h-maxima: a maximum standing less than `h` over the saddle to a higher one is that
 one's); a watershed of the negated distance from those markers grows the rooms until they
 meet, at the narrowest point between them. Neighbours whose shared boundary is wider than a
-door are one room (an L's two arms, a room's bay); a basin smaller than a room joins the
-neighbour it shares most boundary with. The wall lines closed over doorways (extract.py)
-separate most rooms already; this splits those whose doorway has no wall run beside it to
-close it (a door flush with the corner, a wall the views saw only in pieces).
+door are one room (an L's two arms, a room's bay) unless it is a gap in a partition, a wall
+stub running on from it with a room on either side (a passage flush with a corner); a basin
+smaller than a room joins the neighbour it shares most boundary with. Each cut between two
+rooms is then drawn straight along the room's axes, and the outlines traced round the rooms
+never overlap (disjoint). The wall lines closed over doorways (extract.py) separate most
+rooms already; this splits those whose doorway has no wall run beside it to close it (a door
+flush with the corner, a wall the views saw only in pieces).
 """
 
 from __future__ import annotations
