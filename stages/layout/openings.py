@@ -228,7 +228,7 @@ def heights(
 
 
 FACE_HEIGHTS = (0.3, 0.6, 1.0, 1.3, 1.6)  # metres: where a wall's face is read in the mesh
-FACE_REACH = 0.06  # metres: a face read this far either side of the traced one moves it
+FACE_REACH = 0.12  # metres: a face read this far either side of the traced one moves it
 FACE_SUPPORT = 0.3  # share of the rays that must meet the face within FACE_REACH
 
 

@@ -36,7 +36,8 @@ from stages.layout.extract import (
     frame_of,
     outline,
 )
-from stages.layout.rooms import cut_openings, notched, seen_pieces, split
+from stages.layout.rooms import cut_openings, disjoint, seen_pieces, split
+from stages.layout.unseen import notched, recessed
 
 SEEN_NEAR = 0.1  # metres: a face is seen where a seen wall cell lies this close to its band
 SEEN_SHARE = 0.5  # a wall is seen (not inferred) when this share of its face is
@@ -111,7 +112,13 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
         floor_ = fr.labels == fid
         closed |= close_passages(wall, floor_, int(round(cfg.max_passage / cell)), run, across)
     region, cuts = split(
-        (fr.labels != UNKNOWN) & ~closed, cell, cfg.room_split_h, cfg.door_max, cfg.min_room_area
+        (fr.labels != UNKNOWN) & ~closed,
+        cell,
+        cfg.room_split_h,
+        cfg.door_max,
+        cfg.min_room_area,
+        closed,
+        cfg.min_run,
     )
     n = int(region.max())
     # a face is seen where a seen wall lies behind it, or an opening (a gap in the wall line,
@@ -132,6 +139,8 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
     )
     faces: list[tuple[int, np.ndarray, np.ndarray]] = []
     room_of: dict[int, int] = {}  # region label -> room index
+    traced: list[tuple[int, np.ndarray]] = []  # (region label, outline in the frame)
+    rooms_at = 1 + np.nonzero((area >= cfg.min_room_area) & (floor >= cfg.min_room_area))[0]
     for k in np.argsort(-area, kind="stable"):  # largest first, ties in label order
         if area[k] < cfg.min_room_area:
             break
@@ -148,10 +157,12 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
         box[sl] = small | (closed[sl] & ~wall[sl])
         lab, _ = ndi.label(box | mask)
         mask = ndi.binary_fill_holes(lab == lab[np.nonzero(mask)][0]) & (mask | box)
-        mask |= ndi.binary_dilation(mask) & ~wall & (fr.labels != UNKNOWN)
+        others = np.isin(region, rooms_at[rooms_at != k + 1])  # other rooms' cells stay theirs
+        mask |= ndi.binary_dilation(mask) & ~wall & (fr.labels != UNKNOWN) & ~others
         r = max(1, int(round(cfg.notch / cell / 2)))
         disk = np.hypot(*np.mgrid[-r : r + 1, -r : r + 1]) <= r
         mask = ndi.binary_closing(np.pad(mask, r + 1), disk)[r + 1 : -r - 1, r + 1 : -r - 1]
+        mask &= ~others
         if not ndi.binary_erosion(mask, iterations=max(1, int(0.4 / cell))).any():
             continue  # no room is narrower than 0.8 m: a strip of floor outside the walls
         poly = outline(mask, fr, cfg)
@@ -163,14 +174,19 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
                 along = _seen_along(fr, seen_face, a, b, _thickness(fr, closed, a, b, cfg))
                 return len(along) > 0 and along.mean() >= SEEN_SHARE
 
-            poly = notched(poly, mask, fr, seen_edge)
+            poly = recessed(notched(poly, mask, fr, seen_edge), mask, fr, seen_edge)
         if cfg.face_offset > 0:
             grown = Polygon(poly).buffer(cfg.face_offset * cell, join_style="mitre", mitre_limit=10)
             # kept as traced where the offset would change the outline's corners
             if grown.geom_type == "Polygon" and len(grown.exterior.coords) - 1 == len(poly):
                 poly = np.asarray(orient(grown, 1.0).exterior.coords)[:-1]
+        traced.append((int(k) + 1, poly))
+    polys = disjoint([p for _, p in traced], [k for k, _ in traced], region, fr)
+    for (k, _), poly in zip(traced, polys, strict=True):
+        if poly is None:
+            continue
         ri = len(out["rooms"])
-        room_of[int(k) + 1] = ri
+        room_of[k] = ri
         world = fr.to_world(poly)
         out["rooms"].append(
             {"name": f"room {ri + 1}", "polygon": _r(world), "area": round(Polygon(world).area, 4)}

@@ -6,19 +6,22 @@ of each inside cell to the nearest cell outside (wall, unknown) has one regional
 room (h-maxima: a maximum standing less than `h` over the saddle to a higher one is that
 one's); a watershed of the negated distance from those markers grows the rooms until they
 meet, at the narrowest point between them. Neighbours whose shared boundary is wider than a
-door are one room (an L's two arms, a room's bay); a basin smaller than a room joins the
-neighbour it shares most boundary with. The wall lines closed over doorways (extract.py)
-separate most rooms already; this splits those whose doorway has no wall run beside it to
-close it (a door flush with the corner, a wall the views saw only in pieces).
+door are one room (an L's two arms, a room's bay) unless it is a gap in a partition, a wall
+stub running on from it with a room on either side (a passage flush with a corner); a basin
+smaller than a room joins the neighbour it shares most boundary with. Each cut between two
+rooms is then drawn straight along the room's axes, and the outlines traced round the rooms
+never overlap (disjoint). The wall lines closed over doorways (extract.py) separate most
+rooms already; this splits those whose doorway has no wall run beside it to close it (a door
+flush with the corner, a wall the views saw only in pieces).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import numpy as np
 from scipy import ndimage as ndi
+from shapely import contains_xy
 from shapely.geometry import Point, Polygon
+from shapely.geometry.polygon import orient
 from skimage.morphology import h_maxima
 from skimage.segmentation import watershed
 
@@ -28,8 +31,6 @@ from stages.layout.extract import Frame
 MIN_PIECE = 0.5  # metres: a wall splits into seen and inferred pieces no shorter than this
 SEEN_GAP = 0.2  # metres: unseen stretches of a seen wall up to this long are seen (a socket,
 #                 a picture frame the views saw as no wall)
-NOTCH_MIN = 0.5  # metres: the least side of a corner cut off an outline over unseen space
-NOTCH_EMPTY = 0.9  # share of a cut-off corner that must lie outside the room's cells
 OTHER_SIDE = 0.15  # metres beyond a wall's back where the room an opening leads to is looked for
 
 
@@ -69,13 +70,88 @@ def _width(cells: np.ndarray) -> float:
     return float(t.max() - t.min() + 1)
 
 
+def _straighten(lab: np.ndarray, i: int, j: int, rc: np.ndarray) -> None:
+    """The boundary between labels i and j (its cells rc [K, 2]) made one straight cut along
+    the longer side of its box, in place: within the box, the cells of i and j on one side of
+    a row (a column, for a box taller than wide) take one label and the rest the other, at
+    the row and with the sides that relabel the fewest cells. The watershed line between two
+    rooms wanders off the door's line where the narrowing is uneven (a door flush with a
+    corner, ragged jambs, a partition seen in pieces); left so, the outlines keep a slanted
+    edge there and the rooms a wedge of each other's floor."""
+    (r0, c0), (r1, c1) = rc.min(0), rc.max(0)
+    sub = lab[r0 : r1 + 1, c0 : c1 + 1]
+    view = sub if c1 - c0 >= r1 - r0 else sub.T  # rows across the cut
+    k, up, down = _cut_row(view, i, j)
+    both = (view == i) | (view == j)
+    above = np.arange(view.shape[0])[:, None] < k
+    view[both & above] = up
+    view[both & ~above] = down
+
+
+def _cut_row(view: np.ndarray, i: int, j: int) -> tuple[int, int, int]:
+    """(k, up, down): rows of `view` before k go to label up, the rest to down, with the
+    fewest cells of i and j relabelled."""
+    a = np.concatenate([[0], np.cumsum((view == i).sum(1))])
+    b = np.concatenate([[0], np.cumsum((view == j).sum(1))])
+    i_first = b + (a[-1] - a)  # cells moved with i above row k and j from it on
+    j_first = a + (b[-1] - b)
+    if i_first.min() <= j_first.min():
+        return int(np.argmin(i_first)), i, j
+    return int(np.argmin(j_first)), j, i
+
+
+def _partition(
+    lab: np.ndarray, i: int, j: int, rc: np.ndarray, wall: np.ndarray, cell: float, run: float
+) -> bool:
+    """Whether the boundary between labels i and j (cells rc) is a passage in a partition:
+    the straight cut across it (as _straighten draws it) runs on at one end into a wall at
+    least `run` metres long with i on one side and j on the other (a stub of the wall between
+    the rooms), and meets a wall right at its other end (the stub's other half, or the wall
+    the partition runs into at a corner). An L's arms meet across a line that runs into the
+    outer wall at one end and along one arm's outer face, the other room on neither side of
+    it, at the other: no partition."""
+    (r0, c0), (r1, c1) = rc.min(0), rc.max(0)
+    if c1 - c0 < r1 - r0:  # a cut down a column: the same on the transposed plan
+        lab, wall, rc = lab.T, wall.T, rc[:, ::-1]
+        (r0, c0), (r1, c1) = rc.min(0), rc.max(0)
+    k, up, down = _cut_row(lab[r0 : r1 + 1, c0 : c1 + 1], i, j)
+    cut = r0 + k  # between rows cut - 1 and cut
+    b = max(2, int(round(0.15 / cell)))  # the wall's band round the line
+    far = max(2, int(round(0.5 / cell)))  # the rooms looked for this far beside it
+    n = max(2, int(round(run / cell)))
+    rows = slice(max(cut - b, 0), cut + b)
+
+    def stub(cols: np.ndarray) -> bool:
+        cols = cols[(cols >= 0) & (cols < lab.shape[1])]
+        if len(cols) < n or wall[rows, cols].any(0).mean() < 0.9:
+            return False
+        above = lab[max(cut - b - far, 0) : max(cut - b, 0), cols]
+        below = lab[cut + b : cut + b + far, cols]
+        return bool((above == up).any(0).mean() >= 0.5 and (below == down).any(0).mean() >= 0.5)
+
+    def walled(cols: np.ndarray) -> bool:
+        cols = cols[(cols >= 0) & (cols < lab.shape[1])]
+        return len(cols) > 0 and bool(wall[rows, cols].any(0).all())
+
+    right, left = np.arange(c1 + 1, c1 + 1 + n), np.arange(c0 - 1, c0 - 1 - n, -1)
+    return (stub(right) and walled(left[:2])) or (stub(left) and walled(right[:2]))
+
+
 def split(
-    inside: np.ndarray, cell: float, h: float, door: float, min_area: float
+    inside: np.ndarray,
+    cell: float,
+    h: float,
+    door: float,
+    min_area: float,
+    wall: np.ndarray | None = None,
+    run: float = 0.3,
 ) -> tuple[np.ndarray, list[tuple[int, int, np.ndarray]]]:
     """Rooms of the inside cells [H, W] bool: a label per cell (0 outside, 1..n) and the cuts
     between rooms (label i, label j, the cells [K, 2] along the cut). `h` (metres): the least
     height of a room's distance maximum over its saddle; `door` (metres): neighbours sharing a
-    wider boundary are one room; `min_area` (m²): a smaller basin is no room of its own."""
+    wider boundary are one room, unless it is a passage in a partition (`wall` [H, W] bool
+    given: _partition, stubs at least `run` metres); `min_area` (m²): a smaller basin is no
+    room of its own."""
     pieces, n = ndi.label(inside)
     if h <= 0 or n == 0:
         return pieces, []
@@ -95,7 +171,11 @@ def split(
     while True:
         bounds = _boundaries(lab)
         widths = {k: _width(v) * cell for k, v in bounds.items()}
-        wide = [k for k, w in widths.items() if w > door]
+        wide = [
+            k
+            for k, w in widths.items()
+            if w > door and (wall is None or not _partition(lab, *k, bounds[k], wall, cell, run))
+        ]
         small = [k for k in widths if min(area[k[0]], area[k[1]]) < min_area and k not in wide]
         if wide:
             i, j = max(wide, key=lambda k: widths[k])
@@ -106,6 +186,8 @@ def split(
         lab[lab == j] = i
         area[i] += area[j]
         area[j] = 0
+    for (i, j), rc in _boundaries(lab).items():
+        _straighten(lab, i, j, rc)
     # labels 1..n in the order of their first cell
     ids = np.unique(lab[lab > 0])
     remap = np.zeros(lab.max() + 1, np.int64)
@@ -257,51 +339,40 @@ def split_seen(plan: dict) -> dict:
     return {**plan, "rooms": rooms, "walls": walls, "openings": openings}
 
 
-def notched(
-    poly: np.ndarray, mask: np.ndarray, fr: Frame, seen: Callable[[np.ndarray, np.ndarray], bool]
-) -> np.ndarray:
-    """The outline poly (frame xy, counter-clockwise, edges along the frame's axes) with each
-    convex corner between two edges no view saw as a surface (`seen`(a, b) false for both)
-    cut back to the room's cells (`mask`, the frame's grid): the largest rectangle at the
-    corner, at least NOTCH_MIN on each side and at most 90 % of either edge, with at least
-    NOTCH_EMPTY of it outside the mask, is cut off: three corners for one. An outline closed
-    over open sides is a Manhattan polygon round what the views saw, not the box of it."""
+def disjoint(
+    polys: list[np.ndarray], labels: list[int], region: np.ndarray, fr: Frame
+) -> list[np.ndarray | None]:
+    """The room outlines (frame xy, counter-clockwise) made disjoint: where two overlap (the
+    outline's simplification and the face offset carry a room over a cut between rooms, or
+    over a wall stub that the simplification merged away), the overlap stays with the room
+    whose cells (`region` == its label) fill more of it and leaves the other, whose outline
+    loses it (its largest piece; None when nothing is left). The difference of two outlines
+    along the frame's axes runs along them too."""
     cell = fr.grid.cell
-    flags = [seen(poly[i], poly[(i + 1) % len(poly)]) for i in range(len(poly))]
-    least = int(np.ceil(NOTCH_MIN / cell))
-    i = 0
-    while i < len(poly):
-        c, prev, nxt = poly[i], poly[i - 1], poly[(i + 1) % len(poly)]
-        e0, e1 = c - prev, nxt - c
-        l0, l1 = float(np.linalg.norm(e0)), float(np.linalg.norm(e1))
-        convex = e0[0] * e1[1] - e0[1] * e1[0] > 0
-        axis = abs(e0 @ e1) < 1e-6 * l0 * l1  # a right angle
-        if flags[i - 1] or flags[i] or not convex or not axis:
-            i += 1
-            continue
-        u, v = e1 / l1, -e0 / l0  # along the next edge, back along the previous one
-        nw, nh = int(0.9 * l1 / cell), int(0.9 * l0 / cell)
-        if min(nw, nh) < least:
-            i += 1
-            continue
-        jw, jh = np.meshgrid(np.arange(nw) + 0.5, np.arange(nh) + 0.5)
-        pts = c + (jw[..., None] * u + jh[..., None] * v) * cell  # [nh, nw, 2]
-        row, col, ok = fr.grid.cell_of(pts.reshape(-1, 2))
-        full = (mask[row, col] & ok).reshape(nh, nw).astype(np.int64)
-        count = full.cumsum(0).cumsum(1)  # room cells in the rectangle of (h + 1, w + 1)
-        size = np.outer(np.arange(1, nh + 1), np.arange(1, nw + 1))
-        good = (1 - count / size >= NOTCH_EMPTY) & (size > 0)
-        good[: least - 1] = False
-        good[:, : least - 1] = False
-        if not good.any():
-            i += 1
-            continue
-        h, w = np.unravel_index(np.argmax(np.where(good, size, 0)), size.shape)
-        h, w = (h + 1) * cell, (w + 1) * cell
-        step = [c + h * v, c + h * v + w * u, c + w * u]
-        poly = (
-            np.concatenate([poly[:i], step, poly[i + 1 :]]) if i else np.array([*step, *poly[1:]])
-        )
-        flags = flags[:i] + [False, False] + flags[i:]
-        i += 3
-    return poly
+    shapes = [Polygon(p) for p in polys]
+    for a in range(len(shapes)):
+        for b in range(a + 1, len(shapes)):
+            if shapes[a].is_empty or shapes[b].is_empty:
+                continue
+            both = shapes[a].intersection(shapes[b])
+            if both.area < 0.5 * cell**2:
+                continue
+            c = fr.grid.centers()
+            inside = contains_xy(both, c[..., 0], c[..., 1])
+            na = int((region[inside] == labels[a]).sum())
+            nb = int((region[inside] == labels[b]).sum())
+            lose, keep = (b, a) if na >= nb else (a, b)
+            rest = shapes[lose].difference(shapes[keep])
+            if rest.geom_type == "MultiPolygon":
+                rest = max(rest.geoms, key=lambda g: g.area)
+            shapes[lose] = rest if rest.geom_type == "Polygon" else Polygon()
+    out: list[np.ndarray | None] = []
+    for s, p in zip(shapes, polys, strict=True):
+        if s.is_empty or s.area < 4 * cell**2:
+            out.append(None)
+        elif s.equals(Polygon(p)):
+            out.append(p)
+        else:
+            s = orient(s.simplify(1e-6), 1.0)
+            out.append(np.asarray(s.exterior.coords)[:-1])
+    return out

@@ -23,6 +23,7 @@ from stages.common.io import write_json
 from stages.layout.config import LayoutConfig, LayoutInputs, LayoutOutputs
 from stages.layout.draw import write_dxf, write_svg
 from stages.layout.extract import Line, intersect
+from stages.layout.furniture import filled_notches
 from stages.layout.openings import (
     FACE_HEIGHTS,
     FACE_SUPPORT,
@@ -57,11 +58,14 @@ def build_plan(bp: Blueprint, cfg: LayoutConfig, mesh: Path | None = None) -> di
         scene = scene_of(verts, tris)
         plan = architecture(seen_floor(bp, scene), cfg)
         plan = moved_to_faces(plan, face_offsets(scene, plan["walls"]), cfg, bp.grid.cell)
-        plan["openings"] = _distinct(mesh_openings(plan["walls"], verts, tris, cfg))
-        plan["walls"] = seen_thickness(scene, plan["walls"], cfg)
         fid = ids_named(bp.classes, FLOOR_NAME)
         floor = bp.grid.centers()[np.isin(bp.labels, fid)]
         ceil = ceiling(scene, floor[:: max(1, len(floor) // 50)])
+        plan = filled_notches(plan, scene, ceil)
+        plan["openings"] = _in_walls(
+            _distinct(mesh_openings(plan["walls"], verts, tris, cfg)), plan["walls"]
+        )
+        plan["walls"] = seen_thickness(scene, plan["walls"], cfg)
         plan["objects"] = objects(
             bp, cfg, lambda xys: object_heights(scene, xys, ceil), lambda xy: solid(scene, xy, ceil)
         )
@@ -239,6 +243,22 @@ def _distinct(openings: list[dict], tol: float = 0.3) -> list[dict]:
         c = (np.asarray(o["start"]) + o["end"]) / 2
         if all(np.linalg.norm(c - (np.asarray(k["start"]) + k["end"]) / 2) > tol for k in out):
             out.append(o)
+    return out
+
+
+WHOLE = 0.9  # share of an inferred wall's length an opening spanning it all covers
+
+
+def _in_walls(openings: list[dict], walls: list[dict]) -> list[dict]:
+    """The openings less those that span an inferred wall (`seen` false) along WHOLE of its
+    length or more: an open side closed over space no view saw as a surface is all gap, not
+    a door or a passage in a wall (the room `continues` beyond it already says so)."""
+    out = []
+    for o in openings:
+        w = walls[o["wall"]] if 0 <= o.get("wall", -1) < len(walls) else None
+        if w is not None and not w["seen"] and o["width"] >= WHOLE * float(w["length"]):
+            continue
+        out.append(o)
     return out
 
 

@@ -325,8 +325,12 @@ def test_a_passage_wider_than_a_doorway_closes_the_wall_line_between_two_rooms(a
     _meets_targets(s, doors=0, passages=1)
     assert s["corner_f1"] == 1.0, s
     assert [o["kind"] for o in plan["openings"]] == ["passage"]
-    # without the passage closing the two rooms are one
+    # without the passage closing the room split still finds the two rooms (the gap is one
+    # in a partition: its stubs run on from both ends, a room on either side); without
+    # either the two rooms are one
     off = build_plan(bp, LayoutConfig(face_offset=0.0, max_passage=0.0))
+    assert len(off["rooms"]) == 2 and [o["kind"] for o in off["openings"]] == ["passage"]
+    off = build_plan(bp, LayoutConfig(face_offset=0.0, max_passage=0.0, room_split_h=0.0))
     assert len(off["rooms"]) == 1 and off["openings"] == []
 
 

@@ -276,3 +276,55 @@ def test_an_objects_footprint_is_where_its_surfaces_stand(tmp_path):
     assert (obj["width"], obj["depth"]) == pytest.approx((x1 - x0, y1 - y0), abs=0.03)
     assert obj["center"] == pytest.approx([2.0, 1.5], abs=0.02)
     assert obj["height"] == pytest.approx(h, abs=0.01) and obj["top"] == pytest.approx(h, abs=0.01)
+
+
+@pytest.mark.parametrize("top", [1.6, H])
+def test_a_tall_cabinet_the_plan_drew_as_wall_is_no_notch_in_the_room(tmp_path, top):
+    # a 4 x 3 m room under a ceiling; against its south wall a cabinet 0.9 m wide and 0.5 m
+    # deep that the plan labelled wall (the 3-room home's living room: a notch of four corners
+    # it does not have). Above a 1.6 m cabinet the mesh shows the wall's face: the outline
+    # runs along it. Up to the ceiling (a pillar, a chimney breast) it is the room's shape
+    t = 0.12
+    m = _Mesh()
+    corners = [(0.0, 0.0), (4.0, 0.0), (4.0, 3.0), (0.0, 3.0)]
+    for p, q in zip(corners, corners[1:] + corners[:1], strict=True):
+        m.wall(p, q)
+    m.wall((1.9, 0.0), (1.9, 0.5), 0.0, top)  # the cabinet's west side, facing west
+    m.wall((1.9, 0.5), (2.8, 0.5), 0.0, top)  # its front, facing north
+    m.wall((2.8, 0.5), (2.8, 0.0), 0.0, top)  # its east side
+    m.quad((1.9, 0.0, top), (2.8, 0.0, top), (2.8, 0.5, top), (1.9, 0.5, top))  # its top
+    m.floor(0.0, 0.0, 4.0, 3.0)
+    m.quad((0.0, 0.0, H), (0.0, 3.0, H), (4.0, 3.0, H), (4.0, 0.0, H))  # the ceiling
+    verts, tris = m.arrays()
+    _write_ply(tmp_path / "mesh.ply", verts, tris)
+    bp = _plan(
+        [(box(-t, -t, 4 + t, 3 + t), 1), (box(0, 0, 4, 3), 0), (box(1.9, 0, 2.8, 0.5), 1)],
+        {0: "floor", 1: "wall"},
+    )
+    plan = build_plan(bp, LayoutConfig(face_offset=0.0), tmp_path / "mesh.ply")
+    if top < H:
+        _assert_the_4x3_room(plan)
+        assert plan["rooms"][0]["area"] == pytest.approx(12.0, abs=0.05)
+    else:
+        assert len(plan["rooms"][0]["polygon"]) == 8, plan["rooms"]
+
+
+def test_an_open_side_is_no_opening_across_its_whole_length(tmp_path):
+    # a 4 x 3 m room open to the south: no wall there, the fused floor running on 1 m beyond
+    # the side where the plan stops (its field called it unknown). The closing wall is
+    # inferred, all of it a gap: no door or passage spans it (the 3-room home from photos drew
+    # a 3.96 m "passage" along such a side, where a wall no view saw stands)
+    t = 0.12
+    m = _Mesh()
+    m.wall((4.0, 0.0), (4.0, 3.0))
+    m.wall((4.0, 3.0), (0.0, 3.0))
+    m.wall((0.0, 3.0), (0.0, 0.0))
+    m.floor(0.0, -1.0, 4.0, 3.0)
+    verts, tris = m.arrays()
+    _write_ply(tmp_path / "mesh.ply", verts, tris)
+    bp = _plan([(box(-t, 0, 4 + t, 3 + t), 1), (box(0, 0, 4, 3), 0)], {0: "floor", 1: "wall"})
+    plan = build_plan(bp, LayoutConfig(face_offset=0.0), tmp_path / "mesh.ply")
+    assert len(plan["rooms"]) == 1
+    south = [w for w in plan["walls"] if max(w["start"][1], w["end"][1]) < 0.1]
+    assert len(south) == 1 and not south[0]["seen"], plan["walls"]
+    assert plan["openings"] == [], plan["openings"]

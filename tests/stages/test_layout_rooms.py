@@ -13,7 +13,8 @@ import ezdxf
 import numpy as np
 import pytest
 from shapely import contains_xy
-from shapely.geometry import Polygon, box
+from shapely.geometry import Point, Polygon, box
+from shapely.ops import unary_union
 
 from stages.common.blueprint import Blueprint, Grid
 from stages.common.capture import UNKNOWN
@@ -244,3 +245,115 @@ def test_a_home_of_two_procedural_rooms_back_to_back(tmp_path):
     assert s["openings_rooms_right"] == s["openings_rooms_total"] == 3, (s, plan["openings"])
     for r in plan["rooms"]:
         assert r["area"] == pytest.approx(gt_one["rooms"][0]["area"], rel=0.02)
+
+
+def _staggered(angle: float) -> Blueprint:
+    """A 4 x 6 m home (0.12 m walls) halved by two partition stubs that do not line up: from
+    the west wall to x = 1.5 at y = 3.0 and from x = 2.5 to the east wall at y = 2.6, the
+    1 m gap between them the way through."""
+    stubs = unary_union([box(0, 3.0, 1.5, 3.12), box(2.5, 2.6, 4, 2.72)])
+    bp = _raster([box(0, 0, 4, 6)], T, [], angle)
+    c = bp.grid.centers()
+    x, y = np.moveaxis(np.asarray(_turn(c.reshape(-1, 2), -angle)).reshape(c.shape), -1, 0)
+    labels = bp.labels.copy()
+    labels[contains_xy(stubs, x, y)] = 1
+    return Blueprint(labels, bp.grid, bp.classes)
+
+
+@pytest.mark.parametrize("angle", [0.0, 23.0])
+def test_rooms_never_overlap_and_their_cut_runs_along_the_axes(angle):
+    # the watershed line between the halves runs slanted from one stub's end to the other's;
+    # each room is a Manhattan polygon in the room's frame, the two meet without overlap
+    plan = build_plan(_staggered(angle), GT_PLAN)
+    assert len(plan["rooms"]) == 2, plan["rooms"]
+    polys = [Polygon(_turn(r["polygon"], -angle)) for r in plan["rooms"]]
+    assert polys[0].intersection(polys[1]).area < 1e-3, polys
+    for p in polys:
+        xy = np.asarray(p.exterior.coords)
+        d = np.diff(xy, axis=0)
+        assert (np.minimum(np.abs(d[:, 0]), np.abs(d[:, 1])) < 0.01).all(), xy  # axis-aligned
+    # together they cover the home but for the stubs and at most the way between their ends
+    assert 24 - 0.36 - 0.6 <= polys[0].union(polys[1]).area <= 24 - 0.36 + 0.05
+
+
+def test_the_cut_between_two_rooms_is_straight_where_the_narrowing_is_uneven():
+    # two partition stubs 0.4 m apart across: the watershed line runs slanted between their
+    # ends; the cut is made of rows and columns (a step), each room's cells on its side
+    inside = np.ones((130, 80), bool)
+    inside[56:60, :22] = False  # west stub
+    inside[68:72, 40:] = False  # east stub
+    lab, cuts = split(inside, 0.05, 0.3, 1.2, 1.0)
+    assert lab.max() == 2 and len(cuts) == 1
+    top, bottom = lab[0, 0], lab[-1, 0]
+    assert top != bottom
+    # between the stubs' ends (columns 22..39) one straight row divides them
+    between = lab[60:68, 22:40]
+    rows_top = (between == top).all(1)
+    rows_bottom = (between == bottom).all(1)
+    assert (rows_top | rows_bottom).all(), between
+    assert not (rows_bottom[:-1] & rows_top[1:]).any()  # top rows above the bottom ones
+    # beside the stubs each room keeps its side: west below the west stub, east above the east
+    assert (lab[60:68, :22] == bottom).all() and (lab[60:68, 40:] == top).all()
+
+
+def _open_side_with_a_gap(seen: bool) -> Blueprint:
+    """A 5 x 4 m room with walls on its west, north and east sides; the views stopped at its
+    open south side (y = 0) but for a rounded bay in its middle (half an ellipse round (2.5,
+    0), 2.4 m wide and 1.2 m deep), where they saw no floor (unknown, as beyond the side)."""
+    grid = Grid.covering(np.array([-0.3, -0.3]), np.array([5.3, 4.3]), 0.02)
+    c = grid.centers()
+    x, y = c[..., 0], c[..., 1]
+    labels = np.full(grid.shape, UNKNOWN, np.uint8)
+    bay = ((x - 2.5) / 1.2) ** 2 + (y / 1.2) ** 2 < 1
+    labels[contains_xy(box(0, 0, 5, 4), x, y) & ~bay] = 0
+    labels[contains_xy(box(-0.12, 0, 5.12, 4.12).difference(box(0, 0, 5, 4)), x, y)] = 1
+    lab = (labels != UNKNOWN).astype(np.uint8)
+    return Blueprint(labels, grid, {0: "floor", 1: "wall"}, None, lab if seen else None, lab)
+
+
+def test_a_recess_in_the_middle_of_an_open_side_is_kept_in_the_outline():
+    plan = build_plan(_open_side_with_a_gap(seen=True), GT_PLAN)
+    assert len(plan["rooms"]) == 1 and plan["rooms"][0]["continues"]
+    poly = Polygon(plan["rooms"][0]["polygon"])
+    # eight corners, all right angles: the open side steps in round the bay the views did not
+    # see (the largest rectangle in it), the rest of the side stays on its line
+    assert len(plan["rooms"][0]["polygon"]) == 8, plan["rooms"][0]["polygon"]
+    xs, ys = zip(*plan["rooms"][0]["polygon"], strict=True)
+    assert set(np.round(xs, 1)) >= {0.0, 5.0} and set(np.round(ys, 1)) >= {0.0, 4.0}
+    bay = Point(2.5, 0).buffer(1.2, 256).intersection(box(0, 0, 5, 4))
+    cut = box(0, 0, 5, 4).difference(poly)
+    assert cut.area >= 0.5 * bay.area, cut.area
+    assert cut.difference(bay).area <= 0.05 * cut.area  # the recess is unseen space only
+    # the open side's pieces and the bay's three sides inferred, the three walls seen
+    for w in plan["walls"]:
+        a, b = np.asarray(w["start"]), np.asarray(w["end"])
+        walled = max(a[0], b[0]) < 0.1 or min(a[0], b[0]) > 4.9 or min(a[1], b[1]) > 3.9
+        assert w["seen"] == walled, w
+    # a plan that does not say what was seen keeps the straight side (it cannot tell an open
+    # side from a wall)
+    assert len(build_plan(_open_side_with_a_gap(seen=False), GT_PLAN)["rooms"][0]["polygon"]) == 4
+
+
+@pytest.mark.parametrize("width", [1.5, 1.8])
+def test_a_passage_wider_than_a_door_at_a_corner_of_a_partition_splits_the_rooms(width):
+    # a 4 x 3 m room and a 3 x 3 m one, the partition between them open from the south wall
+    # up for `width` m: wider than a door, no wall run on the corner's side to close the
+    # wall line over it, but the partition's stub runs on from its other end with a room on
+    # either side: two rooms and a passage between them
+    a, b = box(0, 0, 4, 3), box(4 + T, 0, 7, 3)
+    plan = build_plan(_raster([a, b], T, [box(3.9, 0, 4.2, width)], 0.0), GT_PLAN)
+    gt = {
+        "rooms": [
+            {"polygon": list(a.exterior.coords)[:-1]},
+            {"polygon": list(b.exterior.coords)[:-1]},
+        ],
+        "openings": [
+            {"kind": "passage", "start": (4, 0), "end": (4, width), "width": width, "rooms": [0, 1]}
+        ],
+    }
+    s = score_layout(plan, gt)
+    assert len(plan["rooms"]) == 2, plan["rooms"]
+    assert s["room_f1"] == 1.0 and s["corner_f1"] == 1.0, s
+    assert s["passages_found"] == s["passages_total"] == 1, (s, plan["openings"])
+    assert plan["openings"][0]["rooms"] == [0, 1]
+    assert plan["openings"][0]["width"] == pytest.approx(width, abs=0.05)

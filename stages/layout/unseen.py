@@ -1,0 +1,127 @@
+"""Room outlines closed over space no view saw as a surface follow what the views saw: a
+convex corner between two unseen edges is cut back to the room's cells, and so is a recess in
+the middle of an unseen edge (the shortest Manhattan outline round the seen floor on the plan
+grid, as in Cabral & Furukawa, CVPR 2014, where it runs over unseen space; along seen walls
+the traced outline stays)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from stages.layout.extract import Frame
+
+NOTCH_MIN = 0.5  # metres: the least side of a corner cut off an outline over unseen space
+NOTCH_EMPTY = 0.9  # share of a cut-off corner that must lie outside the room's cells
+RECESS_MIN = 1.0  # metres: the least width of a recess in an open side (0.84 m on the 3-room
+#                  home from photos was floor the photos' mesh missed, not the room's edge)
+
+
+def notched(
+    poly: np.ndarray, mask: np.ndarray, fr: Frame, seen: Callable[[np.ndarray, np.ndarray], bool]
+) -> np.ndarray:
+    """The outline poly (frame xy, counter-clockwise, edges along the frame's axes) with each
+    convex corner between two edges no view saw as a surface (`seen`(a, b) false for both)
+    cut back to the room's cells (`mask`, the frame's grid): the largest rectangle at the
+    corner, at least NOTCH_MIN on each side and at most 90 % of either edge, with at least
+    NOTCH_EMPTY of it outside the mask, is cut off: three corners for one. An outline closed
+    over open sides is a Manhattan polygon round what the views saw, not the box of it."""
+    cell = fr.grid.cell
+    flags = [seen(poly[i], poly[(i + 1) % len(poly)]) for i in range(len(poly))]
+    least = int(np.ceil(NOTCH_MIN / cell))
+    i = 0
+    while i < len(poly):
+        c, prev, nxt = poly[i], poly[i - 1], poly[(i + 1) % len(poly)]
+        e0, e1 = c - prev, nxt - c
+        l0, l1 = float(np.linalg.norm(e0)), float(np.linalg.norm(e1))
+        convex = e0[0] * e1[1] - e0[1] * e1[0] > 0
+        axis = abs(e0 @ e1) < 1e-6 * l0 * l1  # a right angle
+        if flags[i - 1] or flags[i] or not convex or not axis:
+            i += 1
+            continue
+        u, v = e1 / l1, -e0 / l0  # along the next edge, back along the previous one
+        nw, nh = int(0.9 * l1 / cell), int(0.9 * l0 / cell)
+        if min(nw, nh) < least:
+            i += 1
+            continue
+        jw, jh = np.meshgrid(np.arange(nw) + 0.5, np.arange(nh) + 0.5)
+        pts = c + (jw[..., None] * u + jh[..., None] * v) * cell  # [nh, nw, 2]
+        row, col, ok = fr.grid.cell_of(pts.reshape(-1, 2))
+        full = (mask[row, col] & ok).reshape(nh, nw).astype(np.int64)
+        count = full.cumsum(0).cumsum(1)  # room cells in the rectangle of (h + 1, w + 1)
+        size = np.outer(np.arange(1, nh + 1), np.arange(1, nw + 1))
+        good = (1 - count / size >= NOTCH_EMPTY) & (size > 0)
+        good[: least - 1] = False
+        good[:, : least - 1] = False
+        if not good.any():
+            i += 1
+            continue
+        h, w = np.unravel_index(np.argmax(np.where(good, size, 0)), size.shape)
+        h, w = (h + 1) * cell, (w + 1) * cell
+        step = [c + h * v, c + h * v + w * u, c + w * u]
+        poly = (
+            np.concatenate([poly[:i], step, poly[i + 1 :]]) if i else np.array([*step, *poly[1:]])
+        )
+        flags = flags[:i] + [False, False] + flags[i:]
+        i += 3
+    return poly
+
+
+def _largest_run(depth: np.ndarray, least: int) -> tuple[int, int, int]:
+    """The largest rectangle under the histogram `depth` [T] (cells) at least `least` wide
+    and deep: (start, width, height) in cells; width 0 when there is none."""
+    best = (0, 0, 0)
+    for h in np.unique(depth[depth >= least]):
+        on = np.concatenate([[0], (depth >= h).astype(np.int8), [0]])
+        edges = np.flatnonzero(np.diff(on))
+        starts, stops = edges[::2], edges[1::2]
+        k = int(np.argmax(stops - starts))
+        w = int(stops[k] - starts[k])
+        if w >= least and w * h > best[1] * best[2]:
+            best = (int(starts[k]), w, int(h))
+    return best
+
+
+def recessed(
+    poly: np.ndarray, mask: np.ndarray, fr: Frame, seen: Callable[[np.ndarray, np.ndarray], bool]
+) -> np.ndarray:
+    """The outline poly (frame xy, counter-clockwise) with a recess in each edge along the
+    frame's axes that no view saw as a surface (`seen`(a, b) false) where the room's cells
+    (`mask`) stop short of it in its middle: the largest rectangle on the edge, at least
+    RECESS_MIN wide and NOTCH_MIN deep, NOTCH_MIN or more from both its ends, whose cells
+    lie outside the mask (each step along the edge empty with its neighbours across), is cut
+    off: four corners more. An open side is drawn where the views stopped along it, not straight
+    across the gap."""
+    cell = fr.grid.cell
+    least = int(np.ceil(NOTCH_MIN / cell))
+    out = []
+    for i in range(len(poly)):
+        a, b = poly[i], poly[(i + 1) % len(poly)]
+        out.append(a)
+        e = b - a
+        length = float(np.linalg.norm(e))
+        if length < 3 * NOTCH_MIN or min(abs(e[0]), abs(e[1])) > 1e-6 * length or seen(a, b):
+            continue
+        u = e / length
+        v = np.array([-u[1], u[0]])  # into the room
+        n_t = int(length / cell)
+        n_s = int(min(length, 5.0) / cell)
+        t = (np.arange(n_t) + 0.5) * cell
+        s = (np.arange(n_s) + 0.5) * cell
+        pts = a + t[None, :, None] * u + s[:, None, None] * v  # [S, T, 2]
+        row, col, ok = fr.grid.cell_of(pts.reshape(-1, 2))
+        full = (mask[row, col] & ok).reshape(n_s, n_t)
+        # how deep each step along the edge stays empty: the first row where it or a
+        # neighbour along the edge is a room cell
+        filled = np.stack([np.roll(full, k, axis=1) for k in (-1, 0, 1)]).any(0)
+        depth = np.where(filled.any(0), filled.argmax(0), n_s)
+        depth[:least] = 0  # away from the edge's ends: corners are notched()'s
+        depth[-least:] = 0
+        start, w, h = _largest_run(depth, least)
+        if w * cell < RECESS_MIN or w * cell > 0.9 * length:
+            continue
+        p0 = a + start * cell * u
+        p1 = a + (start + w) * cell * u
+        out += [p0, p0 + h * cell * v, p1 + h * cell * v, p1]
+    return np.array(out)
