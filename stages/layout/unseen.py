@@ -107,6 +107,8 @@ def recessed(
         v = np.array([-u[1], u[0]])  # into the room
         n_t = int(length / cell)
         n_s = int(min(length, 5.0) / cell)
+        if n_s <= least:  # too few rows to hold a recess NOTCH_MIN deep (a world not in metres)
+            continue
         t = (np.arange(n_t) + 0.5) * cell
         s = (np.arange(n_s) + 0.5) * cell
         pts = a + t[None, :, None] * u + s[:, None, None] * v  # [S, T, 2]
