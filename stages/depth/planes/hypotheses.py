@@ -6,11 +6,11 @@ per voxel; each of the three room axes (up, and the two wall directions, both
 re-estimated from the points' normals: the align stage's may be a few degrees off) gets a
 histogram of the points' offsets along it, whose smoothed peaks are planes (Furukawa et
 al., "Manhattan-world stereo", 2009). Each peak is refitted on its inliers within ±`band`
-and ±`max_tilt_deg`, and spans the box of its inliers; a top also keeps the cells of its
-plane its inliers fill (`Cells`): a table top's inliers and a cushion's across
-the room share a height, and their box would span the room between them. The floor (the
-lowest horizontal plane within FLOOR_SEARCH of z = 0, else z = 0 itself) is always a
-hypothesis.
+and ±`max_tilt_deg`, and spans the box of its inliers; with `support_cell` a top also
+keeps the cells of its plane its inliers fill (`Cells`): a table top's inliers and a
+cushion's across the room share a height, and their box spans the room between them. The
+floor (the lowest horizontal plane within FLOOR_SEARCH of z = 0, else z = 0 itself) is
+always a hypothesis.
 """
 
 from __future__ import annotations
