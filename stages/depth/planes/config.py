@@ -39,7 +39,8 @@ class PlanesConfig:
     support_cell: float = 0.0  # metres, > 0: a top's support is the cells of this side
     #                 its inliers fill (grown by furniture_margin), not their whole box; 0:
     #                 the box alone. 0.1: office plan 68.0 -> 53.6 (the sofa's holes turn
-    #                 floor), plane fills within 5 cm 72.3 -> 73.3 % (docs/depth.md#hidden)
+    #                 floor), plane fills within 5 cm 72.3 -> 73.3 %
+    #                 (docs/depth.md#planes-hidden-behind-furniture)
     cell_points: int = 3  # inlier voxels a support cell needs (a stray track is not a table)
     normal_cos: float = 0.9  # a stereo point votes on an axis its normal is within ~25° of
     # per view (view.py)
@@ -55,7 +56,8 @@ class PlanesConfig:
     w_free: float = 2.0  # weight of other views seeing through the plane
     w_hidden: float = 2.0  # weight of other views seeing something in front of the plane
     #                 (the floor under a sofa); 0 -> 2: office plane fills within 5 cm 72.3
-    #                 -> 77.7 %, plan 68.0 -> 66.1; kitchen in docs/depth.md#hidden
+    #                 -> 77.7 %, plan 68.0 -> 66.1; the kitchen's figures:
+    #                 docs/depth.md#planes-hidden-behind-furniture
     w_colour: float = 1.0  # weight of a region's colour unlike every colour on the plane's
     #                       inliers; 0.5: kitchen 43.1 %, office 71.2 % (1.0: 43.8, 72.6)
     w_valid: float = 5.0  # weight of invalid plane points (behind, below floor, off support)
