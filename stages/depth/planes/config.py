@@ -36,11 +36,11 @@ class PlanesConfig:
     #                 (0.072); office 58.3 % (69.1 off): its outermost points lie beyond walls
     tracks: bool = False  # SfM track depths count as readings in the data term where stereo
     #                      has none (the merge keeps stereo's only); on: honest room the same
-    support_cell: float = 0.0  # metres, > 0: a top's support is the cells of this side
+    support_cell: float = 0.1  # metres, > 0: a top's support is the cells of this side
     #                 its inliers fill (grown by furniture_margin), not their whole box; 0:
-    #                 the box alone. 0.1: office plan 68.0 -> 53.6 (the sofa's holes turn
-    #                 floor), plane fills within 5 cm 72.3 -> 73.3 %
-    #                 (docs/depth.md#planes-hidden-behind-furniture)
+    #                 the box alone. 0 -> 0.1 (w_hidden 2): plan fwIoU kitchen 49.8 -> 55.6,
+    #                 office 66.1 -> 64.0; plane fills within 5 cm kitchen 47.4 -> 57.8 %,
+    #                 office 77.7 -> 77.0 % (docs/depth.md#planes-hidden-behind-furniture)
     cell_points: int = 3  # inlier voxels a support cell needs (a stray track is not a table)
     normal_cos: float = 0.9  # a stereo point votes on an axis its normal is within ~25° of
     # per view (view.py)
@@ -55,8 +55,8 @@ class PlanesConfig:
     w_photo: float = 1.0  # weight of the warped neighbours' ZNCC (texture-weighted)
     w_free: float = 2.0  # weight of other views seeing through the plane
     w_hidden: float = 2.0  # weight of other views seeing something in front of the plane
-    #                 (the floor under a sofa); 0 -> 2: office plane fills within 5 cm 72.3
-    #                 -> 77.7 %, plan 68.0 -> 66.1; the kitchen's figures:
+    #                 (the floor under a sofa); 0 -> 2 (support_cell 0): office plane fills
+    #                 within 5 cm 72.3 -> 77.7 %, plan 68.0 -> 66.1; the kitchen's figures:
     #                 docs/depth.md#planes-hidden-behind-furniture
     w_colour: float = 1.0  # weight of a region's colour unlike every colour on the plane's
     #                       inliers; 0.5: kitchen 43.1 %, office 71.2 % (1.0: 43.8, 72.6)
