@@ -14,8 +14,10 @@ from stages.common.capture import read_layout
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth, read_image, read_label
 from stages.depth.planes import PlanesConfig, fill
-from stages.depth.planes.hypotheses import find_planes
+from stages.depth.planes.geometry import plane_depth, plane_valid
+from stages.depth.planes.hypotheses import Plane, find_planes
 from stages.depth.planes.solve import energy, expand
+from stages.depth.planes.view import ViewData, data_costs
 
 
 def test_expansion_reaches_the_optimum_of_tiny_graphs():
@@ -85,6 +87,37 @@ def test_hypotheses_on_a_floor_two_walls_and_a_table():
         assert np.degrees(np.arccos(np.max(np.abs(p.normal)))) < 0.5
 
 
+def test_a_table_top_is_not_extended_across_the_room():
+    # a table top in one corner and a cushion at the same height in the opposite corner: the
+    # box of their inliers spans the room, the plane's support is the two patches
+    rng = np.random.default_rng(2)
+    parts = [
+        _patch(rng, 30000, 2, 0.0, (0, 0, 0), (4, 4, 0), (0, 0, 1)),  # floor
+        _patch(rng, 15000, 0, 0.0, (0, 0, 0), (0, 4, 2.5), (1, 0, 0)),  # wall x = 0
+        _patch(rng, 3000, 2, 0.45, (0.5, 0.5, 0), (1.3, 1.3, 0), (0, 0, 1)),  # table top
+        _patch(rng, 1000, 2, 0.45, (3.2, 3.2, 0), (3.6, 3.6, 0), (0, 0, 1)),  # cushion
+    ]
+    pts = np.concatenate([p for p, _ in parts])
+    nrm = np.concatenate([q for _, q in parts]).astype(np.float64)
+    at = np.array([[0.9, 0.9, 0.45], [1.4, 1.0, 0.45], [2.3, 2.3, 0.45], [3.4, 0.8, 0.45]])
+    cam = np.array([2.0, 2.0, 1.5])  # looking down at those points from above the room
+    r = at - cam
+    r /= -r[:, 2:]  # unit z towards the floor: any ray scale works for the box test
+    for cell, want in ((0.1, [True, True, False, False]), (0.0, [True, True, True, True])):
+        planes = find_planes(pts, nrm, PlanesConfig(support_cell=cell))
+        k = [i for i, p in enumerate(planes) if p.kind == "top"]
+        assert len(k) == 1 and abs(planes[k[0]].offset - 0.45) < 0.005
+        assert planes[k[0]].lo[0] < 0.6 and planes[k[0]].hi[0] > 3.5  # the box spans both
+        t = plane_depth(r, cam, planes)
+        ok = plane_valid(t, r, cam, planes, (0.5, 0.15), None)[k[0]]
+        # on the table and 0.1 m past its edge: a top; mid-room and in the far corner: not
+        assert ok.tolist() == want, cell
+        assert planes[0].kind == "floor" and planes[0].cells is None  # the floor spans the room
+    assert planes[k[0]].to_json()["cells"] is None
+    with pytest.raises(BlunfError, match="support_cell"):
+        PlanesConfig(support_cell=-1)
+
+
 @pytest.fixture(scope="module")
 def plain_room(tmp_path_factory):
     from stages.synth import make_room
@@ -137,3 +170,34 @@ def test_fill_reads_blank_walls_from_the_planes(plain_room):
 def test_fill_rejects_mismatched_inputs():
     with pytest.raises(BlunfError, match="differ"):
         fill([np.zeros((8, 8, 3), np.float32)], [], [], [], [], PlanesConfig(enabled=True))
+
+
+def _down_view(x: float, depth: float, size: int = 32) -> ViewData:
+    """A blank view looking straight down from (x, 0, 1.5), reading `depth` everywhere
+    (0: nothing)."""
+    pose = np.eye(4)
+    pose[:3, :3] = np.array([[1.0, 0, 0], [0, -1, 0], [0, 0, -1]])  # x right, y down, z into
+    pose[:3, 3] = [x, 0.0, 1.5]
+    K = np.array([[size, 0, (size - 1) / 2], [0, size, (size - 1) / 2], [0, 0, 1.0]])
+    rgb = np.full((size, size, 3), 0.5, np.float32)
+    d = np.full((size, size), depth, np.float32)
+    return ViewData(rgb, rgb.mean(2), K, pose, d, d, K)
+
+
+def test_a_floor_that_other_views_see_furniture_in_front_of_is_not_filled():
+    # the view reads nothing (a blank floor, or a blank sofa on it); a neighbour reads a
+    # surface 0.5 m above the floor there (the sofa's top): the floor would be hidden
+    floor = Plane(np.array([0.0, 0, 1]), 0.0, "floor", np.full(3, -5.0), np.full(3, 5.0), 1000)
+    view = _down_view(0.0, 0.0)
+    seg = np.arange(16).repeat(64).reshape(32, 32)  # 16 strips of 2 rows
+    for nb_depth, hidden in ((1.0, True), (1.5, False)):  # the sofa's top; the floor itself
+        nbrs = [_down_view(0.3, nb_depth)]
+        cost = {
+            w: data_costs(view, seg, [floor], nbrs, PlanesConfig(w_hidden=w), None)[0]
+            for w in (0.0, PlanesConfig().w_hidden)
+        }
+        none = cost[0.0][:, 1]
+        assert np.all(cost[0.0][:, 0] < none - 0.4)  # without the term: the floor wins
+        # with it the floor loses where the neighbour saw the sofa (the strips it sees)
+        seen = cost[PlanesConfig().w_hidden][:, 0] > none + 0.4
+        assert seen.sum() >= (8 if hidden else 0) and (hidden or not seen.any())

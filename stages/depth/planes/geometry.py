@@ -56,7 +56,8 @@ def plane_valid(
 ) -> np.ndarray:
     """[P, N] True where plane p's point along ray n is a possible surface: in front of the
     camera, not below the floor nor above the ceiling, within `margin` of its inliers' box
-    (margin: one for all, or (floor, wall and ceiling; top and front))."""
+    and of its inliers' cells where it has them (margin: one for all, or (floor, wall and
+    ceiling; top and front))."""
     ok = t > 0
     m2 = margin if isinstance(margin, tuple) else (margin, margin)
     floor = next((p for p in planes if p.kind == FLOOR_NAME), None)
@@ -65,6 +66,8 @@ def plane_valid(
         x = centre + t[k][:, None] * r  # [N, 3]
         m = m2[1] if p.kind in ("top", "front") else m2[0]
         inside = np.all((x >= p.lo - m) & (x <= p.hi + m), axis=1)
+        if p.cells is not None:  # and within `m` of the cells its inliers fill
+            inside[inside] = p.cells.near(x[inside], m)
         height = x @ up - base  # above the floor plane
         z_ok = height >= -FLOOR_TOL
         if ceiling is not None:

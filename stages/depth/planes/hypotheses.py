@@ -6,8 +6,11 @@ per voxel; each of the three room axes (up, and the two wall directions, both
 re-estimated from the points' normals: the align stage's may be a few degrees off) gets a
 histogram of the points' offsets along it, whose smoothed peaks are planes (Furukawa et
 al., "Manhattan-world stereo", 2009). Each peak is refitted on its inliers within ±`band`
-and ±`max_tilt_deg`, and spans the box of its inliers. The floor (the lowest horizontal
-plane within FLOOR_SEARCH of z = 0, else z = 0 itself) is always a hypothesis.
+and ±`max_tilt_deg`, and spans the box of its inliers; with `support_cell` a top also
+keeps the cells of its plane its inliers fill (`Cells`): a table top's inliers and a
+cushion's across the room share a height, and their box spans the room between them. The
+floor (the lowest horizontal plane within FLOOR_SEARCH of z = 0, else z = 0 itself) is
+always a hypothesis.
 """
 
 from __future__ import annotations
@@ -15,7 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import gaussian_filter1d
+from scipy.ndimage import binary_dilation, gaussian_filter1d
 from scipy.signal import find_peaks
 
 from stages.common.camera import pixel_grid, unproject
@@ -28,6 +31,47 @@ FLOOR_SEARCH = 0.3  # metres: the floor is sought this far either side of z = 0
 
 
 @dataclass(frozen=True)
+class Cells:
+    """Where on its plane a plane has inliers: square cells of side `size` in the plane's
+    own coordinates (u, v) = (X . axes[0], X . axes[1]), `occupied[i, j]` for the cell at
+    origin + (i, j) * size."""
+
+    axes: np.ndarray  # [2, 3] unit, orthogonal to the plane's normal and to each other
+    origin: np.ndarray  # [2] (u, v) of cell (0, 0)'s corner
+    size: float  # metres
+    occupied: np.ndarray  # [nu, nv] bool
+
+    @classmethod
+    def of(cls, normal: np.ndarray, points: np.ndarray, size: float, min_points: int) -> Cells:
+        """The cells of the plane through `points` (its inliers) holding >= min_points."""
+        n = np.asarray(normal, np.float64)
+        ref = np.array([0.0, 0.0, 1.0]) if abs(n[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+        a = ref - (ref @ n) * n
+        a /= np.linalg.norm(a)
+        axes = np.stack([a, np.cross(n, a)])
+        uv = np.asarray(points, np.float64) @ axes.T
+        origin = uv.min(0) if len(uv) else np.zeros(2)
+        ij = np.floor((uv - origin) / size).astype(np.int64)
+        shape = tuple(ij.max(0) + 1) if len(ij) else (1, 1)
+        count = np.zeros(shape, np.int64)
+        np.add.at(count, (ij[:, 0], ij[:, 1]), 1)
+        return cls(axes, origin, float(size), count >= min_points)
+
+    def near(self, x: np.ndarray, margin: float) -> np.ndarray:
+        """[N] whether points x [N, 3] (on or near the plane) lie within `margin` (metres,
+        in the plane, to the nearest cell's centre, less half a cell) of an occupied cell."""
+        reach = int(np.ceil(margin / self.size))
+        r = np.arange(-reach, reach + 1)
+        disk = (r[:, None] ** 2 + r[None] ** 2) * self.size**2 <= (margin + 0.5 * self.size) ** 2
+        grown = binary_dilation(np.pad(self.occupied, reach), disk) if reach else self.occupied
+        ij = np.floor((x @ self.axes.T - self.origin) / self.size).astype(np.int64) + reach
+        ok = (ij >= 0).all(1) & (ij[:, 0] < grown.shape[0]) & (ij[:, 1] < grown.shape[1])
+        out = np.zeros(len(x), bool)
+        out[ok] = grown[ij[ok, 0], ij[ok, 1]]
+        return out
+
+
+@dataclass(frozen=True)
 class Plane:
     """n . X = d in the world (unit n), with its kind and the box of its inliers."""
 
@@ -37,14 +81,17 @@ class Plane:
     lo: np.ndarray  # [3] inliers' box, world metres
     hi: np.ndarray  # [3]
     support: int  # inlier voxels
+    cells: Cells | None = None  # where its inliers lie (None: anywhere in the box)
 
     def to_json(self) -> dict:
+        occupied = None if self.cells is None else int(self.cells.occupied.sum())
         return {
             "kind": self.kind,
             "normal": [round(float(v), 4) for v in self.normal],
             "offset": round(float(self.offset), 4),
             "support": int(self.support),
             "box": [[round(float(v), 3) for v in self.lo], [round(float(v), 3) for v in self.hi]],
+            "cells": occupied,  # occupied support cells (None: the box alone)
         }
 
 
@@ -136,7 +183,11 @@ def find_planes(points: np.ndarray, normals: np.ndarray, cfg: PlanesConfig) -> l
         votes = ~known | (np.abs(nrm @ a) >= cfg.normal_cos)
         for n, d, idx in _axis_planes(pts, votes, a, cfg):
             inl = pts[idx]
-            found.append((n, d, len(idx), np.percentile(inl, 2, 0), np.percentile(inl, 98, 0)))
+            box = (np.percentile(inl, 2, 0), np.percentile(inl, 98, 0))
+            cells = None
+            if cfg.support_cell > 0:
+                cells = Cells.of(n, inl, cfg.support_cell, cfg.cell_points)
+            found.append((n, d, len(idx), *box, cells))
     # the floor: the lowest horizontal plane within FLOOR_SEARCH of z = 0 (the align stage's
     # floor can sit a few cm off where stereo read little of a plain floor)
     floor = [f for f in found if f[0][2] > 0.97 and abs(f[1]) <= FLOOR_SEARCH]
@@ -149,11 +200,11 @@ def find_planes(points: np.ndarray, normals: np.ndarray, cfg: PlanesConfig) -> l
         else (np.zeros(3), np.zeros(3))
     )
     if best is None:  # the align stage put the floor at z = 0
-        best = (axes[0], 0.0, 0, box[0], box[1])
+        best = (axes[0], 0.0, 0, box[0], box[1], None)
     else:
         lo, hi = np.minimum(best[3], box[0]), np.maximum(best[4], box[1])
         lo[2], hi[2] = best[3][2], best[4][2]
-        best = (best[0], best[1], best[2], lo, hi)
+        best = (best[0], best[1], best[2], lo, hi, None)
     rest.sort(key=lambda f: -f[2])
     bounds = _bounding_walls(pts, axes, rest, box, cfg) if cfg.bounding_walls else []
     chosen = [best, *bounds, *rest[: cfg.max_planes - 1 - len(bounds)]]
@@ -173,7 +224,7 @@ def _bounding_walls(pts: np.ndarray, axes: list, found: list, box: tuple, cfg: P
             d = float(np.percentile(off, q))
             if any(abs(f[0] @ a) > 0.99 and abs(f[1] * (f[0] @ a) - d) < 0.1 for f in found):
                 continue
-            out.append((a * sign, d * sign, 0, box[0].copy(), box[1].copy()))
+            out.append((a * sign, d * sign, 0, box[0].copy(), box[1].copy(), None))
     return out
 
 
@@ -244,7 +295,7 @@ def _kinds(found: list) -> list[Plane]:
         if di >= max(offs) or di <= min(offs) or found[i][4][2] > 1.8:
             walls.add(i)
     planes = []
-    for i, (n, d, sup, lo, hi) in enumerate(found):
+    for i, (n, d, sup, lo, hi, cells) in enumerate(found):
         if i == 0:
             kind = FLOOR_NAME
         elif i == ceiling:
@@ -253,5 +304,10 @@ def _kinds(found: list) -> list[Plane]:
             kind = "top"
         else:
             kind = WALL_NAME if i in walls else "front"
-        planes.append(Plane(np.asarray(n, np.float64), float(d), kind, lo, hi, int(sup)))
+        # the cells bound a top only: a floor, wall or ceiling spans its box (plain paint
+        # between its inlier patches is still the wall), and so does a front (a wall with a
+        # farther one beyond it is a front: limited to its cells, the office's plainer wall
+        # went to a wrong plane, fills within 5 cm 69.8 -> 56.3 %)
+        keep = cells if kind == "top" else None
+        planes.append(Plane(np.asarray(n, np.float64), float(d), kind, lo, hi, int(sup), keep))
     return planes

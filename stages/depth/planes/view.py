@@ -5,7 +5,8 @@ cost sums (each a share of the superpixel, times its area over the mean area):
 - disagreement with the view's own readings (robust, twice for a reading *beyond* the
   plane: the plane would hide a surface the view saw);
 - free space: the share of other views' readings that lie beyond the plane's points (they
-  look through it);
+  look through it); and, weighted apart, the share that lie nearer (they see something in
+  front of it: a plane continued under furniture);
 - photo-consistency: 1 - ZNCC of the whole superpixel against the neighbours' images warped
   by the plane's homography (best half), times the superpixel's texture (a blank region
   casts no photometric vote);
@@ -109,7 +110,8 @@ def data_costs(
     off_planes = has & ~fits.any(0) if n_p else has
     cost[:, n_p] = cfg.none_cost * (1 - (onehot @ off_planes.astype(np.float64)) / area)
     if n_p:
-        cost[:, :n_p] += cfg.w_free * _free_space(r, c, t, ok, seg, planes, nbrs, cfg)
+        through, hidden = _free_space(r, c, t, ok, seg, planes, nbrs, cfg)
+        cost[:, :n_p] += cfg.w_free * through + cfg.w_hidden * hidden
         cost[:, :n_p] += cfg.w_photo * _photo(v, t, ok, onehot, area, planes, nbrs, cfg)
     if n_p and hists is not None and cfg.w_colour > 0:
         mean_rgb = (onehot @ v.rgb.reshape(-1, 3).astype(np.float64)) / area[:, None]
@@ -127,15 +129,18 @@ def _free_space(
     nbrs: list[ViewData],
     cfg: PlanesConfig,
     stride: int = 3,
-) -> np.ndarray:
-    """[S, P]: per superpixel the share of neighbour readings that see through the plane
-    (readings farther than the plane's point by more than tol), on a strided pixel sample."""
+) -> tuple[np.ndarray, np.ndarray]:
+    """([S, P], [S, P]): per superpixel the share of neighbour readings that see through the
+    plane (readings farther than the plane's point by more than tol), and the share that
+    hide it (nearer by more than tol: the floor under a sofa, which every view sees the sofa
+    in front of), on a strided pixel sample."""
     h, w = seg.shape
     grid = np.arange(stride // 2, h, stride)[:, None] * w + np.arange(stride // 2, w, stride)
     idx = grid.reshape(-1)
     sid = seg.reshape(-1)[idx]
     s_n = int(seg.max()) + 1
     through = np.zeros((s_n, len(planes)))
+    hidden = np.zeros((s_n, len(planes)))
     seen = np.zeros((s_n, len(planes)))
     for k in range(len(planes)):
         good = ok[k, idx]
@@ -159,7 +164,9 @@ def _free_space(
             thr = obs & (dj > z * (1 + cfg.tol))
             seen[:, k] += np.bincount(sk[obs], minlength=s_n)
             through[:, k] += np.bincount(sk[thr], minlength=s_n)
-    return through / np.maximum(seen, 3.0)
+            hid = obs & (dj < z * (1 - cfg.tol))
+            hidden[:, k] += np.bincount(sk[hid], minlength=s_n)
+    return through / np.maximum(seen, 3.0), hidden / np.maximum(seen, 3.0)
 
 
 def _photo(
