@@ -32,7 +32,9 @@ def _tensor(a: np.ndarray) -> o3d.core.Tensor:
 
 def scene_of(verts: np.ndarray, tris: np.ndarray) -> o3d.t.geometry.RaycastingScene:
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(_tensor(verts.astype(np.float32)), _tensor(tris.astype(np.uint32)))
+    scene.add_triangles(
+        _tensor(verts.astype(np.float32, copy=False)), _tensor(tris.astype(np.uint32, copy=False))
+    )
     return scene
 
 
@@ -43,10 +45,17 @@ def _runs(flag: np.ndarray) -> list[tuple[int, int]]:
 
 
 def mesh_openings(
-    walls: list[dict], verts: np.ndarray, tris: np.ndarray, cfg: LayoutConfig
+    walls: list[dict],
+    verts: np.ndarray | None,
+    tris: np.ndarray | None,
+    cfg: LayoutConfig,
+    scene: o3d.t.geometry.RaycastingScene | None = None,
 ) -> list[dict]:
-    """plan.json openings of `walls` (world metres) found in the mesh."""
-    scene = scene_of(verts, tris)
+    """plan.json openings of `walls` (world metres) found in the mesh: `scene`, the caller's
+    scene of it (one scene for the stage: each holds its own copy of the mesh and its BVH),
+    else one made of `verts` and `tris`."""
+    if scene is None:
+        scene = scene_of(verts, tris)
     out = []
     for wi, w in enumerate(walls):
         a, b, t = np.asarray(w["start"]), np.asarray(w["end"]), float(w["thickness"])
