@@ -75,12 +75,14 @@ def _binary_ply(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
             return None
         vdt = np.dtype([(p, "<" + t) for p, t in vprops])
         v = np.fromfile(f, vdt, nv)
+        if len(v) != nv:
+            return None
+        verts = np.stack([v["x"], v["y"], v["z"]], 1).astype(np.float32)
+        del v  # the vertex records (normals, colours) go before the faces are read
         fdt = np.dtype([("n", "<" + count_t), ("i", "<" + index_t, (3,))])
         faces = np.fromfile(f, fdt, nf)
-    if len(v) != nv or len(faces) != nf or (nf and (faces["n"] != 3).any()):
+    if len(faces) != nf or (nf and (faces["n"] != 3).any()):
         return None  # short, or faces other than triangles: the general reader's
-    verts = np.stack([v["x"], v["y"], v["z"]], 1).astype(np.float32)
-    del v
     tris = faces["i"].astype(np.uint32)
     if nf and (tris.max() >= nv or (faces["i"] < 0).any()):
         raise ValueError(f"a face indexes a vertex beyond the {nv} there are")
