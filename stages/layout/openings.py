@@ -24,6 +24,7 @@ FACE = 0.01  # metres: a surface this close to the face's depth is the face
 MAX_BEVEL = 0.12  # metres: how far a door's edge moves from where the gap closes
 AROUND = 16  # horizontal rays cast round a point to tell whether the walls enclose it
 ENCLOSED = 0.75  # share of them that must meet a surface from its front
+AROUND_BATCH = 4096  # points whose AROUND rays are cast at once (memory, not results)
 
 
 def _tensor(a: np.ndarray) -> o3d.core.Tensor:
@@ -162,11 +163,19 @@ def _around(
     AROUND], and the rays' directions [AROUND, 3]."""
     a = np.arange(AROUND) * 2 * np.pi / AROUND
     dirs = np.stack([np.cos(a), np.sin(a), np.zeros(AROUND)], 1)
-    o = np.concatenate([xy, np.full((len(xy), 1), z)], 1)
-    rays = np.concatenate([np.repeat(o, AROUND, 0), np.tile(dirs, (len(xy), 1))], 1)
-    hit = scene.cast_rays(_tensor(rays.astype(np.float32)))
-    t = hit["t_hit"].numpy().reshape(-1, AROUND)
-    facing = (hit["primitive_normals"].numpy().reshape(-1, AROUND, 3) * dirs).sum(-1) < 0
+    t = np.empty((len(xy), AROUND), np.float32)
+    facing = np.empty((len(xy), AROUND), bool)
+    # a batch of points at a time: a home's unseen floor is 10^5 points, 16 rays each, and a
+    # cast's rays and hits (normals, ids, uvs) are ~100 bytes a ray
+    for i in range(0, len(xy), AROUND_BATCH):
+        p = xy[i : i + AROUND_BATCH]
+        o = np.concatenate([p, np.full((len(p), 1), z)], 1)
+        rays = np.concatenate([np.repeat(o, AROUND, 0), np.tile(dirs, (len(p), 1))], 1)
+        hit = scene.cast_rays(_tensor(rays.astype(np.float32)))
+        t[i : i + len(p)] = hit["t_hit"].numpy().reshape(-1, AROUND)
+        normals = hit["primitive_normals"].numpy().reshape(-1, AROUND, 3)
+        facing[i : i + len(p)] = (normals * dirs).sum(-1) < 0
+        del hit, rays, normals
     return t, facing, dirs
 
 
