@@ -24,6 +24,7 @@ FACE = 0.01  # metres: a surface this close to the face's depth is the face
 MAX_BEVEL = 0.12  # metres: how far a door's edge moves from where the gap closes
 AROUND = 16  # horizontal rays cast round a point to tell whether the walls enclose it
 ENCLOSED = 0.75  # share of them that must meet a surface from its front
+AROUND_BATCH = 4096  # points whose AROUND rays are cast at once (memory, not results)
 
 
 def _tensor(a: np.ndarray) -> o3d.core.Tensor:
@@ -32,7 +33,9 @@ def _tensor(a: np.ndarray) -> o3d.core.Tensor:
 
 def scene_of(verts: np.ndarray, tris: np.ndarray) -> o3d.t.geometry.RaycastingScene:
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(_tensor(verts.astype(np.float32)), _tensor(tris.astype(np.uint32)))
+    scene.add_triangles(
+        _tensor(verts.astype(np.float32, copy=False)), _tensor(tris.astype(np.uint32, copy=False))
+    )
     return scene
 
 
@@ -43,10 +46,17 @@ def _runs(flag: np.ndarray) -> list[tuple[int, int]]:
 
 
 def mesh_openings(
-    walls: list[dict], verts: np.ndarray, tris: np.ndarray, cfg: LayoutConfig
+    walls: list[dict],
+    verts: np.ndarray | None,
+    tris: np.ndarray | None,
+    cfg: LayoutConfig,
+    scene: o3d.t.geometry.RaycastingScene | None = None,
 ) -> list[dict]:
-    """plan.json openings of `walls` (world metres) found in the mesh."""
-    scene = scene_of(verts, tris)
+    """plan.json openings of `walls` (world metres) found in the mesh: `scene`, the caller's
+    scene of it (one scene for the stage: each holds its own copy of the mesh and its BVH),
+    else one made of `verts` and `tris`."""
+    if scene is None:
+        scene = scene_of(verts, tris)
     out = []
     for wi, w in enumerate(walls):
         a, b, t = np.asarray(w["start"]), np.asarray(w["end"]), float(w["thickness"])
@@ -153,11 +163,19 @@ def _around(
     AROUND], and the rays' directions [AROUND, 3]."""
     a = np.arange(AROUND) * 2 * np.pi / AROUND
     dirs = np.stack([np.cos(a), np.sin(a), np.zeros(AROUND)], 1)
-    o = np.concatenate([xy, np.full((len(xy), 1), z)], 1)
-    rays = np.concatenate([np.repeat(o, AROUND, 0), np.tile(dirs, (len(xy), 1))], 1)
-    hit = scene.cast_rays(_tensor(rays.astype(np.float32)))
-    t = hit["t_hit"].numpy().reshape(-1, AROUND)
-    facing = (hit["primitive_normals"].numpy().reshape(-1, AROUND, 3) * dirs).sum(-1) < 0
+    t = np.empty((len(xy), AROUND), np.float32)
+    facing = np.empty((len(xy), AROUND), bool)
+    # a batch of points at a time: a home's unseen floor is 10^5 points, 16 rays each, and a
+    # cast's rays and hits (normals, ids, uvs) are ~100 bytes a ray
+    for i in range(0, len(xy), AROUND_BATCH):
+        p = xy[i : i + AROUND_BATCH]
+        o = np.concatenate([p, np.full((len(p), 1), z)], 1)
+        rays = np.concatenate([np.repeat(o, AROUND, 0), np.tile(dirs, (len(p), 1))], 1)
+        hit = scene.cast_rays(_tensor(rays.astype(np.float32)))
+        t[i : i + len(p)] = hit["t_hit"].numpy().reshape(-1, AROUND)
+        normals = hit["primitive_normals"].numpy().reshape(-1, AROUND, 3)
+        facing[i : i + len(p)] = (normals * dirs).sum(-1) < 0
+        del hit, rays, normals
     return t, facing, dirs
 
 

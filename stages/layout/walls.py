@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
-import trimesh
 from scipy import ndimage as ndi
 from shapely.errors import GEOSException
 from shapely.geometry import Polygon
@@ -18,12 +17,12 @@ from shapely.geometry import Polygon
 from stages.common.blueprint import Blueprint
 from stages.common.capture import UNKNOWN
 from stages.common.classes import FLOOR_NAME, WALL_NAME, ids_named
-from stages.common.errors import BlunfError
 from stages.common.io import write_json
 from stages.layout.config import LayoutConfig, LayoutInputs, LayoutOutputs
 from stages.layout.draw import write_dxf, write_svg
 from stages.layout.extract import Line, intersect
 from stages.layout.furniture import filled_notches
+from stages.layout.meshfile import read_mesh
 from stages.layout.openings import (
     FACE_HEIGHTS,
     FACE_SUPPORT,
@@ -46,16 +45,8 @@ WALL_NEAR = 3  # cells: a surface met this close to the plan's wall cells is a w
 def build_plan(bp: Blueprint, cfg: LayoutConfig, mesh: Path | None = None) -> dict:
     """plan.json's content: rooms, walls, openings and objects of the blueprint. With a mesh:
     object heights, and the openings read off the mesh (openings.py) rather than the plan."""
-    verts = tris = None
-    if mesh is not None:
-        try:
-            m = trimesh.load(mesh, process=False, force="mesh")
-            verts = np.asarray(m.vertices, np.float64)  # type: ignore[attr-defined]
-            tris = np.asarray(m.faces, np.int64)  # type: ignore[attr-defined]
-        except (OSError, ValueError, AttributeError) as e:
-            raise BlunfError(f"{mesh}: cannot read the mesh ({e})") from None
-    if verts is not None and tris is not None and len(tris):
-        scene = scene_of(verts, tris)
+    scene = None if mesh is None else _scene(mesh)
+    if scene is not None:
         plan = architecture(seen_floor(bp, scene), cfg)
         plan = moved_to_faces(plan, face_offsets(scene, plan["walls"]), cfg, bp.grid.cell)
         fid = ids_named(bp.classes, FLOOR_NAME)
@@ -63,7 +54,7 @@ def build_plan(bp: Blueprint, cfg: LayoutConfig, mesh: Path | None = None) -> di
         ceil = ceiling(scene, floor[:: max(1, len(floor) // 50)])
         plan = filled_notches(plan, scene, ceil)
         plan["openings"] = _in_walls(
-            _distinct(mesh_openings(plan["walls"], verts, tris, cfg)), plan["walls"]
+            _distinct(mesh_openings(plan["walls"], None, None, cfg, scene)), plan["walls"]
         )
         plan["walls"] = seen_thickness(scene, plan["walls"], cfg)
         plan["objects"] = objects(
@@ -79,6 +70,13 @@ def build_plan(bp: Blueprint, cfg: LayoutConfig, mesh: Path | None = None) -> di
         plan["objects"], plan["rooms"], 2 * bp.grid.cell
     )
     return join_rooms(split_seen(plan))
+
+
+def _scene(mesh: Path) -> o3d.t.geometry.RaycastingScene | None:
+    """One ray-casting scene of the mesh for the whole stage (None: a mesh without faces).
+    The mesh is read as float32 vertices and uint32 triangles only (meshfile.py)."""
+    verts, tris = read_mesh(mesh)
+    return scene_of(verts, tris) if len(tris) else None
 
 
 def object_heights(

@@ -1,0 +1,89 @@
+"""The layout's mesh read lean: float32 vertices and uint32 triangles straight from a binary
+PLY (the fusion stage's mesh.ply), without the float64 vertices, normals, colours and parse
+buffers a general loader holds (on a 3-room home's 1.26 M-triangle mesh: 334 MB resident
+that the process keeps). Other files go through trimesh."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from stages.common.errors import BlunfError
+
+_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
+    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}  # fmt: skip
+
+
+def read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices float32 [V, 3], triangles uint32 [T, 3]) of the mesh file at `path`."""
+    try:
+        lean = _binary_ply(Path(path))
+        if lean is not None:
+            return lean
+        m = trimesh.load(path, process=False, force="mesh")
+        return (
+            np.asarray(m.vertices, np.float32),  # type: ignore[attr-defined]
+            np.asarray(m.faces, np.uint32).reshape(-1, 3),  # type: ignore[attr-defined]
+        )
+    except (OSError, ValueError, AttributeError, KeyError) as e:
+        raise BlunfError(f"{path}: cannot read the mesh ({e})") from None
+
+
+def _binary_ply(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """The arrays of a little-endian binary PLY of a vertex element (x, y, z among scalar
+    properties) then a face element of one list property, every face a triangle; None for
+    any other file (read elsewhere)."""
+    with open(path, "rb") as f:
+        if f.readline().strip() != b"ply":
+            return None
+        elements: list[list] = []  # [name, count, [(prop, type or (count type, index type))]]
+        fmt = None
+        while True:
+            line = f.readline()
+            if not line:
+                return None
+            w = line.decode("ascii", "replace").split()
+            if not w or w[0] in ("comment", "obj_info"):
+                continue
+            if w[0] == "end_header":
+                break
+            if w[0] == "format":
+                fmt = w[1]
+            elif w[0] == "element":
+                elements.append([w[1], int(w[2]), []])
+            elif w[0] == "property" and elements:
+                if w[1] == "list":
+                    elements[-1][2].append((w[4], (_TYPES.get(w[2]), _TYPES.get(w[3]))))
+                else:
+                    elements[-1][2].append((w[2], _TYPES.get(w[1])))
+        if fmt != "binary_little_endian" or [e[0] for e in elements] != ["vertex", "face"]:
+            return None
+        (_, nv, vprops), (_, nf, fprops) = elements
+        if any(not isinstance(t, str) for _, t in vprops) or len(fprops) != 1:
+            return None
+        names = [p for p, _ in vprops]
+        if not {"x", "y", "z"} <= set(names):
+            return None
+        count_t, index_t = fprops[0][1]
+        if count_t is None or index_t is None:
+            return None
+        vdt = np.dtype([(p, "<" + t) for p, t in vprops])
+        v = np.fromfile(f, vdt, nv)
+        if len(v) != nv:
+            return None
+        verts = np.stack([v["x"], v["y"], v["z"]], 1).astype(np.float32)
+        del v  # the vertex records (normals, colours) go before the faces are read
+        fdt = np.dtype([("n", "<" + count_t), ("i", "<" + index_t, (3,))])
+        faces = np.fromfile(f, fdt, nf)
+    if len(faces) != nf or (nf and (faces["n"] != 3).any()):
+        return None  # short, or faces other than triangles: the general reader's
+    tris = faces["i"].astype(np.uint32)
+    if nf and (tris.max() >= nv or (faces["i"] < 0).any()):
+        raise ValueError(f"a face indexes a vertex beyond the {nv} there are")
+    return verts, tris
