@@ -78,9 +78,14 @@ def _stage_file(run: Path, stage: str, name: str) -> Path:
 
 
 def sensor_views(ref_run: Path) -> tuple[Capture, dict[str, Path], dict[int, str]]:
-    """(the reference run's ingested capture: sensor depth paths; stem -> its semantics label
-    PNG; class id -> name) of a run made from sensor depth."""
-    cap = Capture.load(_stage_file(ref_run, "ingest", "frames.json"))
+    """(the reference run's sensor depth as its plan read it: the align stage's frames,
+    whose depth the poses stage moved into the colour camera when SfM estimated its
+    intrinsics (stages/poses/stated.py), else the ingested capture; stem -> its semantics
+    label PNG; class id -> name) of a run made from sensor depth. The ingested maps lie in
+    the depth camera's pixels: on the 7-Scenes kitchen (focal 585 px against the colour
+    camera's ~526) 10 % off the colour's at the image's edges."""
+    found = _report_stage_file(ref_run, "align", "frames.json")
+    cap = Capture.load(found or _stage_file(ref_run, "ingest", "frames.json"))
     sem = Capture.load(_stage_file(ref_run, "semantics", "frames.json"))
     labels = {f.stem: Path(f.label) for f in sem.frames if f.label is not None}
     return cap, labels, {int(k): v for k, v in sem.classes.items()}
@@ -186,21 +191,27 @@ def track_maps(run: Path) -> tuple[Capture, dict[str, Path]] | None:
     """(the capture the depth stage read, stem -> its SfM track depth map) of a photos-only
     run: the align stage's frames.json that report.json names (else the newest); None when
     there is none."""
+    found = _report_stage_file(run, "align", "frames.json")
+    if found is None:
+        return None
+    cap = Capture.load(found)
+    return cap, {f.stem: Path(f.depth) for f in cap.frames if f.depth is not None}
+
+
+def _report_stage_file(run: Path, stage: str, name: str) -> Path | None:
+    """run/stage/<key>/name of the key report.json names (else the newest), None when none."""
     run = Path(run)
     found = []
     report = run / "report.json"
     if report.is_file():
         for s in read_json(report).get("stages", []):
-            if s.get("name") == "align" and s.get("key"):
-                found.append(run / "align" / s["key"] / "frames.json")
+            if s.get("name") == stage and s.get("key"):
+                found.append(run / stage / s["key"] / name)
     found = [p for p in found if p.is_file()] or sorted(
-        (Path(p) for p in glob.glob(str(run / "align" / "*" / "frames.json"))),
+        (Path(p) for p in glob.glob(str(run / stage / "*" / name))),
         key=lambda p: p.stat().st_mtime,
     )
-    if not found:
-        return None
-    cap = Capture.load(found[-1])
-    return cap, {f.stem: Path(f.depth) for f in cap.frames if f.depth is not None}
+    return found[-1] if found else None
 
 
 def _bands(tally: dict, sel: np.ndarray, got: np.ndarray, ref: np.ndarray) -> None:

@@ -104,7 +104,16 @@ class PosesConfig:
     #                                working size either way
     full_size_max_side: int = 480  # ...read at most this long (never below the working size;
     #                                0 = up to max_image_size; docs/figures.md#poses-full-size)
-    self_calibrate: bool = False  # estimate intrinsics (unreliable indoors)
+    self_calibrate: bool | Literal["auto"] = "auto"  # true: estimate the intrinsics even when
+    #   stated (unreliable indoors); false: keep them as stated; "auto": keep them unless a
+    #   bundle adjustment with the focal free moves it by more than stated_focal_tolerance,
+    #   then estimate them (stated.py; photos whose intrinsics are a guess or EXIF are
+    #   always estimated)
+    stated_focal_tolerance: float = 0.03  # auto: relative focal change that counts as a
+    #   disagreement. The refined focal moves by <= 0.08 % on the demo room and the Replica
+    #   office (stated K exact), by -6 % on the 7-Scenes kitchen (the depth camera's K
+    #   stated for the colour images; the estimate is -10 %): 3 % is ~40 x the first,
+    #   half the second
     threads: int = 0  # CPU threads for extraction, matching and mapping; 0 = every core we may use
     min_registered_frac: float = 0.5  # fail when fewer than this fraction of the images register
     seed: int = 0  # random seed of pycolmap's RANSAC and mapper (same inputs -> same poses)
@@ -155,6 +164,15 @@ class PosesConfig:
             )
         if self.double_below < 0:
             raise BlunfError(f"poses.double_below: must be >= 0 px, got {self.double_below}")
+        if self.self_calibrate not in (True, False, "auto"):
+            raise BlunfError(
+                f"poses.self_calibrate: {self.self_calibrate!r} is not true, false or auto"
+            )
+        if not 0.0 < self.stated_focal_tolerance < 1.0:
+            raise BlunfError(
+                "poses.stated_focal_tolerance: must be in (0, 1), got "
+                f"{self.stated_focal_tolerance}"
+            )
         if self.threads < 0:
             raise BlunfError(f"poses.threads: must be >= 0, got {self.threads}")
 

@@ -23,7 +23,7 @@ from stages.common.capture import Capture, Frame
 from stages.common.errors import BlunfError
 from stages.common.io import image_size, write_depth_npy, write_json
 from stages.common.progress import progress
-from stages.poses import calib, fullsize, matching
+from stages.poses import calib, fullsize, matching, stated
 from stages.poses import models as models_detail
 from stages.poses.config import PosesConfig, PosesInputs, PosesOutputs
 from stages.poses.models import metric_scale, sparse_depth
@@ -61,7 +61,8 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
     sift_cfg = replace(cfg, max_image_size=side)
     facts: dict = {"impl": "sfm", "total": n, "threads": threads}
     guessed = calib.unknown(cap.frames)  # intrinsics not given: SfM estimates them
-    refine = cfg.self_calibrate or guessed
+    refine = cfg.self_calibrate is True or guessed
+    checked = None  # auto: the stated intrinsics against bundle adjustment (stated.py)
 
     clock = [(time.perf_counter(), time.process_time())]  # (wall, CPU of all threads)
     with _colmap_log_level():  # pycolmap extracts and matches in one call each: elapsed only
@@ -75,6 +76,14 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
             facts["match_pairs"] = m
         clock.append((time.perf_counter(), time.process_time()))
         recs = _map(cfg, db, img_dir, work / "models", threads, refine)
+        if cfg.self_calibrate == "auto" and not guessed and recs:
+            biggest = max(recs, key=lambda r: r.num_reg_images())
+            checked = stated.check(biggest, cfg.stated_focal_tolerance)
+            if checked["adopt"]:
+                log.warning("sfm: the stated focal does not fit the photos: estimating it")
+                stated.to_self_calibration(db, checked)
+                recs = _map(cfg, db, img_dir, work / "models-refined", threads, True)
+                refine = True
         clock.append((time.perf_counter(), time.process_time()))
     spans = list(zip(("extract", "match", "map"), clock[:-1], clock[1:], strict=True))
     facts["seconds"] = {k: b[0] - a[0] for k, a, b in spans}
@@ -112,8 +121,16 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
         facts["camera"]["estimated"] = [calib.intrinsics_of(rec.camera(c)).to_json() for c in cams]
     if guessed:
         facts["intrinsics"] = calib.report(rec, cap.frames, {i: ids[names[i]] for i in kept})
+    elif checked is not None:
+        first = rec.image(ids[names[kept[0]]]).camera_id
+        adopted = calib.intrinsics_of(rec.camera(first)) if refine else None
+        facts["intrinsics"] = stated.facts(cap.frames[kept[0]].intrinsics, checked, adopted)
+        log.info("sfm: intrinsics: %s", facts["intrinsics"]["reason"])
     else:
         facts["intrinsics"] = {"source": "self-calibrated" if refine else "given"}
+    if refine:  # the frames take the estimate, their sensor depth follows it
+        cap = _refined(cap, rec, [(i, ids[names[i]]) for i in kept], out / "depth")
+        facts["depth_registered"] = (out / "depth").is_dir()
 
     t4 = time.perf_counter()
     s, facts["scale_from"] = metric_scale(cfg, cap, rec, [ids[names[i]] for i in kept], kept)
@@ -131,9 +148,6 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
         w2c = np.eye(4)
         w2c[:3] = im.cam_from_world().matrix()  # [3, 4]
         f = replace(cap.frames[i], pose=np.linalg.inv(w2c))
-        if refine:
-            intr = calib.intrinsics_of(rec.camera(im.camera_id))
-            f = replace(f, intrinsics=intr, calib="self-calibrated")
         intr = f.intrinsics
         if f.depth is None:  # photos only: the tracks' depths are all the depth there is
             sparse.mkdir(exist_ok=True)
@@ -163,6 +177,25 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
         facts["scale_from"]["method"],
     )
     return outs
+
+
+def _refined(cap: Capture, rec: pycolmap.Reconstruction, kept: list, folder: Path) -> Capture:
+    """`cap` with each registered frame (kept: (capture index, image id)) taking SfM's
+    estimate of its camera, its sensor depth map resampled into that camera under `folder`
+    (stated.register_depth: a depth map shares its frame's intrinsics)."""
+    frames = list(cap.frames)
+    for i, iid in kept:
+        f = frames[i]
+        intr = calib.intrinsics_of(rec.camera(rec.image(iid).camera_id))
+        if f.depth is not None and intr != f.intrinsics:
+            folder.mkdir(exist_ok=True)
+            dst = folder / f"{f.stem}.npy"
+            stated.register_depth(
+                Path(f.depth), f.intrinsics, intr, dst, cap.depth_scale, cap.depth_invalid
+            )
+            f = replace(f, depth=dst)
+        frames[i] = replace(f, intrinsics=intr, calib="self-calibrated")
+    return cap.with_frames(tuple(frames))
 
 
 @contextlib.contextmanager
@@ -230,7 +263,7 @@ def _extract(
     if calib.unknown(frames):
         log.info("sfm: intrinsics not given: estimating them (%s)", SELF_CALIB_WARNING)
         return calib.extract(frames, names, db, img_dir, eo) | {"warning": SELF_CALIB_WARNING}
-    if cfg.self_calibrate:
+    if cfg.self_calibrate is True:
         log.warning("sfm: %s", SELF_CALIB_WARNING)
         sizes = {image_size(f.image) for f in frames}
         mode = pycolmap.CameraMode.SINGLE if len(sizes) == 1 else pycolmap.CameraMode.PER_IMAGE

@@ -134,3 +134,18 @@ def test_depth_metrics_ratio_bands_and_tracks(tmp_path):
     assert t["within_5cm"] == pytest.approx(50.0, abs=0.01)  # every track read; half off
     assert t["median_ratio"] >= 1.0
     assert sum(b["compared"] for b in t["bands"].values()) == t["compared"]
+
+
+def test_sensor_depth_is_read_as_the_reference_plan_read_it(tmp_path):
+    """The reference's sensor depth comes from its align stage's frames (the poses stage moves
+    it into the colour camera when SfM estimates that camera's intrinsics), not from the
+    ingested maps in the depth camera's pixels: ingest's maps here are planted 1 m off."""
+    photos, ref, want = _runs(tmp_path, True)
+    ing = Capture.load(ref / "ingest" / "k" / "frames.json")
+    far = []
+    for f in ing.frames:
+        np.save(tmp_path / f"{f.stem}-far.npy", (sensor_depth(ing, f.stem) + 1.0).astype("f4"))
+        far.append(replace(f, depth=tmp_path / f"{f.stem}-far.npy"))
+    ing.with_frames(tuple(far)).save(ref / "ingest" / "k" / "frames.json")
+    m = depth_metrics(photos, ref)
+    assert m["within_5cm"] == pytest.approx(100.0 * want["near"] / m["compared"], abs=0.01)
