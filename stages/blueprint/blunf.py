@@ -55,6 +55,11 @@ def run(cfg: BlueprintConfig, inputs: BlueprintInputs, out: Path) -> BlueprintOu
     row, col, inside = grid.cell_of(xyz[:, :2])
     if not inside.any():
         raise BlunfError(f"{inputs.points}: no point falls inside the plan grid {inputs.grid}")
+    n_free, pts_xy, pts_label = 0, xyz[:, :2], label  # the projected points alone
+    if c.free_floor and inputs.observed is not None:
+        xyz, label, row, col, inside, n_free = add_free_floor(
+            inputs.observed, grid, classes, xyz, label, row, col, inside
+        )
     class_ids, y = np.unique(label[inside], return_inverse=True)  # contiguous logits
     center, half = plan_frame(grid)
     uv = torch.from_numpy(normalise(xyz[inside, :2], center, half))  # [N, 2]
@@ -74,7 +79,7 @@ def run(cfg: BlueprintConfig, inputs: BlueprintInputs, out: Path) -> BlueprintOu
     if inputs.observed is not None:  # outside the room's extent the plan says nothing
         seen, room, labelled = read_observed(inputs.observed, grid.shape)
         labels[~labelled] = UNKNOWN
-    inst = instance_raster(labels, grid, xyz[:, :2], label, read_instances(inputs.points))
+    inst = instance_raster(labels, grid, pts_xy, pts_label, read_instances(inputs.points))
     outs = BlueprintOutputs(blueprint=Path(out) / "blueprint.npz", stats=Path(out) / "train.json")
     bp = Blueprint(labels, grid, classes, inst, seen, room)
     bp.save(outs.blueprint)
@@ -94,6 +99,7 @@ def run(cfg: BlueprintConfig, inputs: BlueprintInputs, out: Path) -> BlueprintOu
         {
             "points": int(inside.sum()),
             "points_outside_grid": int((~inside).sum()),
+            "free_floor_cells": n_free,
             "shrink_cells": shrink,
             "observed": bp.shares(),
             "shrunk_cells": shrunk,
@@ -119,6 +125,57 @@ def run(cfg: BlueprintConfig, inputs: BlueprintInputs, out: Path) -> BlueprintOu
         stats["train_accuracy"],
     )
     return outs
+
+
+def add_free_floor(
+    observed: Path,
+    grid: Grid,
+    classes: dict[int, str],
+    xyz: np.ndarray,
+    label: np.ndarray,
+    row: np.ndarray,
+    col: np.ndarray,
+    inside: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """The points with one floor point added at the centre of every plan cell a view looked
+    through (observed.npz "free") that holds no point: (xyz, label, row, col, inside, added).
+
+    Round the cameras' path no view sees the floor (it lies below the frame), yet every ray
+    to the far surfaces crossed it: nothing stands there. Without these samples the field
+    fills those empty cells from the nearest points, the wall faces along the path.
+    """
+    floor = ids_named(classes, FLOOR_NAME)
+    try:
+        with np.load(observed, allow_pickle=False) as z:
+            free = z["free"] > 0 if "free" in z.files else None
+    except (OSError, ValueError) as e:
+        raise BlunfError(f"{observed}: not an observed.npz ({e})") from None
+    if free is None or not floor or free.shape != tuple(grid.shape):
+        return xyz, label, row, col, inside, 0
+    occ = np.zeros(grid.shape, bool)
+    occ[row[inside], col[inside]] = True
+    obj = np.zeros(grid.shape, bool)  # cells holding a point of an object (not structure)
+    o = inside & ~np.isin(label, ids_named(classes, *STRUCTURE))
+    obj[row[o], col[o]] = True
+    # a ray over an object's unseen top crosses its footprint too: no floor where the nearest
+    # occupied cell holds an object
+    _, (nr, nc) = ndimage.distance_transform_edt(~occ, return_indices=True)
+    far = ~obj[nr, nc]
+    r, cc = np.nonzero(free & ~occ & far)
+    if len(r) == 0:
+        return xyz, label, row, col, inside, 0
+    h = grid.shape[0]
+    x = grid.origin[0] + (cc + 0.5) * grid.cell
+    y = grid.origin[1] + (h - 1 - r + 0.5) * grid.cell
+    add = np.stack([x, y, np.zeros_like(x)], 1)
+    return (
+        np.concatenate([xyz, add]),
+        np.concatenate([label, np.full(len(r), floor[0], label.dtype)]),
+        np.concatenate([row, r]),
+        np.concatenate([col, cc]),
+        np.concatenate([inside, np.ones(len(r), bool)]),
+        len(r),
+    )
 
 
 def shrink_objects(
