@@ -50,6 +50,19 @@ def _quad(corners: list, inward: tuple) -> tuple[np.ndarray, np.ndarray]:
     return v, f
 
 
+def subdivided(
+    parts: list[tuple[np.ndarray, np.ndarray]], edge: float = EDGE
+) -> tuple[np.ndarray, np.ndarray]:
+    """One mesh of the parts (vertices, triangles), each subdivided to `edge`."""
+    verts, tris, n = [], [], 0
+    for v, f in parts:
+        v, f = trimesh.remesh.subdivide_to_size(v, f, max_edge=edge)
+        verts.append(v)
+        tris.append(f + n)
+        n += len(v)
+    return np.concatenate(verts), np.concatenate(tris)
+
+
 def exact_room() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """vertices [V, 3], triangles [T, 3], expected class [T] and part index [T] (0 floor,
     1 ceiling, 2-5 walls, 6.. the boxes). Surfaces face the free space, as the TSDF's do."""
@@ -431,13 +444,7 @@ def test_a_wall_is_the_outermost_surface_not_the_blinds_before_it():
         _quad([(0.25, Y - 0.3, 0.2), (3.75, Y - 0.3, 0.2), (3.75, Y - 0.3, 2.2),
                (0.25, Y - 0.3, 2.2)], (0, -1, 0)),
     ]  # fmt: skip
-    verts, tris, n = [], [], 0
-    for v, f in parts:
-        v, f = trimesh.remesh.subdivide_to_size(v, f, max_edge=EDGE)
-        verts.append(v)
-        tris.append(f + n)
-        n += len(v)
-    verts, tris = np.concatenate(verts), np.concatenate(tris)
+    verts, tris = subdivided(parts)
     c, _, _ = triangles(verts, tris)
     blinds = np.abs(c[:, 1] - (Y - 0.3)) < 1e-6
     walls = {}
@@ -469,13 +476,7 @@ def test_the_stand_of_a_board_before_a_wall_hangs_with_it():
         _quad([(0, Y, 0), (X, Y, 0), (X, Y, Z), (0, Y, Z)], (0, -1, 0)),
         _quad([(1.0, yb, 0.7), (2.8, yb, 0.7), (2.8, yb, 1.9), (1.0, yb, 1.9)], (0, -1, 0)),
     ]
-    verts, tris, n = [], [], 0
-    for v, f in parts:
-        v, f = trimesh.remesh.subdivide_to_size(v, f, max_edge=EDGE)
-        verts.append(v)
-        tris.append(f + n)
-        n += len(v)
-    verts, tris = np.concatenate(verts), np.concatenate(tris)
+    verts, tris = subdivided(parts)
     c, _, _ = triangles(verts, tris)
     legs = (c[:, 2] > 0.05) & (c[:, 2] < 0.69) & (np.abs(c[:, 1] - yb) < 0.04)
     box = (c[:, 2] > 0.05) & (c[:, 1] < 1.01)
@@ -502,13 +503,7 @@ def test_a_plant_resting_on_its_stand_is_an_object_a_cabinet_above_a_counter_is_
     parts = [(np.asarray(b.vertices), np.asarray(b.faces)) for b in parts]
     parts.append(_quad([(0, 0, 0), (X, 0, 0), (X, Y, 0), (0, Y, 0)], (0, 0, 1)))
     parts.append(_quad([(0, Y, 0), (X, Y, 0), (X, Y, Z), (0, Y, Z)], (0, -1, 0)))
-    verts, tris, n = [], [], 0
-    for v, f in parts:
-        v, f = trimesh.remesh.subdivide_to_size(v, f, max_edge=EDGE)
-        verts.append(v)
-        tris.append(f + n)
-        n += len(v)
-    verts, tris = np.concatenate(verts), np.concatenate(tris)
+    verts, tris = subdivided(parts)
     c, _, _ = triangles(verts, tris)
 
     def inside(b: tuple) -> np.ndarray:  # its faces off the floor and the wall

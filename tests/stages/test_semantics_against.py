@@ -10,7 +10,7 @@ import trimesh
 from stages.common.classes import OBJECT, WALL
 from stages.semantics import SemanticsConfig
 from stages.semantics.segment import segment, triangles
-from tests.stages.test_semantics import EDGE, X, Y, Z, _quad
+from tests.stages.test_semantics import EDGE, X, Y, Z, _quad, subdivided
 
 
 def test_the_top_of_a_sofa_against_a_wall_is_the_sofa():
@@ -22,13 +22,7 @@ def test_the_top_of_a_sofa_against_a_wall_is_the_sofa():
         _quad([(0, 0, 0), (X, 0, 0), (X, Y, 0), (0, Y, 0)], (0, 0, 1)),
         _quad([(0, Y, 0), (X, Y, 0), (X, Y, Z), (0, Y, Z)], (0, -1, 0)),
     ]
-    verts, tris, k = [], [], 0
-    for v, f in parts:
-        v, f = trimesh.remesh.subdivide_to_size(v, f, max_edge=EDGE / 2)
-        verts.append(v)
-        tris.append(f + k)
-        k += len(v)
-    verts, tris = np.concatenate(verts), np.concatenate(tris)
+    verts, tris = subdivided(parts, EDGE / 2)
     c, n, _ = triangles(verts, tris)
     top = (np.abs(c[:, 2] - 0.8) < 1e-6) & (n[:, 2] > 0.9)
     strip = top & (c[:, 1] > Y - 0.03)  # the top's triangles within plane_dist of the wall

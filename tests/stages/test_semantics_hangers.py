@@ -10,7 +10,7 @@ from stages.common.capture import UNKNOWN
 from stages.common.classes import OBJECT, WALL
 from stages.semantics import SemanticsConfig
 from stages.semantics.segment import segment, triangles
-from tests.stages.test_semantics import EDGE, X, Y, Z, _quad
+from tests.stages.test_semantics import X, Y, Z, _quad, subdivided
 
 YB = Y - 0.3  # the board's plane
 
@@ -28,13 +28,7 @@ def _board_room(extra: list[trimesh.Trimesh]) -> tuple[np.ndarray, np.ndarray]:
         _quad([(0, Y, 0), (X, Y, 0), (X, Y, Z), (0, Y, Z)], (0, -1, 0)),
         _quad([(1.0, YB, 0.7), (2.8, YB, 0.7), (2.8, YB, 1.9), (1.0, YB, 1.9)], (0, -1, 0)),
     ]
-    verts, tris, n = [], [], 0
-    for v, f in parts:
-        v, f = trimesh.remesh.subdivide_to_size(v, f, max_edge=EDGE)
-        verts.append(v)
-        tris.append(f + n)
-        n += len(v)
-    return np.concatenate(verts), np.concatenate(tris)
+    return subdivided(parts)
 
 
 def test_the_stand_behind_a_board_hangs_with_it():
@@ -82,13 +76,7 @@ def test_blinds_close_before_a_wall_close_it_a_board_does_not():
             _quad([(1.0, yb, 0.3), (3.0, yb, 0.3), (3.0, yb, 2.3), (1.0, yb, 2.3)],
                   (0, -1, 0)),
         ]  # fmt: skip
-        verts, tris, k = [], [], 0
-        for v, f in parts:
-            v, f = trimesh.remesh.subdivide_to_size(v, f, max_edge=EDGE)
-            verts.append(v)
-            tris.append(f + k)
-            k += len(v)
-        verts, tris = np.concatenate(verts), np.concatenate(tris)
+        verts, tris = subdivided(parts)
         c, _, _ = triangles(verts, tris)
         hanging = np.abs(c[:, 1] - yb) < 1e-6
         seg = segment(verts, tris, SemanticsConfig())
