@@ -177,13 +177,20 @@ def _open_corner_room(seen: bool) -> Blueprint:
     """A 4 x 3 m room with walls on its west and north sides only; the views saw its floor
     but for a rounded corner in the south-east (an ellipse's quarter, 1.8 x 1.5 m, round
     (4, 0)): unknown there, as beyond the open east and south sides."""
-    grid = Grid.covering(np.array([-0.3, -0.3]), np.array([4.3, 3.3]), 0.02)
+    return _room_unseen_in_part(4, 3, box(-0.12, 0, 4, 3.12), (4, 0, 1.8, 1.5), seen)
+
+
+def _room_unseen_in_part(w: float, h: float, walls: Polygon, hole: tuple, seen: bool) -> Blueprint:
+    """A w x h m room's floor seen but inside the ellipse hole = (cx, cy, rx, ry), its walls
+    the band of `walls` outside the room; unknown elsewhere."""
+    grid = Grid.covering(np.array([-0.3, -0.3]), np.array([w + 0.3, h + 0.3]), 0.02)
     c = grid.centers()
     x, y = c[..., 0], c[..., 1]
     labels = np.full(grid.shape, UNKNOWN, np.uint8)
-    corner = ((x - 4) / 1.8) ** 2 + (y / 1.5) ** 2 < 1
-    labels[contains_xy(box(0, 0, 4, 3), x, y) & ~corner] = 0
-    labels[contains_xy(box(-0.12, 0, 4, 3.12).difference(box(0, 0, 4, 3)), x, y)] = 1
+    cx, cy, rx, ry = hole
+    unseen = ((x - cx) / rx) ** 2 + ((y - cy) / ry) ** 2 < 1
+    labels[contains_xy(box(0, 0, w, h), x, y) & ~unseen] = 0
+    labels[contains_xy(walls.difference(box(0, 0, w, h)), x, y)] = 1
     lab = (labels != UNKNOWN).astype(np.uint8)
     return Blueprint(labels, grid, {0: "floor", 1: "wall"}, None, lab if seen else None, lab)
 
@@ -300,15 +307,7 @@ def _open_side_with_a_gap(seen: bool) -> Blueprint:
     """A 5 x 4 m room with walls on its west, north and east sides; the views stopped at its
     open south side (y = 0) but for a rounded bay in its middle (half an ellipse round (2.5,
     0), 2.4 m wide and 1.2 m deep), where they saw no floor (unknown, as beyond the side)."""
-    grid = Grid.covering(np.array([-0.3, -0.3]), np.array([5.3, 4.3]), 0.02)
-    c = grid.centers()
-    x, y = c[..., 0], c[..., 1]
-    labels = np.full(grid.shape, UNKNOWN, np.uint8)
-    bay = ((x - 2.5) / 1.2) ** 2 + (y / 1.2) ** 2 < 1
-    labels[contains_xy(box(0, 0, 5, 4), x, y) & ~bay] = 0
-    labels[contains_xy(box(-0.12, 0, 5.12, 4.12).difference(box(0, 0, 5, 4)), x, y)] = 1
-    lab = (labels != UNKNOWN).astype(np.uint8)
-    return Blueprint(labels, grid, {0: "floor", 1: "wall"}, None, lab if seen else None, lab)
+    return _room_unseen_in_part(5, 4, box(-0.12, 0, 5.12, 4.12), (2.5, 0, 1.2, 1.2), seen)
 
 
 def test_a_recess_in_the_middle_of_an_open_side_is_kept_in_the_outline():
