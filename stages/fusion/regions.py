@@ -30,6 +30,7 @@ import open3d.core as o3c
 
 from stages.common.errors import BlunfError
 from stages.common.o3d import CPU, o3d_tensor
+from stages.common.rows import unique_rows
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +52,7 @@ def fuse(
     canonical) and facts (blocks held in all, regions, the largest grid's blocks, Open3D's
     integration seconds, extraction seconds).
     """
-    blocks = np.unique(np.concatenate([bc.numpy() for _, bc in frames]), axis=0)
+    blocks = unique_rows(np.concatenate([bc.numpy() for _, bc in frames]))[0]
     boxes = split(blocks, budget)
     mesh_parts, cloud_parts = [], []
     t_o3d = t_extract = 0.0

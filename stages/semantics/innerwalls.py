@@ -38,6 +38,7 @@ from __future__ import annotations
 import numpy as np
 
 from stages.common.classes import WALL_NAME
+from stages.common.rows import unique_rows
 from stages.semantics.pointwalls import COVER_CELL, PointWallOptions
 
 ABOVE_FLOOR = 0.1  # metres: readings this close to the floor are floor, not a wall's
@@ -212,7 +213,7 @@ def _stretch(
         return None
     lo_u, hi_u = np.percentile(u[k], [5, 95])
     lo_z, hi_z = np.percentile(q[k, 2], [5, 95])
-    cells = np.unique(np.floor(np.stack([u[k], q[k, 2]], 1) / COVER_CELL), axis=0)
+    cells = unique_rows(np.floor(np.stack([u[k], q[k, 2]], 1) / COVER_CELL).astype(np.int64))[0]
     if (
         hi_u - lo_u < (stub or opt.min_length)
         or hi_z - lo_z < opt.min_height

@@ -163,7 +163,8 @@ def _outermost(
             continue
         lo_u, hi_u = np.percentile(u[on], [5, 95])
         lo_z, hi_z = np.percentile(p[on, 2], [5, 95])
-        cells = np.unique(np.floor(np.stack([u[on], p[on, 2]], 1) / COVER_CELL), axis=0)
+        uz = np.floor(np.stack([u[on], p[on, 2]], 1) / COVER_CELL).astype(np.int64)
+        cells = unique_rows(uz)[0]
         beyond = (s > s0 + opt.dist) & (u >= lo_u) & (u <= hi_u)
         if (
             hi_u - lo_u >= opt.min_length
