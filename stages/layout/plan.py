@@ -37,7 +37,7 @@ from stages.layout.extract import (
     outline,
 )
 from stages.layout.rooms import cut_openings, disjoint, seen_pieces, split
-from stages.layout.unseen import notched, recessed
+from stages.layout.unseen import filled_between, notched, recessed
 
 SEEN_NEAR = 0.1  # metres: a face is seen where a seen wall cell lies this close to its band
 SEEN_SHARE = 0.5  # a wall is seen (not inferred) when this share of its face is
@@ -168,13 +168,14 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
         poly = outline(mask, fr, cfg)
         if poly is None:
             continue
+        poly = filled_between(poly, fr, others, wall)
         if bp.seen is not None:  # corners closed over space no view saw follow what they saw
 
             def seen_edge(a: np.ndarray, b: np.ndarray) -> bool:
                 along = _seen_along(fr, seen_face, a, b, _thickness(fr, closed, a, b, cfg))
                 return len(along) > 0 and along.mean() >= SEEN_SHARE
 
-            poly = recessed(notched(poly, mask, fr, seen_edge), mask, fr, seen_edge)
+            poly = recessed(notched(poly, mask, fr, seen_edge, others), mask, fr, seen_edge)
         if cfg.face_offset > 0:
             grown = Polygon(poly).buffer(cfg.face_offset * cell, join_style="mitre", mitre_limit=10)
             # kept as traced where the offset would change the outline's corners

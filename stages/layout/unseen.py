@@ -2,31 +2,51 @@
 convex corner between two unseen edges is cut back to the room's cells, and so is a recess in
 the middle of an unseen edge (the shortest Manhattan outline round the seen floor on the plan
 grid, as in Cabral & Furukawa, CVPR 2014, where it runs over unseen space; along seen walls
-the traced outline stays)."""
+the traced outline stays). Unseen space between two rooms of one home is not cut: beyond it
+lies the other room, so it belongs to one of them (the room stays a rectangle there)."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
 
 import numpy as np
+from shapely import contains_xy
+from shapely.geometry import Polygon, box
+from shapely.geometry.polygon import orient
 
+from stages.common.capture import UNKNOWN
 from stages.layout.extract import Frame
 
 NOTCH_MIN = 0.5  # metres: the least side of a corner cut off an outline over unseen space
 NOTCH_EMPTY = 0.9  # share of a cut-off corner that must lie outside the room's cells
+NEIGHBOUR_REACH = 0.5  # metres: another room this close beyond a cut's edge keeps the cut
+#                       (an inner wall's band and its ragged faces; the 3-room home's are
+#                       0.12 m, its photos' faces up to 0.2 m apart)
+NEIGHBOUR_SHARE = 0.5  # share of a cut's edge that must face another room within the reach
+BETWEEN_UNSEEN = 0.5  # least share of unseen cells in a step filled between two rooms (the
+#                      3-room home from photos: 0.72 and 0.90 in its two steps)
+BETWEEN_WALL = 0.15  # most share of wall cells there (0.04 and 0.09): no wall runs through it
 RECESS_MIN = 1.0  # metres: the least width of a recess in an open side (0.84 m on the 3-room
 #                  home from photos was floor the photos' mesh missed, not the room's edge)
 
 
 def notched(
-    poly: np.ndarray, mask: np.ndarray, fr: Frame, seen: Callable[[np.ndarray, np.ndarray], bool]
+    poly: np.ndarray,
+    mask: np.ndarray,
+    fr: Frame,
+    seen: Callable[[np.ndarray, np.ndarray], bool],
+    others: np.ndarray | None = None,
 ) -> np.ndarray:
     """The outline poly (frame xy, counter-clockwise, edges along the frame's axes) with each
     convex corner between two edges no view saw as a surface (`seen`(a, b) false for both)
     cut back to the room's cells (`mask`, the frame's grid): the largest rectangle at the
     corner, at least NOTCH_MIN on each side and at most 90 % of either edge, with at least
     NOTCH_EMPTY of it outside the mask, is cut off: three corners for one. An outline closed
-    over open sides is a Manhattan polygon round what the views saw, not the box of it."""
+    over open sides is a Manhattan polygon round what the views saw, not the box of it.
+
+    A corner whose cut would face another room's cells (`others`, the frame's grid) across
+    either of its two edges, within NEIGHBOUR_REACH along NEIGHBOUR_SHARE of the edge, stays:
+    the unseen space lies inside the home, between two rooms, not beyond an open side."""
     cell = fr.grid.cell
     flags = [seen(poly[i], poly[(i + 1) % len(poly)]) for i in range(len(poly))]
     least = int(np.ceil(NOTCH_MIN / cell))
@@ -59,6 +79,11 @@ def notched(
             continue
         h, w = np.unravel_index(np.argmax(np.where(good, size, 0)), size.shape)
         h, w = (h + 1) * cell, (w + 1) * cell
+        if others is not None and (
+            _faces(others, fr, c, v, h, -u) or _faces(others, fr, c, u, w, -v)
+        ):
+            i += 1
+            continue
         step = [c + h * v, c + h * v + w * u, c + w * u]
         poly = (
             np.concatenate([poly[:i], step, poly[i + 1 :]]) if i else np.array([*step, *poly[1:]])
@@ -66,6 +91,64 @@ def notched(
         flags = flags[:i] + [False, False] + flags[i:]
         i += 3
     return poly
+
+
+def filled_between(poly: np.ndarray, fr: Frame, others: np.ndarray, wall: np.ndarray) -> np.ndarray:
+    """The outline poly (frame xy, counter-clockwise, edges along the frame's axes) with each
+    step cut out of its bounding box filled where the step is space no view saw between this
+    room and another: at least NOTCH_MIN on each side, at least BETWEEN_UNSEEN of its cells
+    unknown, at most BETWEEN_WALL wall, none of another room's (`others`), and facing another
+    room across one of its sides on the box's edge (within NEIGHBOUR_REACH). Inside a home
+    the floor by an unseen inner wall is the room's, up to the line of its seen walls; beyond
+    an open side of the home (nothing faces it) the outline keeps what the views saw."""
+    if others is None or not others.any():
+        return poly
+    cell = fr.grid.cell
+    room = Polygon(poly)
+    bx0, by0, bx1, by1 = room.bounds
+    missing = box(bx0, by0, bx1, by1).difference(room)
+    filled = room
+    for g in getattr(missing, "geoms", [missing]):
+        x0, y0, x1, y1 = g.bounds
+        if g.is_empty or min(x1 - x0, y1 - y0) < NOTCH_MIN:
+            continue
+        xy = fr.grid.centers()
+        inside = contains_xy(g, xy[..., 0], xy[..., 1])
+        n = int(inside.sum())
+        if n == 0 or others[inside].any():
+            continue
+        if (fr.labels[inside] == UNKNOWN).mean() < BETWEEN_UNSEEN or wall[
+            inside
+        ].mean() > BETWEEN_WALL:
+            continue
+        e = cell / 2  # the sides of the step on the box's edge, each with its outward normal
+        sides = [
+            (np.array([x0, y0]), np.array([0.0, 1.0]), y1 - y0, np.array([-1.0, 0.0]), x0 - bx0),
+            (np.array([x1, y0]), np.array([0.0, 1.0]), y1 - y0, np.array([1.0, 0.0]), bx1 - x1),
+            (np.array([x0, y0]), np.array([1.0, 0.0]), x1 - x0, np.array([0.0, -1.0]), y0 - by0),
+            (np.array([x0, y1]), np.array([1.0, 0.0]), x1 - x0, np.array([0.0, 1.0]), by1 - y1),
+        ]
+        if any(gap < e and _faces(others, fr, a, u, n_, out) for a, u, n_, out, gap in sides):
+            filled = filled.union(g)
+    if filled is room or filled.geom_type != "Polygon":
+        return poly
+    out = orient(filled.simplify(0.0), 1.0)
+    return np.asarray(out.exterior.coords)[:-1]
+
+
+def _faces(
+    others: np.ndarray, fr: Frame, a: np.ndarray, along: np.ndarray, length: float, out: np.ndarray
+) -> bool:
+    """Whether the edge from a, `length` along the unit vector `along`, has another room's
+    cells (`others`) within NEIGHBOUR_REACH beyond it (the unit vector `out`) along at least
+    NEIGHBOUR_SHARE of its steps."""
+    cell = fr.grid.cell
+    t = (np.arange(max(1, int(length / cell))) + 0.5) * cell
+    s = (np.arange(max(1, int(NEIGHBOUR_REACH / cell))) + 0.5) * cell
+    pts = a + t[None, :, None] * along + s[:, None, None] * out  # [S, T, 2]
+    row, col, ok = fr.grid.cell_of(pts.reshape(-1, 2))
+    hit = (others[row, col] & ok).reshape(len(s), len(t))
+    return bool(hit.any(0).mean() >= NEIGHBOUR_SHARE)
 
 
 def _largest_run(depth: np.ndarray, least: int) -> tuple[int, int, int]:

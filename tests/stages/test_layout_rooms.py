@@ -356,3 +356,36 @@ def test_a_passage_wider_than_a_door_at_a_corner_of_a_partition_splits_the_rooms
     assert s["passages_found"] == s["passages_total"] == 1, (s, plan["openings"])
     assert plan["openings"][0]["rooms"] == [0, 1]
     assert plan["openings"][0]["width"] == pytest.approx(width, abs=0.05)
+
+
+def _home_unseen_between(unseen: Polygon, walled: bool) -> tuple[Blueprint, dict, list]:
+    """Three rooms as the 3-room procedural home lays them out (a tall west room, two east
+    rooms one above the other), joined by a door, a passage and a door at the east end of
+    the partition between the east rooms; no view saw the cells in `unseen` (the west end of
+    that partition and the floor on both sides of it). `walled`: the whole west half of the
+    home is walled off from the east by a closed wall (no room lies beyond the unseen)."""
+    a, b, c = box(0, 0, 3.5, 7), box(3.5 + T, 0, 7.5, 3.3), box(3.5 + T, 3.3 + T, 7.5, 7)
+    gaps = [box(3.4, 1.0, 3.7, 1.9), box(3.4, 4.8, 3.7, 6.5), box(6.4, 3.2, 7.3, 3.5)]
+    rooms = [b, c] if walled else [a, b, c]
+    bp = _raster(rooms, T, [] if walled else gaps, 0.0)
+    xy = bp.grid.centers()
+    labels = bp.labels.copy()
+    labels[contains_xy(unseen, xy[..., 0], xy[..., 1])] = UNKNOWN
+    seen = (labels != UNKNOWN).astype(np.uint8)
+    return Blueprint(labels, bp.grid, bp.classes, None, seen, seen), rooms, gaps
+
+
+def test_unseen_floor_between_two_rooms_stays_in_the_rooms():
+    # the west 1.9 m of the partition between the east rooms and 1 m of floor on each side
+    # unseen: each east room is still a rectangle up to its seen walls' lines (the space lies
+    # between rooms of the home, not beyond an open side). Before: both were notched there,
+    # six and eight corners.
+    unseen = box(3.5 + T, 2.3, 5.5, 4.4)
+    plan = build_plan(_home_unseen_between(unseen, walled=False)[0], GT_PLAN)
+    rooms = [box(0, 0, 3.5, 7), box(3.5 + T, 0, 7.5, 3.3), box(3.5 + T, 3.3 + T, 7.5, 7)]
+    s = score_layout(plan, {"rooms": [{"polygon": r.exterior.coords[:-1]} for r in rooms]})
+    assert len(plan["rooms"]) == 3 and all(len(r["polygon"]) == 4 for r in plan["rooms"])
+    assert s["room_f1"] == 1.0 and s["corner_f1"] == 1.0, s
+    # the same unseen corner with no room beyond it: an open side, cut back to what was seen
+    alone = build_plan(_home_unseen_between(unseen, walled=True)[0], GT_PLAN)
+    assert sorted(len(r["polygon"]) for r in alone["rooms"]) == [6, 6], alone["rooms"]
