@@ -17,6 +17,9 @@ How each figure is measured (per stage, per view count):
 - added MB: that peak less the resident size as the stage started (recorded by the child
   process). What earlier stages left resident (imports, a heap that is not handed back) is in
   the peak but not in what the stage added; the slope of memory is fitted to the latter.
+  A stage that hands the heap's free pages back before it takes memory from outside the
+  heap (the layout, for its ray-casting scene: stages/layout/meshfile.py) can peak at its
+  start and add little though it holds more; the stage after it adds what it takes back.
 Slopes: least-squares slope of log(figure) against log(views) over the view counts from the
 second smallest up (60, 120, 240, 480: from 120 to 480; two counts: between them). A figure
 below FLOOR somewhere in that range has no slope (noise, not a cost).

@@ -1,10 +1,25 @@
-"""The layout's mesh read lean: float32 vertices and uint32 triangles straight from a binary
-PLY (the fusion stage's mesh.ply), without the float64 vertices, normals, colours and parse
-buffers a general loader holds (on a 3-room home's 1.26 M-triangle mesh: 334 MB resident
-that the process keeps). Other files go through trimesh."""
+"""The layout's mesh in memory.
+
+`read_mesh`: float32 vertices and uint32 triangles straight from a binary PLY (the fusion
+stage's mesh.ply), without the float64 vertices, normals, colours and parse buffers a general
+loader holds (on a 3-room home's 1.26 M-triangle mesh: 334 MB resident that the process
+keeps). Other files go through trimesh. Open3D's own tensor reader
+(`o3d.t.io.read_triangle_mesh`, whose mesh `RaycastingScene.add_triangles` takes whole) is
+not as lean: on the 5-room home's 2.9 M-triangle mesh (240 views) it peaks 254 MB over the
+process while reading against 123 MB here, keeps 119 MB against 59 MB (float32 normals and
+colours, int64 triangles), and read then cast into one scene peaks 377 MB against 341 MB.
+
+`heap_returned`: the heap's free pages handed back to the system before the scene is built.
+The runtime keeps what earlier stages freed in the heap (glibc's trim threshold raised, so
+that a stage reuses it without the kernel zeroing fresh pages), but Embree's scene and BVH do
+not come from that heap: they were added on top of it. On the 5-room home (240 views, sensor
+depth) the process held 1165 MB as the layout started, 556 MB once the free pages went back;
+reading its 2.9 M-triangle mesh and building the scene takes 352 MB (the stage alone on
+that run's inputs: 169 MB on the 3-room home, 90 MB on the demo room)."""
 
 from __future__ import annotations
 
+import ctypes
 from pathlib import Path
 
 import numpy as np
@@ -87,3 +102,12 @@ def _binary_ply(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
     if nf and (tris.max() >= nv or (faces["i"] < 0).any()):
         raise ValueError(f"a face indexes a vertex beyond the {nv} there are")
     return verts, tris
+
+
+def heap_returned() -> None:
+    """Hand the heap's free pages back to the system (glibc's malloc_trim; nothing where the
+    C library has no such call)."""
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass

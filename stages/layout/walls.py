@@ -22,7 +22,7 @@ from stages.layout.config import LayoutConfig, LayoutInputs, LayoutOutputs
 from stages.layout.draw import write_dxf, write_svg
 from stages.layout.extract import Line, intersect
 from stages.layout.furniture import filled_notches
-from stages.layout.meshfile import read_mesh
+from stages.layout.meshfile import heap_returned, read_mesh
 from stages.layout.openings import (
     FACE_HEIGHTS,
     FACE_SUPPORT,
@@ -74,7 +74,9 @@ def build_plan(bp: Blueprint, cfg: LayoutConfig, mesh: Path | None = None) -> di
 
 def _scene(mesh: Path) -> o3d.t.geometry.RaycastingScene | None:
     """One ray-casting scene of the mesh for the whole stage (None: a mesh without faces).
-    The mesh is read as float32 vertices and uint32 triangles only (meshfile.py)."""
+    The mesh is read as float32 vertices and uint32 triangles only, after the heap's free
+    pages went back to the system: the scene is not built from them (meshfile.py)."""
+    heap_returned()
     verts, tris = read_mesh(mesh)
     return scene_of(verts, tris) if len(tris) else None
 

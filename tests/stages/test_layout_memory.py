@@ -4,17 +4,19 @@ the stage's peak is the mesh's, not the plan's)."""
 
 from __future__ import annotations
 
+import sys
 import tracemalloc
 
 import numpy as np
 import open3d as o3d
+import pytest
 import trimesh
 from shapely import contains_xy
 from shapely.geometry import box
 
 from stages.common.blueprint import Blueprint, Grid
 from stages.common.capture import UNKNOWN
-from stages.layout import LayoutConfig, openings, walls
+from stages.layout import LayoutConfig, meshfile, openings, walls
 from stages.layout.meshfile import read_mesh
 from stages.layout.walls import build_plan
 
@@ -110,3 +112,32 @@ def test_rays_cast_round_many_points_are_cast_a_batch_at_a_time():
     assert not inside[(x < -0.01) | (x > 4.01) | (y < -0.01) | (y > 3.01)].any()
     # measured 10 MB batched; all the rays at once held 78 MB (50 000 points x 16 rays)
     assert peak < 25e6, peak
+
+
+def _resident_mb() -> float:
+    with open("/proc/self/status") as f:
+        return next(int(x.split()[1]) / 1024 for x in f if x.startswith("VmRSS:"))
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's heap, /proc")
+def test_the_heaps_free_pages_go_back_before_the_scene_is_built(tmp_path, monkeypatch):
+    # what earlier stages freed stays in the heap; Embree's scene does not come from it
+    blocks = [bytearray(b"x" * 65536) for _ in range(1600)]  # 100 MB of heap, touched
+    keep = bytearray(b"x" * 65536)  # over them: free() alone hands back only the heap's top
+    before = _resident_mb()
+    del blocks
+    freed = _resident_mb()
+    meshfile.heap_returned()
+    after = _resident_mb()
+    assert before - freed < 20, (before, freed)  # freed, still resident
+    assert freed - after > 80, (freed, after)  # handed back
+    del keep
+    # and the stage hands them back before it reads the mesh and builds its scene
+    verts, tris = _room(8)
+    _fused_ply(tmp_path / "mesh.ply", verts, tris)
+    order = []
+    monkeypatch.setattr(walls, "heap_returned", lambda: order.append("heap"))
+    read = walls.read_mesh
+    monkeypatch.setattr(walls, "read_mesh", lambda p: order.append("read") or read(p))
+    build_plan(_blueprint(), LayoutConfig(face_offset=0.0), tmp_path / "mesh.ply")
+    assert order == ["heap", "read"]
