@@ -27,6 +27,7 @@ from pipeline.publish import writing
 from pipeline.report import Report, StageRecord, peak_rss_mb, peak_rss_reset
 from pipeline.runtime import stage_threads
 from stages.common.errors import BlunfError
+from stages.common.heap import heap_returned
 from stages.common.io import read_json
 from stages.common.progress import StepProgress, listening
 from stages.common.progress import close_all as close_progress
@@ -118,6 +119,7 @@ class Runner:
             outputs_cls = typing.get_type_hints(fn)["return"]
             tmp = self.cache.temp(stage, key)
             try:  # a failing stage leaves nothing behind (a killed one is swept by the next run)
+                heap_returned()  # what earlier stages freed is not this stage's peak
                 peak_rss_reset()
                 t0, c0, u0 = time.perf_counter(), time.process_time(), _user_cpu()
                 listen = nullcontext() if self.on_event is None else listening(self.on_event)

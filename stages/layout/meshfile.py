@@ -9,17 +9,15 @@ not as lean: on the 5-room home's 2.9 M-triangle mesh (240 views) it peaks 254 M
 process while reading against 123 MB here, keeps 119 MB against 59 MB (float32 normals and
 colours, int64 triangles), and read then cast into one scene peaks 377 MB against 341 MB.
 
-`heap_returned`: the heap's free pages handed back to the system before the scene is built.
-The runtime keeps what earlier stages freed in the heap (glibc's trim threshold raised, so
-that a stage reuses it without the kernel zeroing fresh pages), but Embree's scene and BVH do
-not come from that heap: they were added on top of it. On the 5-room home (240 views, sensor
-depth) the process held 1165 MB as the layout started, 556 MB once the free pages went back;
-reading its 2.9 M-triangle mesh and building the scene takes 352 MB (the stage alone on
-that run's inputs: 169 MB on the 3-room home, 90 MB on the demo room)."""
+Before it is read, the heap's free pages go back to the system (stages/common/heap.py):
+Embree's scene and BVH do not come from the heap, and were added on top of what earlier
+stages freed. On the 5-room home (240 views, sensor depth) the process held 1165 MB as the
+layout started, 556 MB once the free pages went back; reading its 2.9 M-triangle mesh and
+building the scene takes 352 MB (the stage alone on that run's inputs: 169 MB on the 3-room
+home, 90 MB on the demo room)."""
 
 from __future__ import annotations
 
-import ctypes
 from pathlib import Path
 
 import numpy as np
@@ -102,12 +100,3 @@ def _binary_ply(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
     if nf and (tris.max() >= nv or (faces["i"] < 0).any()):
         raise ValueError(f"a face indexes a vertex beyond the {nv} there are")
     return verts, tris
-
-
-def heap_returned() -> None:
-    """Hand the heap's free pages back to the system (glibc's malloc_trim; nothing where the
-    C library has no such call)."""
-    try:
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):
-        pass

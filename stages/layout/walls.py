@@ -17,12 +17,13 @@ from shapely.geometry import Polygon
 from stages.common.blueprint import Blueprint
 from stages.common.capture import UNKNOWN
 from stages.common.classes import FLOOR_NAME, WALL_NAME, ids_named
+from stages.common.heap import heap_returned
 from stages.common.io import write_json
 from stages.layout.config import LayoutConfig, LayoutInputs, LayoutOutputs
 from stages.layout.draw import write_dxf, write_svg
 from stages.layout.extract import Line, intersect
 from stages.layout.furniture import filled_notches
-from stages.layout.meshfile import heap_returned, read_mesh
+from stages.layout.meshfile import read_mesh
 from stages.layout.openings import (
     FACE_HEIGHTS,
     FACE_SUPPORT,

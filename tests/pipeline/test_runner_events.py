@@ -77,3 +77,23 @@ def test_a_listener_follows_each_stage_and_its_progress(tmp_path) -> None:
         r.stage("fusion", "tsdf", FusionInputs(frames=tmp_path / "none.json"))
     ((stage, how, _),) = _stages(failed)
     assert (stage, how) == ("fusion", "failed") and "none.json" in failed[-1].error
+
+
+def test_the_heap_goes_back_before_each_stage_that_runs_and_before_its_peak(
+    tmp_path, monkeypatch
+) -> None:
+    # a stage's peak_rss_mb counts from a heap without what earlier stages freed; a cached
+    # or skipped stage costs no hand-back
+    import pipeline.runner as runner
+
+    calls: list[str] = []
+    monkeypatch.setattr(runner, "heap_returned", lambda: calls.append("heap"))
+    reset = runner.peak_rss_reset
+    monkeypatch.setattr(runner, "peak_rss_reset", lambda: calls.append("reset") or reset())
+    cap = small_room(tmp_path / "room")
+    r = _runner(tmp_path, [])
+    frames = r.stage("ingest", "auto", IngestInputs(capture=cap)).frames
+    r.step(Step("fusion", "tsdf", True, "asked for"), FusionInputs(frames=frames))
+    r.step(Step("nerf", "grid", False, "no edit spec"), None)
+    r.stage("ingest", "auto", IngestInputs(capture=cap))  # cached now
+    assert calls == ["heap", "reset"] * 2

@@ -14,9 +14,10 @@ import trimesh
 from shapely import contains_xy
 from shapely.geometry import box
 
+from stages.common import heap
 from stages.common.blueprint import Blueprint, Grid
 from stages.common.capture import UNKNOWN
-from stages.layout import LayoutConfig, meshfile, openings, walls
+from stages.layout import LayoutConfig, openings, walls
 from stages.layout.meshfile import read_mesh
 from stages.layout.walls import build_plan
 
@@ -127,7 +128,7 @@ def test_the_heaps_free_pages_go_back_before_the_scene_is_built(tmp_path, monkey
     before = _resident_mb()
     del blocks
     freed = _resident_mb()
-    meshfile.heap_returned()
+    heap.heap_returned()
     after = _resident_mb()
     assert before - freed < 20, (before, freed)  # freed, still resident
     assert freed - after > 80, (freed, after)  # handed back
