@@ -12,14 +12,12 @@ How each figure is measured (per stage, per view count):
 - user CPU-s: of that, the CPU outside the kernel (meta.json `cpu_user_seconds`). The rest
   is mostly the kernel zeroing fresh pages, which grows faster than the arrays once they
   pass glibc's mmap threshold (docs/scale.md): the work's own slope is the user one.
-- peak MB: the process's resident high-water mark while the stage ran (the runner resets the
-  kernel's mark, VmHWM, as each stage starts: report.json `peak_rss_mb`).
+- peak MB: the process's resident high-water mark while the stage ran (the runner hands the
+  heap's free pages back and resets the kernel's mark, VmHWM, as each stage starts:
+  report.json `peak_rss_mb`; stages/common/heap.py).
 - added MB: that peak less the resident size as the stage started (recorded by the child
-  process). What earlier stages left resident (imports, a heap that is not handed back) is in
-  the peak but not in what the stage added; the slope of memory is fitted to the latter.
-  A stage that hands the heap's free pages back before it takes memory from outside the
-  heap (the layout, for its ray-casting scene: stages/layout/meshfile.py) can peak at its
-  start and add little though it holds more; the stage after it adds what it takes back.
+  process). What earlier stages left resident (imports, arrays still held) is in the peak
+  but not in what the stage added; the slope of memory is fitted to the latter.
 Slopes: least-squares slope of log(figure) against log(views) over the view counts from the
 second smallest up (60, 120, 240, 480: from 120 to 480; two counts: between them). A figure
 below FLOOR somewhere in that range has no slope (noise, not a cost).
