@@ -25,6 +25,7 @@ def main(spec_path: str) -> int:
     from pipeline.config import load_config
     from pipeline.run import run
     from pipeline.runtime import setup_runtime
+    from stages.common.heap import heap_returned
     from stages.common.io import read_json, write_json
 
     spec = read_json(Path(spec_path))
@@ -40,6 +41,7 @@ def main(spec_path: str) -> int:
 
     def on_event(e: object) -> None:
         if getattr(e, "what", None) == "start":
+            heap_returned()  # as the runner does before the stage runs: its start, not before
             starts.append((e.stage, rss_mb()))  # type: ignore[attr-defined]
 
     t0, c0, k0 = time.perf_counter(), time.process_time(), os.times()
