@@ -116,8 +116,8 @@ def room_inside(near: np.ndarray, free: np.ndarray, close_cells: int) -> np.ndar
 # standing on it that reaches it (home3: no cabinet cell of 2 596, 45 % of the floor the
 # plan missed)
 PAST_SHARE = 0.5
-PAST_MARGIN = 0.05  # metres, plus PAST_SLACK of the distance: a reading this much farther
-PAST_SLACK = 0.02  # than the point is a view looking past it (depth noise stays "at it")
+PAST_MARGIN = 2.5  # cells (0.05 m at 2 cm), plus PAST_SLACK of the distance: a reading this
+PAST_SLACK = 0.02  # much farther than the point is a view looking past it (noise stays "at it")
 PAST_CHUNK = 1 << 18  # cells projected at once per view
 
 
@@ -132,8 +132,8 @@ def past_height(cams_z: np.ndarray) -> float:
 def looked_past(grid: Grid, cells: np.ndarray, views: Iterable, height: float) -> np.ndarray:
     """How many views looked past the point `height` metres above the centre of each cell of
     `cells` (bool [H, W]): the point lies in the view's frame, in front of the camera, and the
-    view's depth there reads farther than the point (by PAST_MARGIN + PAST_SLACK of its
-    distance). uint16 [H, W], 0 off `cells`.
+    view's depth there reads farther than the point (by PAST_MARGIN cells + PAST_SLACK of its
+    distance: in the world's units, as the grid). uint16 [H, W], 0 off `cells`.
 
     Round the cameras' own path the floor lies below every frame, yet views across the room
     look past the space above it; an object's inside is never looked past, whether or not a
@@ -153,6 +153,7 @@ def looked_past(grid: Grid, cells: np.ndarray, views: Iterable, height: float) -
     xy = grid.centers()[r, c]  # [K, 2]
     pts = np.concatenate([xy, np.full((len(r), 1), height)], 1)  # [K, 3]
     count = np.zeros(len(r), np.int64)
+    margin = PAST_MARGIN * grid.cell
     for intr, c2w, depth in views:
         h, w = depth.shape
         if (intr.width, intr.height) != (w, h):
@@ -161,14 +162,14 @@ def looked_past(grid: Grid, cells: np.ndarray, views: Iterable, height: float) -
         for a in range(0, len(r), PAST_CHUNK):
             pc = pts[a : a + PAST_CHUNK] @ w2c[:3, :3].T + w2c[:3, 3]  # [k, 3] camera frame
             z = pc[:, 2]
-            front = z > 1e-3
+            front = z > 0
             zs = np.where(front, z, 1.0)
             u, v = _distort(pc[:, 0] / zs, pc[:, 1] / zs, intr)
             ui, vi = np.rint(u), np.rint(v)
             ok = front & (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
             d = np.zeros(len(z))
             d[ok] = depth[vi[ok].astype(np.int64), ui[ok].astype(np.int64)]
-            count[a : a + PAST_CHUNK] += ok & (d > z * (1 + PAST_SLACK) + PAST_MARGIN)
+            count[a : a + PAST_CHUNK] += ok & (d > z * (1 + PAST_SLACK) + margin)
     out[r, c] = np.minimum(count, np.iinfo(np.uint16).max)
     return out
 
