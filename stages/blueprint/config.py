@@ -45,7 +45,9 @@ class BlunfConfig:
     # crossed by rays too but never looked past. 3-room sensor home fwIoU 81.24 -> 85.81
     # (wall IoU 59.7 -> 72.4, cabinet 56.2 -> 65.9); demo room from photos 84.18 -> 84.32, its
     # edit run 90.75 -> 91.73 (cabinet 58.9 -> 46.8: its inside, never crossed by a ray, is
-    # the field's guess); held-out pAcc kitchen 96.76 -> 96.79, office 94.80 -> 94.79
+    # the field's guess); held-out pAcc kitchen 96.76 -> 96.79, office 94.80 -> 94.79. Off in
+    # configs/phone.yaml: stereo's readings pass through walls (the home from photos 76.24 ->
+    # 75.54 with it, the demo room from photos 84.18 -> 84.32)
     free_floor: bool = True
     shrink: float = 0.0  # metres: object footprints (every class but floor, wall, ceiling)
     #                      shrunk by this where they meet the floor, in whole cells, after
