@@ -42,6 +42,7 @@ log = logging.getLogger(__name__)
 
 TRAIN_ACC_POINTS = 262_144  # points scored for the reported train accuracy
 LOW_ACCURACY = 80.0  # % of its training points a field fits under which it is flagged
+PAST_VIEWS = 2  # free_floor: views that looked past the space over an empty cell (one may err)
 
 
 def run(cfg: BlueprintConfig, inputs: BlueprintInputs, out: Path) -> BlueprintOutputs:
@@ -137,17 +138,22 @@ def add_free_floor(
     col: np.ndarray,
     inside: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
-    """The points with one floor point added at the centre of every plan cell a view looked
-    through (observed.npz "free") that holds no point: (xyz, label, row, col, inside, added).
+    """The points with one floor point added at the centre of every plan cell that holds no
+    point, a view looked through (observed.npz "free") and at least PAST_VIEWS views looked
+    past the space above ("past"): (xyz, label, row, col, inside, added).
 
-    Round the cameras' path no view sees the floor (it lies below the frame), yet every ray
-    to the far surfaces crossed it: nothing stands there. Without these samples the field
-    fills those empty cells from the nearest points, the wall faces along the path.
+    Round the cameras' path no view sees the floor (it lies below the frame), yet the rays to
+    the far surfaces crossed it and views across the room looked past the space above it:
+    nothing stands there. Without these samples the field fills those empty cells from the
+    nearest points, the wall faces along the path. An object whose top no view saw is crossed
+    by rays too, but no view looks past its inside: it keeps the field's guess. Without a
+    "past" layer (an older observed.npz) nothing is added.
     """
     floor = ids_named(classes, FLOOR_NAME)
     try:
         with np.load(observed, allow_pickle=False) as z:
-            free = z["free"] > 0 if "free" in z.files else None
+            have = "free" in z.files and "past" in z.files
+            free = (z["free"] > 0) & (z["past"] >= PAST_VIEWS) if have else None
     except (OSError, ValueError) as e:
         raise BlunfError(f"{observed}: not an observed.npz ({e})") from None
     if free is None or not floor or free.shape != tuple(grid.shape):

@@ -39,12 +39,16 @@ class BlunfConfig:
     outside: Literal["clamp", "field"] = "clamp"
     seed: int = 0  # seeds the initialisation and the batch sampling
     # train on floor at the plan cells a view looked through (observed.npz "free") that hold
-    # no point: the floor no view saw round the cameras' own path, which the field would
-    # otherwise fill from the nearest points (the wall faces beside the path). Off by default:
-    # on the 3-room sensor home fwIoU 81.2 -> 83.6 (wall IoU 59.7 -> 74.6), the demo room
-    # 90.75 -> 91.47, but cabinet IoU 56 -> 40 and 59 -> 32 (their unseen tops are crossed
-    # by rays too) and the office's held-out pAcc 94.80 -> 94.61
-    free_floor: bool = False
+    # no point and that views looked past half the cameras' height above ("past"): the floor
+    # no view saw round the cameras' own path, which the field would otherwise fill from the
+    # nearest points (the wall faces beside the path); an object whose top no view saw is
+    # crossed by rays too but never looked past. 3-room sensor home fwIoU 81.24 -> 85.81
+    # (wall IoU 59.7 -> 72.4, cabinet 56.2 -> 65.9); demo room from photos 84.18 -> 84.32, its
+    # edit run 90.75 -> 91.73 (cabinet 58.9 -> 46.8: its inside, never crossed by a ray, is
+    # the field's guess); held-out pAcc kitchen 96.76 -> 96.79, office 94.80 -> 94.79. Off in
+    # configs/phone.yaml: stereo's readings pass through walls (the home from photos 76.24 ->
+    # 75.54 with it, the demo room from photos 84.18 -> 84.32)
+    free_floor: bool = True
     shrink: float = 0.0  # metres: object footprints (every class but floor, wall, ceiling)
     #                      shrunk by this where they meet the floor, in whole cells, after
     #                      the field is read (blunf.shrink_objects): for depth that fattens

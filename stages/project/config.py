@@ -79,8 +79,8 @@ class ProjectOutputs:
 
     @property
     def observed(self) -> Path:
-        """observed.npz beside the points: near, free, inside, labelled uint8 [H, W] on the plan
-        grid (observed.py)."""
+        """observed.npz beside the points: near, free, inside, labelled uint8 [H, W] and past
+        uint16 [H, W] on the plan grid (observed.py)."""
         return self.points.parent / "observed.npz"
 
     @property

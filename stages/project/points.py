@@ -32,7 +32,7 @@ from stages.common.errors import BlunfError
 from stages.common.io import image_size, read_depth, read_label, save_npz, write_json
 from stages.common.points import str_keys, write_grid, write_points
 from stages.project.config import ProjectConfig, ProjectInputs, ProjectOutputs
-from stages.project.observed import observed, room_inside
+from stages.project.observed import looked_past, observed, past_height, room_inside
 from stages.project.topview import top_view_keep
 
 log = logging.getLogger(__name__)
@@ -105,17 +105,26 @@ def run(cfg: ProjectConfig, inputs: ProjectInputs, out: Path) -> ProjectOutputs:
     near, free, dist = observed(grid, world_xy, cams, view, cfg.seen_radius, cfg.ray_every)
     inside = room_inside(near, free, round(cfg.inside_close / grid.cell))
     labelled = inside & (dist <= max(cfg.fill_radius, cfg.seen_radius))
+    row, col, on = grid.cell_of(world_xy)
+    empty = free.copy()  # free cells that hold no point: floor no view saw, or an object's
+    empty[row[on], col[on]] = False  # inside; `past` tells them apart
+    height = past_height(np.array([np.asarray(cap.frames[i].pose)[2, 3] for i in todo]))
+    past = looked_past(grid, empty, _views(cap, todo), height)
     save_npz(
         outs.observed,
         near=near.astype(np.uint8),
         free=free.astype(np.uint8),
         inside=inside.astype(np.uint8),
         labelled=labelled.astype(np.uint8),
+        past=past,
     )
     counts["cells_near"] = int(near.sum())
     counts["cells_free"] = int((free & ~near).sum())
     counts["cells_inside"] = int(inside.sum())
     counts["cells_labelled"] = int(labelled.sum())
+    counts["cells_free_empty"] = int(empty.sum())
+    counts["cells_past"] = int((past > 0).sum())
+    counts["past_height"] = round(height, 3)
     write_points(outs.points, xyz, origin, label, view, instance, classes)
     write_grid(outs.grid, grid, lo, hi)
     write_json(outs.classes, {"classes": str_keys(classes), "labelling": labelling})
@@ -249,6 +258,15 @@ def _frame_points(
     if labelling == "height":
         return _height_labels(xyz, inst, cfg, counts, float(origin[2]))
     return xyz, lab, inst
+
+
+def _views(cap: Capture, todo: list[int]):
+    """(intrinsics, c2w, depth metres) of the frames `todo`, one at a time."""
+    for i in todo:
+        f = cap.frames[i]
+        assert f.depth is not None and f.pose is not None  # checked by _frame_points
+        depth = read_depth(f.depth, cap.depth_scale, cap.depth_invalid)
+        yield f.intrinsics, np.asarray(f.pose, np.float64), depth
 
 
 def _local_origin(cap: Capture) -> np.ndarray:

@@ -213,10 +213,12 @@ def test_objects_of_a_label_free_capture_stay_apart_in_the_blunf_plan(tiny_room,
     capture = tmp_path / "nolabels"
     shutil.copytree(tiny_room, capture, ignore=shutil.ignore_patterns("labels", "labels.json"))
     out = tmp_path / "run"
-    # the floor the views saw past the fused surface's rims (semantics.floor_fill.past) opens
+    # the floor the views saw past the fused surface's rims (semantics.floor_fill.past) and
+    # the floor the views looked past with no point on it (blueprint.blunf.free_floor) open
     # the gap between chair_4 and cabinet_1 in the class raster itself: off here, so that the
     # pair touches and the instance layer is what keeps it apart
-    r = _run(capture, out, "--set", "semantics.floor_fill.past=0")
+    off = ("--set", "semantics.floor_fill.past=0", "--set", "blueprint.blunf.free_floor=false")
+    r = _run(capture, out, *off)
     key = next(s["key"] for s in r["stages"] if s["impl"] == "blunf")
     bp = Blueprint.load(out / "blueprint" / key / "blueprint.npz")
     assert bp.instances is not None

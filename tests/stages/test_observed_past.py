@@ -1,0 +1,112 @@
+"""observed.looked_past and blueprint.blunf.free_floor on a rendered room: the floor round the
+cameras' path (below every frame) becomes floor; a cabinet whose top no view sees stays out."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from stages.blueprint.blunf import add_free_floor
+from stages.common.blueprint import Grid
+from stages.common.camera import Intrinsics, unproject
+from stages.project.observed import looked_past, observed, past_height
+
+ROOM = (6.0, 4.0, 2.6)  # x, y, ceiling (metres)
+CABINET = ((0.0, 1.5), (1.2, 2.4), 2.0)  # x range, y range, height: against the wall x = 0,
+#                                           taller than the cameras: its top is never seen
+CAM_Z = 1.4
+PATH = np.linspace(2.4, 5.0, 5)  # x of the spots the views are taken from, at y = 2
+CLASSES = {0: "floor", 1: "wall", 6: "cabinet"}
+INTR = Intrinsics(50.0, 50.0, 31.5, 23.5, 64, 48)  # 65 x 51 degrees
+
+
+def _pose(pos: np.ndarray, yaw: float, tilt: float = np.radians(8)) -> np.ndarray:
+    """Camera-to-world (OpenCV axes) at pos looking along yaw, tilted down by `tilt`."""
+    fwd = np.array([np.cos(yaw) * np.cos(tilt), np.sin(yaw) * np.cos(tilt), -np.sin(tilt)])
+    right = np.array([np.sin(yaw), -np.cos(yaw), 0.0])
+    down = np.cross(fwd, right)
+    c2w = np.eye(4)
+    c2w[:3, :3] = np.stack([right, down, fwd], 1)
+    c2w[:3, 3] = pos
+    return c2w
+
+
+def _render(c2w: np.ndarray) -> np.ndarray:
+    """z-depth [48, 64] of the room (floor, walls, ceiling) and the cabinet box."""
+    u, v = np.meshgrid(np.arange(64.0), np.arange(48.0))
+    d_cam = np.stack([(u - INTR.cx) / INTR.fx, (v - INTR.cy) / INTR.fy, np.ones_like(u)], -1)
+    d = d_cam.reshape(-1, 3) @ c2w[:3, :3].T  # [P, 3] world, camera-frame z = 1
+    o = c2w[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_room = np.full(len(d), np.inf)  # inside the room: the nearest exit through a side
+        for k, (lo, hi) in enumerate([(0.0, ROOM[0]), (0.0, ROOM[1]), (0.0, ROOM[2])]):
+            t = np.where(d[:, k] > 0, (hi - o[k]) / d[:, k], (lo - o[k]) / d[:, k])
+            t_room = np.minimum(t_room, np.where(np.isfinite(t) & (t > 0), t, np.inf))
+        (x0, x1), (y0, y1), zt = CABINET
+        lo, hi = np.array([x0, y0, 0.0]), np.array([x1, y1, zt])
+        t1, t2 = (lo - o) / d, (hi - o) / d
+        near = np.nanmax(np.minimum(t1, t2), 1)
+        far = np.nanmin(np.maximum(t1, t2), 1)
+        t_box = np.where((near <= far) & (near > 0), near, np.inf)
+    return np.minimum(t_room, t_box).reshape(48, 64)
+
+
+def _scene():
+    """Forty views from five spots along a path through the room, each turning round."""
+    spots = [np.array([x, 2.0, CAM_Z]) for x in PATH]
+    poses = [_pose(p, y) for p in spots for y in np.radians(np.arange(0, 360, 45) + 10)]
+    depths = [_render(c2w) for c2w in poses]
+    xyz, view = [], []
+    uv = np.stack(np.meshgrid(np.arange(64.0), np.arange(48.0)), -1).reshape(-1, 2)
+    for i, (c2w, d) in enumerate(zip(poses, depths, strict=True)):
+        xyz.append(unproject(uv, d.reshape(-1), INTR.K, c2w))
+        view.append(np.full(len(uv), i))
+    xyz, view = np.concatenate(xyz), np.concatenate(view)
+    (x0, x1), (y0, y1), zt = CABINET
+    on_box = (xyz[:, 0] <= x1 + 1e-6) & (xyz[:, 1] >= y0 - 1e-6) & (xyz[:, 1] <= y1 + 1e-6)
+    on_box &= xyz[:, 2] <= zt + 1e-6
+    label = np.where(xyz[:, 2] < 1e-3, 0, np.where(on_box, 6, 1)).astype(np.uint8)
+    keep = xyz[:, 2] < ROOM[2] - 1e-3  # the ceiling is not projected
+    return poses, depths, xyz[keep], label[keep], view[keep]
+
+
+def test_the_floor_round_the_path_is_looked_past_and_the_cabinet_is_not(tmp_path) -> None:
+    poses, depths, xyz, label, view = _scene()
+    assert ((label == 6) & (xyz[:, 2] > CABINET[2] - 1e-3)).sum() <= 2  # its top: unseen
+    grid = Grid((0.0, 0.0), 0.1, (40, 60))
+    cams = np.array([p[:3, 3] for p in poses])
+    near, free, _ = observed(grid, xyz[:, :2], cams[:, :2], view, 0.15, 1)
+    row, col, inside = grid.cell_of(xyz[:, :2])
+    empty = free.copy()
+    empty[row[inside], col[inside]] = False
+    height = past_height(cams[:, 2])
+    assert height == 0.5 * CAM_Z
+    views = [(INTR, c2w, d) for c2w, d in zip(poses, depths, strict=True)]
+    past = looked_past(grid, empty, views, height)
+    assert past.dtype == np.uint16 and not past[~empty].any()
+
+    xy = grid.centers()
+    (x0, x1), (y0, y1), _ = CABINET
+    box = (xy[..., 0] > x0) & (xy[..., 0] < x1) & (xy[..., 1] > y0) & (xy[..., 1] < y1)
+    along = np.clip(xy[..., 0], PATH[0], PATH[-1])  # the nearest point of the cameras' path
+    path = np.hypot(xy[..., 0] - along, xy[..., 1] - 2.0) < 0.5  # the floor round it
+    # the case: rays crossed both, no point fell in either
+    assert (empty & box).sum() >= 0.8 * box.sum() and (empty & path).sum() >= 100
+    assert not past[box].any()  # no view looked past the cabinet's inside
+    assert (past[empty & path] >= 2).mean() > 0.85  # views along the path looked past it
+
+    # the plan's samples: floor on the path, none in the cabinet
+    np.savez(tmp_path / "observed.npz", near=near, free=free, past=past)
+    args = (grid, CLASSES, xyz, label, row, col, inside)
+    out = add_free_floor(tmp_path / "observed.npz", *args)
+    added = np.zeros(grid.shape, bool)
+    added[out[2][len(xyz) :], out[3][len(xyz) :]] = True
+    assert out[-1] > 0 and (out[1][len(xyz) :] == 0).all()
+    assert not (added & box).any()
+    assert added[empty & path].mean() > 0.85
+    # without the test of the column above, the cabinet's back takes floor samples (its
+    # nearest points are the wall's beside it): what the discriminator is for
+    np.savez(tmp_path / "blind.npz", near=near, free=free, past=np.where(free, 99, 0))
+    blind = add_free_floor(tmp_path / "blind.npz", *args)
+    wrong = np.zeros(grid.shape, bool)
+    wrong[blind[2][len(xyz) :], blind[3][len(xyz) :]] = True
+    assert (wrong & box).any()
