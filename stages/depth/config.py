@@ -106,6 +106,11 @@ class FieldFillConfig(TrainingConfig):
     #                 readings to train on: every rendered reading)
     #                 (docs/figures.md#depth-field-check)
     render_scale: int = 2  # depth rendered at 1/k (never finer than the sweep ran)
+    # a rendered reading whose compositing weights spread along its ray by more than this
+    # share of its depth (their standard deviation over the expected depth) is dropped: a
+    # plain floor or wall the photos do not pin down, rendered as fog hanging in front of it
+    # (render.py); 0 = off (docs/figures.md#depth-field-max-spread)
+    max_spread: float = 0.0
     # the filling field's marching step: the scene box's diagonal / 256 (512 for fields that
     # edits and views render) (docs/figures.md#depth-field-sampling)
     sampling: SamplingConfig = dataclasses.field(
@@ -117,6 +122,10 @@ class FieldFillConfig(TrainingConfig):
             raise BlunfError(f"depth.field.below must be in [0, 1], got {self.below}")
         if self.check < 0:
             raise BlunfError(f"depth.field.check: must be >= 0, got {self.check}")
+        if not 0.0 <= self.max_spread < float("inf"):
+            raise BlunfError(
+                f"depth.field.max_spread: must be a finite number >= 0, got {self.max_spread}"
+            )
         if self.render_scale < 1:
             raise BlunfError(f"depth.field.render_scale: must be >= 1, got {self.render_scale}")
 

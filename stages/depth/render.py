@@ -8,13 +8,16 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import torch
 
+from stages.common.camera import Intrinsics
 from stages.common.capture import Frame
 from stages.common.errors import BlunfError
 from stages.common.io import write_depth_npy
 from stages.common.progress import track
 from stages.common.radiance.field import RadianceField
-from stages.common.radiance.render import render_view
+from stages.common.radiance.rays import camera_rays
+from stages.common.radiance.render import FieldRender, render_field, render_view
 from stages.depth.config import DepthCheckConfig, FieldFillConfig
 from stages.depth.consistency import consistent_depth
 
@@ -136,10 +139,53 @@ def render_depth(
     model: RadianceField, f: Frame, cfg: FieldFillConfig, pixels: np.ndarray | None = None
 ) -> np.ndarray:
     """z-depth (metres, float32) of frame f at 1 / render_scale of its resolution; 0
-    where the opacity is below sampling.acc_threshold (fusion rescales the intrinsics to fit) and,
-    given `pixels` (bool, at that resolution), where it is False (not rendered)."""
+    where the opacity is below sampling.acc_threshold (fusion rescales the intrinsics to fit),
+    where the weights spread along the ray by more than cfg.max_spread of the depth (when
+    set: ray_spread) and, given `pixels` (bool, at that resolution), where it is False (not
+    rendered)."""
     k = max(1, cfg.render_scale)
     w, h = f.intrinsics.width, f.intrinsics.height
     intr = f.intrinsics.scaled(max(1, w // k), max(1, h // k))
+    if cfg.max_spread > 0:
+        depth, acc, spread = ray_spread(model, np.asarray(f.pose), intr, cfg.chunk, pixels)
+        ok = (acc >= cfg.sampling.acc_threshold) & (spread <= cfg.max_spread)
+        return np.where(ok, depth, 0.0).astype(np.float32)
     v = render_view(model, np.asarray(f.pose), intr, cfg.chunk, color=False, pixels=pixels)
     return np.where(v["acc"] >= cfg.sampling.acc_threshold, v["depth"], 0.0).astype(np.float32)
+
+
+@torch.no_grad()
+def ray_spread(
+    model: RadianceField,
+    pose: np.ndarray,
+    intr: Intrinsics,
+    chunk: int = 16384,
+    pixels: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(z-depth [H, W] metres, opacity [H, W], spread [H, W]) of a view: the spread is the
+    standard deviation of the ray distance under the compositing weights over their mean.
+
+    A surface the photos pin down (texture, stereo) concentrates a ray's weight within a
+    step or two: the 7-Scenes kitchen's field-filled readings within 5 cm of the sensor's
+    surface spread a median 1.5 % of their depth. A plain floor the field renders as fog
+    spreads it along the ray and reads short: the readings that painted a table-high
+    surface over the kitchen's floor, a median 4 % (a quarter above 10 %). Pixels outside
+    `pixels` (bool [H, W]) are 0 in all three."""
+    o, d, zs = camera_rays(pose, intr)
+    h, w = intr.height, intr.width
+    sel = torch.arange(h * w) if pixels is None else torch.from_numpy(np.flatnonzero(pixels))
+    fns = model.fns(semantics=False)
+    how = FieldRender(surface_color=False, color=False, return_samples=True)
+    depth, acc, spread = (torch.zeros(h * w) for _ in range(3))
+    for i in range(0, len(sel), chunk):
+        part = sel[i : i + chunk]
+        out = render_field(model, o[part], d[part], fns, how)
+        n = len(part)
+        ray, t, wt = out["ray"], out["t"], out["weights"]
+        total = torch.zeros(n).index_add_(0, ray, wt).clamp(min=1e-10)
+        mean = torch.zeros(n).index_add_(0, ray, wt * t) / total
+        var = torch.zeros(n).index_add_(0, ray, wt * (t - mean[ray]) ** 2) / total
+        depth[part] = out["depth"] * zs[part]
+        acc[part] = out["acc"]
+        spread[part] = var.sqrt() / mean.clamp(min=1e-6)
+    return depth.reshape(h, w).numpy(), acc.reshape(h, w).numpy(), spread.reshape(h, w).numpy()

@@ -161,6 +161,10 @@ class PointWallsConfig:
     dist: float = 0.05  # metres: a reading this close to the plane lies on it
     min_height: float = 0.5  # metres in z (5-95 %) the readings span at least
     max_beyond: float = 0.2  # readings beyond the plane per reading on it
+    # a reading is beyond the plane when past it by more than dist + beyond_rel x its range
+    # from its camera (depth from photos errs in proportion to the range); 0: by dist
+    # (docs/figures.md#semantics-point-walls-beyond-rel)
+    beyond_rel: float = 0.0
 
     # m²: the 10 cm cells (along it x height) its readings cover at least
     # (docs/figures.md#semantics-point-walls-area)
@@ -172,7 +176,7 @@ class PointWallsConfig:
 
     def __post_init__(self) -> None:
         _positive(self, "point_walls", ("dist", "min_height"))
-        _non_negative(self, "point_walls", ("max_beyond", "min_area"))
+        _non_negative(self, "point_walls", ("max_beyond", "min_area", "beyond_rel"))
 
 
 @dataclass(frozen=True)

@@ -244,6 +244,7 @@ def _point_walls(cfg: SemanticsConfig, inputs: SemanticsInputs, cap: Capture
         min_height=cfg.point_walls.min_height,
         min_area=cfg.point_walls.min_area,
         max_beyond=cfg.point_walls.max_beyond,
+        beyond_rel=cfg.point_walls.beyond_rel,
         top=cfg.planes.ceiling_min_z,
     )
     log.info("semantics: %d readings for the point walls", len(pts))
@@ -252,7 +253,7 @@ def _point_walls(cfg: SemanticsConfig, inputs: SemanticsInputs, cap: Capture
         if len(pts) == 0:
             return []
         dirs = room_directions(pts, opt.dist)
-        walls = point_walls(pts, cams, dirs, floor_z, opt)
+        walls = point_walls(pts, cams, dirs, floor_z, opt, eyes)
         if cfg.point_walls.inner:
             walls += inner_walls(pts, eyes, dirs, floor_z, opt, cfg.walls.behind, walls)
         return walls

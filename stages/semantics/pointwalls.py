@@ -53,6 +53,11 @@ class PointWallOptions:
     min_area: float  # m²: the COVER_CELL cells its readings cover
     max_beyond: float  # readings beyond the plane (within its length), per reading on it
     top: float  # metres: the wall reaches at least this high
+    # a reading counts as beyond the plane when it lies more than dist + beyond_rel x its
+    # range (metres from the camera that took it) past it: depth from photos errs in
+    # proportion to the range, and a plain wall's own readings 2-3 m away scatter up to
+    # 10 cm either side of it (needs the readings' cameras; 0: dist alone)
+    beyond_rel: float = 0.0
 
 
 def evidence_points(frames: list[Capture], stride: int = 2) -> np.ndarray:
@@ -124,13 +129,19 @@ def point_walls(
     directions: np.ndarray,
     floor_z: float,
     opt: PointWallOptions,
+    eyes: np.ndarray | None = None,
 ) -> list[dict]:
     """The room's bounding walls among the points (see the module doc), at most one per
     direction, as the segmentation's plane dicts (kind "wall", normal facing the room, d,
-    area_m2, triangles 0, box [s0, z0, s1, z1], span, source "points")."""
+    area_m2, triangles 0, box [s0, z0, s1, z1], span, source "points"). eyes [N, 3]: the
+    camera each reading was taken from (evidence_readings), for opt.beyond_rel."""
+    # metres past the plane beyond which a reading saw through it, per reading
+    past = np.full(len(points), opt.dist)
+    if eyes is not None and opt.beyond_rel > 0:
+        past = past + opt.beyond_rel * np.linalg.norm(points - eyes, axis=1)
     walls = []
     for n in directions:
-        got = _outermost(points, cams, n, floor_z, opt)
+        got = _outermost(points, cams, n, floor_z, opt, past)
         if got is None:
             continue
         # the wall's own direction: the least-squares line through its readings (in the plan)
@@ -140,15 +151,22 @@ def point_walls(
         slope = np.polyfit(u[on], s[on], 1)[0] if on.sum() >= 3 else 0.0
         a = np.clip(np.arctan(slope), -np.radians(MAX_TURN), np.radians(MAX_TURN))
         m = np.array([n[0] * np.cos(a) - n[1] * np.sin(a), n[0] * np.sin(a) + n[1] * np.cos(a), 0])
-        turned = _outermost(points, cams, m, floor_z, opt)
+        turned = _outermost(points, cams, m, floor_z, opt, past)
         walls.append((turned or got)[1])
     return walls
 
 
 def _outermost(
-    p: np.ndarray, cams: np.ndarray, n: np.ndarray, floor_z: float, opt: PointWallOptions
+    p: np.ndarray,
+    cams: np.ndarray,
+    n: np.ndarray,
+    floor_z: float,
+    opt: PointWallOptions,
+    past: np.ndarray | None = None,
 ) -> tuple[int, dict] | None:
-    """The wall along n (see the module doc) with the count of its readings, or None."""
+    """The wall along n (see the module doc) with the count of its readings, or None;
+    past [N]: metres past the plane beyond which each reading saw through it (opt.dist)."""
+    past = np.full(len(p), opt.dist) if past is None else past
     s = p @ n  # [N] offset outwards along n
     along = np.array([-n[1], n[0], 0.0])  # the segmentation's axis along a vertical plane
     u = p @ along
@@ -165,7 +183,7 @@ def _outermost(
         lo_z, hi_z = np.percentile(p[on, 2], [5, 95])
         uz = np.floor(np.stack([u[on], p[on, 2]], 1) / COVER_CELL).astype(np.int64)
         cells = unique_rows(uz)[0]
-        beyond = (s > s0 + opt.dist) & (u >= lo_u) & (u <= hi_u)
+        beyond = (s > s0 + past) & (u >= lo_u) & (u <= hi_u)
         if (
             hi_u - lo_u >= opt.min_length
             and hi_z - lo_z >= opt.min_height
@@ -178,7 +196,7 @@ def _outermost(
     s0, (length, height), n_cells = best
     s0 = float(np.median(s[np.abs(s - s0) < opt.dist]))  # refined
     on = np.abs(s - s0) < opt.dist
-    lo, hi_ext = _extent(u, s, on, s0, opt.dist)
+    lo, hi_ext = _extent(u, s, on, s0, past)
     top = max(float(p[on, 2].max()), opt.top)
     normal = -n  # facing the room (the cameras)
     return int(on.sum()), {
@@ -195,7 +213,7 @@ def _outermost(
     }
 
 
-def _extent(u: np.ndarray, s: np.ndarray, on: np.ndarray, s0: float, dist: float
+def _extent(u: np.ndarray, s: np.ndarray, on: np.ndarray, s0: float, past: np.ndarray
             ) -> tuple[float, float]:  # fmt: skip
     """Along the wall: the run of cells from its first reading to its last, grown over the
     neighbouring cells where the views saw the room (some reading lies there) and no more
@@ -204,7 +222,7 @@ def _extent(u: np.ndarray, s: np.ndarray, on: np.ndarray, s0: float, dist: float
     if len(edges) < 2 or not on.any():
         return float(u[on].min()), float(u[on].max())
     n_on = np.histogram(u[on], edges)[0]
-    n_beyond = np.histogram(u[s > s0 + dist], edges)[0]
+    n_beyond = np.histogram(u[s > s0 + past], edges)[0]
     n_any = np.histogram(u, edges)[0]
     i0, i1 = np.searchsorted(edges, [u[on].min(), u[on].max()], side="right") - 1
     i0, i1 = max(int(i0), 0), min(int(i1), len(n_on) - 1)
