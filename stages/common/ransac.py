@@ -51,7 +51,9 @@ def plane_ransac(
         e = min(s + BLOCK, iters)
         # elementwise products, not a matrix product: BLAS may sum in another order
         r = np.abs(
-            normal[s:e, 0:1] * qt[0] + normal[s:e, 1:2] * qt[1] + normal[s:e, 2:3] * qt[2]
+            normal[s:e, 0:1] * qt[0]
+            + normal[s:e, 1:2] * qt[1]
+            + normal[s:e, 2:3] * qt[2]
             + off[s:e, None]
         )  # [B, N]
         inl = r < dist
