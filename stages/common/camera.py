@@ -131,23 +131,50 @@ def unproject(
     return pc @ c2w[:3, :3].T + c2w[:3, 3]
 
 
-def project(points: np.ndarray, K: np.ndarray, c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Π⁻¹: world points to pixels. Returns (uv [N, 2], depth [N]); depth <= 0 is behind."""
+def distorted(
+    x: np.ndarray, y: np.ndarray, dist: tuple[float, ...]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Normalised camera coordinates through the OpenCV k1, k2, p1, p2[, k3] model (as they
+    are when `dist` is empty or all zero)."""
+    if not any(dist):
+        return x, y
+    k1, k2, p1, p2, k3 = (tuple(dist) + (0.0,) * 5)[:5]
+    r2 = x * x + y * y
+    rad = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
+    return (
+        x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
+        y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y,
+    )
+
+
+def project(
+    points: np.ndarray, K: np.ndarray, c2w: np.ndarray, dist: tuple[float, ...] = ()
+) -> tuple[np.ndarray, np.ndarray]:
+    """Π⁻¹: world points to pixels, through the lens distortion `dist` when it has any.
+    Returns (uv [N, 2], depth [N]); depth <= 0 is behind."""
     w2c = np.linalg.inv(c2w)
     pc = np.asarray(points, np.float64) @ w2c[:3, :3].T + w2c[:3, 3]  # [N, 3]
     z = pc[:, 2]
     safe = np.where(np.abs(z) > 1e-12, z, 1e-12)
+    if any(dist):
+        x, y = distorted(pc[:, 0] / safe, pc[:, 1] / safe, dist)
+        return np.stack([K[0, 0] * x + K[0, 2], K[1, 1] * y + K[1, 2]], axis=-1), z
     u = K[0, 0] * pc[:, 0] / safe + K[0, 2]
     v = K[1, 1] * pc[:, 1] / safe + K[1, 2]
     return np.stack([u, v], axis=-1), z
 
 
 def depth_at(
-    pts: np.ndarray, depth: np.ndarray, K: np.ndarray, c2w: np.ndarray
+    pts: np.ndarray,
+    depth: np.ndarray,
+    K: np.ndarray,
+    c2w: np.ndarray,
+    dist: tuple[float, ...] = (),
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(reading of `depth` at the nearest pixel to each point's projection, 0 when outside
-    the view or behind it; the point's z in that view) for world points pts [N, 3]."""
-    uv, z = project(pts, K, c2w)
+    """(reading of `depth` at the nearest pixel to each point's projection, through the lens
+    distortion `dist`, 0 when outside the view or behind it; the point's z in that view) for
+    world points pts [N, 3]."""
+    uv, z = project(pts, K, c2w, dist)
     h, w = depth.shape
     u = np.rint(uv[:, 0])
     v = np.rint(uv[:, 1])

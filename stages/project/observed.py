@@ -23,7 +23,7 @@ import numpy as np
 from scipy import ndimage
 
 from stages.common.blueprint import Grid
-from stages.common.camera import Intrinsics
+from stages.common.camera import depth_at
 
 # cells between samples along a ray's plan projection (kitchen: 0.5 took 3x the time for 3
 # cells more inside, of 37 076)
@@ -159,31 +159,9 @@ def looked_past(grid: Grid, cells: np.ndarray, views: Iterable, height: float) -
         h, w = depth.shape
         if (intr.width, intr.height) != (w, h):
             intr = intr.scaled(w, h)
-        w2c = np.linalg.inv(np.asarray(c2w, np.float64))
+        c2w = np.asarray(c2w, np.float64)
         for a in range(0, len(r), PAST_CHUNK):
-            pc = pts[a : a + PAST_CHUNK] @ w2c[:3, :3].T + w2c[:3, 3]  # [k, 3] camera frame
-            z = pc[:, 2]
-            front = z > 0
-            zs = np.where(front, z, 1.0)
-            u, v = _distort(pc[:, 0] / zs, pc[:, 1] / zs, intr)
-            ui, vi = np.rint(u), np.rint(v)
-            ok = front & (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
-            d = np.zeros(len(z))
-            d[ok] = depth[vi[ok].astype(np.int64), ui[ok].astype(np.int64)]
-            count[a : a + PAST_CHUNK] += ok & (d > z * (1 + PAST_SLACK) + margin)
+            d, z = depth_at(pts[a : a + PAST_CHUNK], depth, intr.K, c2w, intr.dist)
+            count[a : a + PAST_CHUNK] += (d > 0) & (d > z * (1 + PAST_SLACK) + margin)
     out[r, c] = np.minimum(count, np.iinfo(np.uint16).max)
     return out
-
-
-def _distort(x: np.ndarray, y: np.ndarray, intr: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
-    """Normalised camera coordinates to pixels (u, v) through the OpenCV k1, k2, p1, p2[, k3]
-    model of `intr` (pinhole when it has none)."""
-    if any(intr.dist):
-        k1, k2, p1, p2, k3 = (tuple(intr.dist) + (0.0,) * 5)[:5]
-        r2 = x * x + y * y
-        rad = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
-        x, y = (
-            x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
-            y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y,
-        )
-    return x * intr.fx + intr.cx, y * intr.fy + intr.cy

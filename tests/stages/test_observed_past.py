@@ -110,3 +110,22 @@ def test_the_floor_round_the_path_is_looked_past_and_the_cabinet_is_not(tmp_path
     wrong = np.zeros(grid.shape, bool)
     wrong[blind[2][len(xyz) :], blind[3][len(xyz) :]] = True
     assert (wrong & box).any()
+
+
+def test_a_point_projected_through_the_lens_comes_back_through_its_undistortion() -> None:
+    # camera.project with distortion (what looked_past reads depth through) is the inverse
+    # of the project stage's undistortion of a distorted photo's pixels
+    from stages.common.camera import Intrinsics, depth_at, project
+    from stages.project.points import _undistort
+
+    intr = Intrinsics(300.0, 310.0, 160.0, 118.0, 320, 240, (-0.2, 0.05, 0.001, -0.002, 0.01))
+    rng = np.random.default_rng(0)
+    pts = np.concatenate([rng.uniform(-1.2, 1.2, (200, 2)), rng.uniform(2, 4, (200, 1))], 1)
+    uv, z = project(pts, intr.K, np.eye(4), intr.dist)
+    pin, _ = project(pts, intr.K, np.eye(4))
+    assert np.abs(uv - pin).max() > 5  # the lens moves them
+    np.testing.assert_allclose(_undistort(uv, intr), pin, atol=1e-6)
+    depth = np.full((240, 320), 9.0)
+    d, _ = depth_at(pts, depth, intr.K, np.eye(4), intr.dist)
+    ok = (uv[:, 0] >= -0.5) & (uv[:, 0] < 319.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] < 239.5)
+    assert np.array_equal(d > 0, ok) and np.allclose(z, pts[:, 2])
