@@ -108,18 +108,16 @@ def filled_between(poly: np.ndarray, fr: Frame, others: np.ndarray, wall: np.nda
     bx0, by0, bx1, by1 = room.bounds
     missing = box(bx0, by0, bx1, by1).difference(room)
     filled = room
+    xy = fr.grid.centers()  # [H, W, 2] frame xy of every cell
     for g in getattr(missing, "geoms", [missing]):
         x0, y0, x1, y1 = g.bounds
         if g.is_empty or min(x1 - x0, y1 - y0) < NOTCH_MIN:
             continue
-        xy = fr.grid.centers()
         inside = contains_xy(g, xy[..., 0], xy[..., 1])
-        n = int(inside.sum())
-        if n == 0 or others[inside].any():
+        if not inside.any() or others[inside].any():
             continue
-        if (fr.labels[inside] == UNKNOWN).mean() < BETWEEN_UNSEEN or wall[
-            inside
-        ].mean() > BETWEEN_WALL:
+        unseen = (fr.labels[inside] == UNKNOWN).mean()
+        if unseen < BETWEEN_UNSEEN or wall[inside].mean() > BETWEEN_WALL:
             continue
         e = cell / 2  # the sides of the step on the box's edge, each with its outward normal
         sides = [
