@@ -54,11 +54,11 @@ def check(rec: pycolmap.Reconstruction, tolerance: float) -> dict:
     # The adjuster itself, as pycolmap.bundle_adjustment sets it up (every registered image,
     # two cameras fixing the gauge: the same focal to the last bit) without that wrapper's
     # heading and timer, which glog prints whatever its minloglevel.
+    c = pycolmap.BundleAdjustmentConfig()
+    for i in sorted(r.reg_image_ids()):
+        c.add_image(i)
+    c.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
     for _ in range(PASSES):
-        c = pycolmap.BundleAdjustmentConfig()
-        for i in sorted(r.reg_image_ids()):
-            c.add_image(i)
-        c.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
         pycolmap.create_default_bundle_adjuster(o, c, r).solve()
     cams = []
     for cid in sorted(rec.cameras):
