@@ -90,6 +90,25 @@ def test_a_door_is_read_where_the_face_starts_not_where_a_fused_jamb_closes_it()
     assert door["width"] == pytest.approx(0.9, abs=0.01)
 
 
+@pytest.mark.parametrize("fleck", [False, True])
+def test_a_fleck_of_noise_in_a_passage_does_not_cut_it(fleck):
+    # a 1.7 m passage from x = 1.0 to 2.7 in the south wall (the room north of it); a fleck
+    # of stereo's noise 1 cm wide floats 3 cm inside the room at 1 m high, beside x = 2.29
+    m = _Mesh()
+    t = 0.12
+    m.wall((0.0, 0.0), (1.0, 0.0))
+    m.wall((1.0, -t), (1.0, 0.0))
+    m.wall((2.7, 0.0), (4.0, 0.0))
+    m.wall((2.7, 0.0), (2.7, -t))
+    m.floor(0.0, -2.0, 4.0, 2.0)  # the floor runs through into the next room
+    if fleck:
+        m.quad((2.285, 0.03, 0.95), (2.295, 0.03, 0.95), (2.295, 0.03, 1.05), (2.285, 0.03, 1.05))
+    wall = {"start": [0.0, 0.0], "end": [4.0, 0.0], "thickness": t}
+    (o,) = mesh_openings([wall], *m.arrays(), LayoutConfig())
+    assert o["kind"] == "passage"
+    assert sorted((o["start"][0], o["end"][0])) == pytest.approx([1.0, 2.7], abs=0.02)
+
+
 def test_a_window_is_a_hole_in_a_wall_not_a_wall_seen_only_low_down():
     t = 0.12
     seen_low = _Mesh()  # the views saw this wall up to 0.8 m only (far off, at a slant)
