@@ -65,7 +65,7 @@ def mesh_openings(
         d = (b - a) / length
         n = np.array([d[1], -d[0]])  # outwards
         s = np.arange(BIN / 2, length, BIN)
-        wall = _depth(scene, (a, d, n), s, HEIGHTS) <= t + 0.05  # [H, S]
+        wall = met(scene, w, s)  # [H, S]
         # the floor beyond the face: rays cast down at a few depths into the wall line (a
         # fused threshold has holes: measured half of it on a 30-view room); a wall that the
         # views did not see, behind furniture, has none
@@ -109,6 +109,27 @@ def mesh_openings(
                         "width": round(width, 4),
                     }
                 )
+    return out
+
+
+def met(scene: o3d.t.geometry.RaycastingScene, wall: dict, s: np.ndarray) -> np.ndarray:
+    """Whether the rays cast out through the face of `wall` (a plan.json wall) at each of `s`
+    (metres along it) and HEIGHTS meet a surface before its back, 5 cm of slack [H, S]."""
+    a, b = np.asarray(wall["start"], np.float64), np.asarray(wall["end"], np.float64)
+    d = (b - a) / max(float(np.linalg.norm(b - a)), 1e-12)
+    n = np.array([d[1], -d[0]])  # outwards
+    return _depth(scene, (a, d, n), s, HEIGHTS) <= float(wall["thickness"]) + 0.05
+
+
+def held(scene: o3d.t.geometry.RaycastingScene, walls: list[dict]) -> np.ndarray:
+    """The share of each wall's inner 80 % where a ray met it at some height [W] (`met`, every
+    BIN; 0 for a wall under 4 BIN long). A wall the plan holds from the views' readings alone
+    (a partition that stereo fused neither face of) the mesh does not: no ray meets it."""
+    out = np.zeros(len(walls))
+    for wi, w in enumerate(walls):
+        length = float(np.linalg.norm(np.subtract(w["end"], w["start"])))
+        if length >= 4 * BIN:
+            out[wi] = float(met(scene, w, np.arange(0.1 * length, 0.9 * length, BIN)).any(0).mean())
     return out
 
 
