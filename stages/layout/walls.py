@@ -30,11 +30,13 @@ from stages.layout.openings import (
     ceiling,
     face_offsets,
     heights,
+    held,
     mesh_openings,
     outside_walls,
     scene_of,
 )
 from stages.layout.plan import architecture, in_rooms, objects
+from stages.layout.plangaps import HELD, plan_openings
 from stages.layout.rooms import join_rooms, split_seen
 
 log = logging.getLogger(__name__)
@@ -45,7 +47,8 @@ WALL_NEAR = 3  # cells: a surface met this close to the plan's wall cells is a w
 
 def build_plan(bp: Blueprint, cfg: LayoutConfig, mesh: Path | None = None) -> dict:
     """plan.json's content: rooms, walls, openings and objects of the blueprint. With a mesh:
-    object heights, and the openings read off the mesh (openings.py) rather than the plan."""
+    object heights, and the openings read off the mesh (openings.py) rather than the plan,
+    but for the walls the mesh does not hold (plangaps.py)."""
     scene = None if mesh is None else _scene(mesh)
     if scene is not None:
         plan = architecture(seen_floor(bp, scene), cfg)
@@ -54,9 +57,12 @@ def build_plan(bp: Blueprint, cfg: LayoutConfig, mesh: Path | None = None) -> di
         floor = bp.grid.centers()[np.isin(bp.labels, fid)]
         ceil = ceiling(scene, floor[:: max(1, len(floor) // 50)])
         plan = filled_notches(plan, scene, ceil)
-        plan["openings"] = _in_walls(
-            _distinct(mesh_openings(plan["walls"], None, None, cfg, scene)), plan["walls"]
-        )
+        # the mesh's openings in the walls it holds; the plan's in those it does not
+        share = held(scene, plan["walls"])
+        found = mesh_openings(plan["walls"], None, None, cfg, scene)
+        found = [o for o in found if share[o["wall"]] >= HELD]
+        found += plan_openings(plan["walls"], share, bp, cfg)
+        plan["openings"] = _in_walls(_distinct(found), plan["walls"])
         plan["walls"] = seen_thickness(scene, plan["walls"], cfg)
         plan["objects"] = objects(
             bp, cfg, lambda xys: object_heights(scene, xys, ceil), lambda xy: solid(scene, xy, ceil)

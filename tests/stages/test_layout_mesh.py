@@ -90,6 +90,25 @@ def test_a_door_is_read_where_the_face_starts_not_where_a_fused_jamb_closes_it()
     assert door["width"] == pytest.approx(0.9, abs=0.01)
 
 
+@pytest.mark.parametrize("fleck", [False, True])
+def test_a_fleck_of_noise_in_a_passage_does_not_cut_it(fleck):
+    # a 1.7 m passage from x = 1.0 to 2.7 in the south wall (the room north of it); a fleck
+    # of stereo's noise 1 cm wide floats 3 cm inside the room at 1 m high, beside x = 2.29
+    m = _Mesh()
+    t = 0.12
+    m.wall((0.0, 0.0), (1.0, 0.0))
+    m.wall((1.0, -t), (1.0, 0.0))
+    m.wall((2.7, 0.0), (4.0, 0.0))
+    m.wall((2.7, 0.0), (2.7, -t))
+    m.floor(0.0, -2.0, 4.0, 2.0)  # the floor runs through into the next room
+    if fleck:
+        m.quad((2.285, 0.03, 0.95), (2.295, 0.03, 0.95), (2.295, 0.03, 1.05), (2.285, 0.03, 1.05))
+    wall = {"start": [0.0, 0.0], "end": [4.0, 0.0], "thickness": t}
+    (o,) = mesh_openings([wall], *m.arrays(), LayoutConfig())
+    assert o["kind"] == "passage"
+    assert sorted((o["start"][0], o["end"][0])) == pytest.approx([1.0, 2.7], abs=0.02)
+
+
 def test_a_window_is_a_hole_in_a_wall_not_a_wall_seen_only_low_down():
     t = 0.12
     seen_low = _Mesh()  # the views saw this wall up to 0.8 m only (far off, at a slant)
@@ -328,3 +347,34 @@ def test_an_open_side_is_no_opening_across_its_whole_length(tmp_path):
     south = [w for w in plan["walls"] if max(w["start"][1], w["end"][1]) < 0.1]
     assert len(south) == 1 and not south[0]["seen"], plan["walls"]
     assert plan["openings"] == [], plan["openings"]
+
+
+def test_a_door_in_a_partition_the_mesh_lacks_is_read_off_the_plan(tmp_path):
+    # two rooms of a home side by side, 2.8 and 2.68 x 3 m, a partition 0.12 m thick between
+    # them at x = 2.8 to 2.92 with a 0.9 m door from y = 1.0 to 1.9; the plan holds the
+    # partition (the views' readings), the mesh neither of its faces: stereo fused the outer
+    # walls and the floors, and no ray cast along the partition meets anything
+    t = 0.12
+    m = _Mesh()
+    corners = [(0.0, 0.0), (5.6, 0.0), (5.6, 3.0), (0.0, 3.0)]
+    for p, q in zip(corners, corners[1:] + corners[:1], strict=True):
+        m.wall(p, q)
+    m.floor(0.0, 0.0, 2.8, 3.0)
+    m.floor(2.8 + t, 0.0, 5.6, 3.0)
+    _write_ply(tmp_path / "mesh.ply", *m.arrays())
+    bp = _plan(
+        [
+            (box(-t, -t, 5.6 + t, 3 + t), 1),
+            (box(0, 0, 5.6, 3), 0),
+            (box(2.8, 0, 2.8 + t, 1.0), 1),
+            (box(2.8, 1.9, 2.8 + t, 3), 1),
+        ],
+        {0: "floor", 1: "wall"},
+    )
+    plan = build_plan(bp, LayoutConfig(face_offset=0.0), tmp_path / "mesh.ply")
+    assert len(plan["rooms"]) == 2
+    (door,) = plan["openings"]
+    assert door["kind"] == "door" and door["rooms"] == [0, 1]
+    assert door["width"] == pytest.approx(0.9, abs=0.03)
+    assert sorted((door["start"][1], door["end"][1])) == pytest.approx([1.0, 1.9], abs=0.03)
+    assert door["start"][0] == pytest.approx(door["end"][0]) and 2.78 <= door["start"][0] <= 2.94
