@@ -52,6 +52,11 @@ class BlunfConfig:
     # past, and the field gives it to the floor (the tests' 8-view room: fwIoU 69.9 -> 67.3,
     # its cabinet 47.0 and plant 45.4 -> 0, even with 0.16 m kept clear of object points)
     free_floor: bool = False
+    # a cell is wall only when its centre lies behind the face the views saw (faces.py): the
+    # wall cells in front of the face of the nearest cell holding wall points take the class
+    # of the nearest cell that is not wall (the ground truth's convention: one ray down
+    # through each cell centre). Needs the project stage's observed.npz (which side is room)
+    wall_face: bool = True
     shrink: float = 0.0  # metres: object footprints (every class but floor, wall, ceiling)
     #                      shrunk by this where they meet the floor, in whole cells, after
     #                      the field is read (blunf.shrink_objects): for depth that fattens

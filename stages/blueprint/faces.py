@@ -1,0 +1,162 @@
+"""Wall cells behind the wall's face only: the plan's convention for the cell a face crosses.
+
+A plan cell is wall when its centre lies inside the wall, behind the face the views saw (the
+ground-truth raster of a procedural room casts one ray down through each cell centre). The
+points of a face lie on its surface, so the cell that holds them is wall or not by where the
+face crosses it: a face 3 mm behind a cell's centre leaves that cell on the room's side, yet
+the field, fitted to the face's points, draws it wall, and draws wall over cells in front of
+the face where few points lie (floor next to a wall is hidden from most views).
+
+Per plan cell holding wall points, the face is the line through their mean with the normal
+of the wall points round it (the least direction of their spread over `window` cells); the
+normal faces the room, the side the views' rays came from (observed.npz "free"). A cell the
+plan draws wall whose centre lies in front of the nearest such face is given the class of the
+nearest cell that is not wall.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage
+
+from stages.common.blueprint import Grid
+from stages.common.capture import UNKNOWN
+from stages.common.classes import WALL_NAME, ids_named
+from stages.common.errors import BlunfError
+
+FLAT = 0.2  # a face's spread across / along (eigenvalue ratio) above which it is no line
+
+
+def face_frames(
+    grid: Grid, xy: np.ndarray, free: np.ndarray, window: int = 2, side: int = 5
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(face, point [H, W, 2], normal [H, W, 2]) of the wall points xy [N, 2] on `grid`.
+
+    face: bool [H, W], the cells holding wall points whose face is known; point: the mean
+    of the cell's wall points; normal: the unit normal of the points within `window` cells,
+    pointing to the side where more free cells (bool [H, W]) lie within `side` cells.
+    """
+    h, w = grid.shape
+    row, col, on = grid.cell_of(xy)
+    row, col, p = row[on], col[on], np.asarray(xy, np.float64)[on]
+    idx = row * w + col
+    centres = grid.centers()  # [H, W, 2]
+    d = p - centres.reshape(-1, 2)[idx]  # [N, 2] offsets from the cell centre: small numbers
+    n = np.bincount(idx, minlength=h * w).reshape(h, w).astype(np.float64)
+    sums = [
+        np.bincount(idx, v, minlength=h * w).reshape(h, w)
+        for v in (d[:, 0], d[:, 1], d[:, 0] ** 2, d[:, 0] * d[:, 1], d[:, 1] ** 2)
+    ]
+    has = n > 0
+    mean = np.zeros((h, w, 2))
+    mean[has, 0] = sums[0][has] / n[has]
+    mean[has, 1] = sums[1][has] / n[has]
+    point = centres + mean
+    # moments of the points within `window` cells about this cell's centre: a neighbour's
+    # offsets are moved by its centre's (dj cell, -di cell) from ours
+    m = dict.fromkeys(("n", "x", "y", "xx", "xy", "yy"), 0.0)
+    for di in range(-window, window + 1):
+        for dj in range(-window, window + 1):
+            ox, oy = dj * grid.cell, -di * grid.cell
+            cnt, sx, sy, sxx, sxy, syy = (_shift(a, -di, -dj) for a in (n, *sums))
+            m["n"] = m["n"] + cnt
+            m["x"] = m["x"] + sx + ox * cnt
+            m["y"] = m["y"] + sy + oy * cnt
+            m["xx"] = m["xx"] + sxx + 2 * ox * sx + ox * ox * cnt
+            m["xy"] = m["xy"] + sxy + ox * sy + oy * sx + ox * oy * cnt
+            m["yy"] = m["yy"] + syy + 2 * oy * sy + oy * oy * cnt
+    k = np.maximum(m["n"], 1)
+    mx, my = m["x"] / k, m["y"] / k
+    cxx, cxy, cyy = m["xx"] / k - mx * mx, m["xy"] / k - mx * my, m["yy"] / k - my * my
+    # the least eigenvector of [[cxx, cxy], [cxy, cyy]]
+    tr, det = cxx + cyy, cxx * cyy - cxy * cxy
+    disc = np.sqrt(np.maximum(tr * tr / 4 - det, 0))
+    lo, hi = tr / 2 - disc, tr / 2 + disc
+    nx, ny = cxy, lo - cxx  # (A - lo I) v = 0  ->  v = (cxy, lo - cxx) or (lo - cyy, cxy)
+    alt = np.hypot(nx, ny) < 1e-12
+    nx = np.where(alt, lo - cyy, nx)
+    ny = np.where(alt, cxy, ny)
+    norm = np.hypot(nx, ny)
+    line = has & (m["n"] >= 3) & (norm > 0) & (lo <= FLAT * np.maximum(hi, 1e-12))
+    normal = np.zeros((h, w, 2))
+    normal[line, 0] = nx[line] / norm[line]
+    normal[line, 1] = ny[line] / norm[line]
+    # orient: the free cells (not holding wall points) within `side` cells vote by their side
+    f = (free & ~has).astype(np.float64)
+    vote = np.zeros((h, w))
+    for di in range(-side, side + 1):
+        for dj in range(-side, side + 1):
+            if di == 0 and dj == 0:
+                continue
+            fx, fy = dj * grid.cell, -di * grid.cell  # the free cell's centre, relative
+            s = (
+                fx * normal[..., 0]
+                + fy * normal[..., 1]
+                - (mean[..., 0] * normal[..., 0] + mean[..., 1] * normal[..., 1])
+            )
+            vote += _shift(f, -di, -dj) * np.sign(s)
+    face = line & (vote != 0)
+    normal[vote < 0] *= -1
+    normal[~face] = 0
+    return face, point, normal
+
+
+def behind_faces(
+    labels: np.ndarray,
+    classes: dict[int, str],
+    grid: Grid,
+    xy: np.ndarray,
+    label: np.ndarray,
+    observed: Path,
+) -> tuple[np.ndarray, int]:
+    """wall_fronts of the plan labels [H, W] with the wall points among the points xy
+    [N, 2] (world metres) labelled `label` [N] and the free cells of observed.npz (the plan
+    unchanged when the file has none)."""
+    try:
+        with np.load(observed, allow_pickle=False) as z:
+            free = z["free"] > 0 if "free" in z.files else None
+    except (OSError, ValueError) as e:
+        raise BlunfError(f"{observed}: not an observed.npz ({e})") from None
+    if free is None or free.shape != tuple(grid.shape):
+        return labels, 0
+    wall = np.isin(label, ids_named(classes, WALL_NAME))
+    return wall_fronts(labels, classes, grid, np.asarray(xy)[wall, :2], free)
+
+
+def wall_fronts(
+    labels: np.ndarray, classes: dict[int, str], grid: Grid, xy: np.ndarray, free: np.ndarray
+) -> tuple[np.ndarray, int]:
+    """(The plan [H, W] with every wall cell whose centre lies in front of its nearest face
+    given the class of the nearest cell that is not wall, how many cells changed).
+
+    xy [N, 2]: the wall points (world metres); free: bool [H, W], the cells rays crossed.
+    """
+    wall = np.isin(labels, ids_named(classes, WALL_NAME))
+    if not wall.any() or len(xy) == 0:
+        return labels, 0
+    face, point, normal = face_frames(grid, xy, free)
+    if not face.any():
+        return labels, 0
+    _, (fr, fc) = ndimage.distance_transform_edt(~face, return_indices=True)
+    centres = grid.centers()
+    s = ((centres - point[fr, fc]) * normal[fr, fc]).sum(-1)  # [H, W] metres, + = in front
+    front = wall & (s > 0)
+    other = ~wall & (labels != UNKNOWN)
+    if not front.any() or not other.any():
+        return labels, 0
+    _, (r, c) = ndimage.distance_transform_edt(~other, return_indices=True)
+    out = labels.copy()
+    out[front] = labels[r[front], c[front]]
+    return out, int(front.sum())
+
+
+def _shift(a: np.ndarray, di: int, dj: int) -> np.ndarray:
+    """b[r, c] = a[r - di, c - dj] (zero where that falls outside)."""
+    b = np.zeros_like(a)
+    h, w = a.shape
+    rs, rd = (slice(0, h - di), slice(di, h)) if di >= 0 else (slice(-di, h), slice(0, h + di))
+    cs, cd = (slice(0, w - dj), slice(dj, w)) if dj >= 0 else (slice(-dj, w), slice(0, w + dj))
+    b[rd, cd] = a[rs, cs]
+    return b
