@@ -35,7 +35,8 @@ def face_frames(
     """(face, point [H, W, 2], normal [H, W, 2]) of the wall points xy [N, 2] on `grid`.
 
     face: bool [H, W], the cells holding wall points whose face is known; point: the mean
-    of the cell's wall points; normal: the unit normal of the points within `window` cells,
+    of the wall points within `window` cells (a thick cloud of noisy points gives its middle
+    line, not a line per cell); normal: the unit normal of the points within `window` cells,
     pointing to the side where more free cells (bool [H, W]) lie within `side` cells.
     """
     h, w = grid.shape
@@ -50,10 +51,6 @@ def face_frames(
         for v in (d[:, 0], d[:, 1], d[:, 0] ** 2, d[:, 0] * d[:, 1], d[:, 1] ** 2)
     ]
     has = n > 0
-    mean = np.zeros((h, w, 2))
-    mean[has, 0] = sums[0][has] / n[has]
-    mean[has, 1] = sums[1][has] / n[has]
-    point = centres + mean
     # moments of the points within `window` cells about this cell's centre: a neighbour's
     # offsets are moved by its centre's (dj cell, -di cell) from ours
     m = dict.fromkeys(("n", "x", "y", "xx", "xy", "yy"), 0.0)
@@ -68,7 +65,8 @@ def face_frames(
             m["xy"] = m["xy"] + sxy + ox * sy + oy * sx + ox * oy * cnt
             m["yy"] = m["yy"] + syy + 2 * oy * sy + oy * oy * cnt
     k = np.maximum(m["n"], 1)
-    mx, my = m["x"] / k, m["y"] / k
+    mx, my = m["x"] / k, m["y"] / k  # the mean of the points round, from the cell's centre
+    point = centres + np.stack([mx, my], -1)
     cxx, cxy, cyy = m["xx"] / k - mx * mx, m["xy"] / k - mx * my, m["yy"] / k - my * my
     # the least eigenvector of [[cxx, cxy], [cxy, cyy]]
     tr, det = cxx + cyy, cxx * cyy - cxy * cxy
@@ -94,7 +92,7 @@ def face_frames(
             s = (
                 fx * normal[..., 0]
                 + fy * normal[..., 1]
-                - (mean[..., 0] * normal[..., 0] + mean[..., 1] * normal[..., 1])
+                - (mx * normal[..., 0] + my * normal[..., 1])
             )
             vote += _shift(f, -di, -dj) * np.sign(s)
     face = line & (vote != 0)
