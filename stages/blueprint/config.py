@@ -53,9 +53,9 @@ class BlunfConfig:
     # its cabinet 47.0 and plant 45.4 -> 0, even with 0.16 m kept clear of object points)
     free_floor: bool = False
     # a cell is wall only when its centre lies behind the face the views saw (faces.py): the
-    # wall cells in front of the face of the nearest cell holding wall points take the class
-    # of the nearest cell that is not wall (the ground truth's convention: one ray down
-    # through each cell centre). Needs the project stage's observed.npz (which side is room)
+    # wall cells in front of the face of the nearest cell holding wall points become floor
+    # (the ground truth's convention: one ray down through each cell centre). Needs the
+    # project stage's observed.npz (its free cells tell the room's side of a face)
     wall_face: bool = True
     shrink: float = 0.0  # metres: object footprints (every class but floor, wall, ceiling)
     #                      shrunk by this where they meet the floor, in whole cells, after

@@ -10,8 +10,7 @@ the face where few points lie (floor next to a wall is hidden from most views).
 Per plan cell holding wall points, the face is the line through their mean with the normal
 of the wall points round it (the least direction of their spread over `window` cells); the
 normal faces the room, the side the views' rays came from (observed.npz "free"). A cell the
-plan draws wall whose centre lies in front of the nearest such face is given the class of the
-nearest cell that is not wall.
+plan draws wall whose centre lies in front of the nearest such face is made floor.
 """
 
 from __future__ import annotations
@@ -23,7 +22,7 @@ from scipy import ndimage
 
 from stages.common.blueprint import Grid
 from stages.common.capture import UNKNOWN
-from stages.common.classes import WALL_NAME, ids_named
+from stages.common.classes import FLOOR_NAME, WALL_NAME, ids_named
 from stages.common.errors import BlunfError
 
 FLAT = 0.2  # a face's spread across / along (eigenvalue ratio) above which it is no line
@@ -127,7 +126,15 @@ def wall_fronts(
     labels: np.ndarray, classes: dict[int, str], grid: Grid, xy: np.ndarray, free: np.ndarray
 ) -> tuple[np.ndarray, int]:
     """(The plan [H, W] with every wall cell whose centre lies in front of its nearest face
-    given the class of the nearest cell that is not wall, how many cells changed).
+    made floor, how many cells changed).
+
+    In front of a face is the room's open space: the field drew wall there from the face's
+    own points (a top view keeps the wall's points, the highest, in the cells that hold
+    them and drops the floor's). Floor, not the nearest class that is not wall: the strip
+    between a wall and a bed or sofa standing a little off it is floor (home3 with sensor
+    depth and free_floor: fwIoU 89.46 with floor, 88.01 with the nearest class: bed 92.4
+    and sofa 83.4 against 96.7 and 88.3). A plan without a floor class gets the nearest
+    class that is not wall.
 
     xy [N, 2]: the wall points (world metres); free: bool [H, W], the cells rays crossed.
     """
@@ -144,9 +151,13 @@ def wall_fronts(
     other = ~wall & (labels != UNKNOWN)
     if not front.any() or not other.any():
         return labels, 0
-    _, (r, c) = ndimage.distance_transform_edt(~other, return_indices=True)
     out = labels.copy()
-    out[front] = labels[r[front], c[front]]
+    floor = ids_named(classes, FLOOR_NAME)
+    if floor:
+        out[front] = floor[0]
+    else:
+        _, (r, c) = ndimage.distance_transform_edt(~other, return_indices=True)
+        out[front] = labels[r[front], c[front]]
     return out, int(front.sum())
 
 
