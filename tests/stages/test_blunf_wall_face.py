@@ -107,3 +107,17 @@ def test_without_free_cells_or_wall_points_the_plan_is_unchanged() -> None:
     for pts, free in ((xy, np.zeros((10, 10), bool)), (np.zeros((0, 2)), np.ones((10, 10), bool))):
         out, changed = wall_fronts(labels, CLASSES, grid, pts, free)
         assert changed == 0 and (out == labels).all()
+
+
+def test_without_a_floor_class_the_front_takes_the_nearest_other_class() -> None:
+    """A plan labelled without floor (no such class): the wall cells in front of the face
+    take the class of the nearest cell that is not wall."""
+    grid = Grid((0.0, 0.0), CELL, (20, 20))
+    x = grid.centers()[..., 0]
+    face = 0.2037  # the room at x < face
+    y = np.linspace(0.0, 0.4, 2000)
+    xy = np.c_[np.full(len(y), face), y]
+    labels = np.where(x > 0.15, 1, 3).astype(np.uint8)  # wall drawn from 0.16 on
+    out, changed = wall_fronts(labels, {1: "wall", 3: "table"}, grid, xy, x < face + CELL)
+    assert changed == 20 * 2  # the columns centred 0.17 and 0.19 (0.21 lies behind)
+    assert (out[:, x[0] < face] == 3).all() and (out[:, x[0] > face] == 1).all()
