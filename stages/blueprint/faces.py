@@ -26,6 +26,9 @@ from stages.common.classes import FLOOR_NAME, WALL_NAME, ids_named
 from stages.common.errors import BlunfError
 
 FLAT = 0.2  # a face's spread across / along (eigenvalue ratio) above which it is no line
+REACH = 5  # cells: the wall cells a face judges lie this near it (its free cells' window)
+ONE_SIDED = 0.25  # a face's free cells behind it at most this share of those in front
+THIN = 0.5  # cells: the spread (standard deviation) across a face above which it is left
 
 
 def face_frames(
@@ -76,26 +79,32 @@ def face_frames(
     nx = np.where(alt, lo - cyy, nx)
     ny = np.where(alt, cxy, ny)
     norm = np.hypot(nx, ny)
-    line = has & (m["n"] >= 3) & (norm > 0) & (lo <= FLAT * np.maximum(hi, 1e-12))
+    # a line, and a thin one: points spread across it by more than half a cell (stereo's
+    # readings; the two faces of a partition merged into one band) cannot tell on which
+    # side of a cell's centre the face passes
+    thin = lo <= (THIN * grid.cell) ** 2
+    line = has & (m["n"] >= 3) & (norm > 0) & thin & (lo <= FLAT * np.maximum(hi, 1e-12))
     normal = np.zeros((h, w, 2))
     normal[line, 0] = nx[line] / norm[line]
     normal[line, 1] = ny[line] / norm[line]
-    # orient: the free cells (not holding wall points) within `side` cells vote by their side
+    # orient: the free cells (not holding wall points) within `side` cells count on either
+    # side; the face turns to the side with more. A face with free cells on both sides
+    # (stereo reads through walls; rays graze a thin partition) has no known room side
     f = (free & ~has).astype(np.float64)
-    vote = np.zeros((h, w))
+    ahead, behind = np.zeros((h, w)), np.zeros((h, w))
+    off = mx * normal[..., 0] + my * normal[..., 1]
     for di in range(-side, side + 1):
         for dj in range(-side, side + 1):
             if di == 0 and dj == 0:
                 continue
             fx, fy = dj * grid.cell, -di * grid.cell  # the free cell's centre, relative
-            s = (
-                fx * normal[..., 0]
-                + fy * normal[..., 1]
-                - (mx * normal[..., 0] + my * normal[..., 1])
-            )
-            vote += _shift(f, -di, -dj) * np.sign(s)
-    face = line & (vote != 0)
-    normal[vote < 0] *= -1
+            s = fx * normal[..., 0] + fy * normal[..., 1] - off
+            g = _shift(f, -di, -dj)
+            ahead += g * (s > 0)
+            behind += g * (s < 0)
+    more, fewer = np.maximum(ahead, behind), np.minimum(ahead, behind)
+    face = line & (more > 0) & (fewer <= ONE_SIDED * more)
+    normal[behind > ahead] *= -1
     normal[~face] = 0
     return face, point, normal
 
@@ -144,10 +153,10 @@ def wall_fronts(
     face, point, normal = face_frames(grid, xy, free)
     if not face.any():
         return labels, 0
-    _, (fr, fc) = ndimage.distance_transform_edt(~face, return_indices=True)
+    dist, (fr, fc) = ndimage.distance_transform_edt(~face, return_indices=True)
     centres = grid.centers()
     s = ((centres - point[fr, fc]) * normal[fr, fc]).sum(-1)  # [H, W] metres, + = in front
-    front = wall & (s > 0)
+    front = wall & (s > 0) & (dist <= REACH)  # a face judges the cells near it only
     other = ~wall & (labels != UNKNOWN)
     if not front.any() or not other.any():
         return labels, 0
