@@ -26,20 +26,21 @@ from stages.common.classes import FLOOR_NAME, WALL_NAME, ids_named
 from stages.common.errors import BlunfError
 
 FLAT = 0.2  # a face's spread across / along (eigenvalue ratio) above which it is no line
-REACH = 5  # cells: the wall cells a face judges lie this near it (its free cells' window)
 ONE_SIDED = 0.25  # a face's free cells behind it at most this share of those in front
 THIN = 0.5  # cells: the spread (standard deviation) across a face above which it is left
 
 
 def face_frames(
     grid: Grid, xy: np.ndarray, free: np.ndarray, window: int = 2, side: int = 5
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(face, point [H, W, 2], normal [H, W, 2]) of the wall points xy [N, 2] on `grid`.
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(face, point [H, W, 2], normal [H, W, 2], held) of the wall points xy [N, 2] on `grid`.
 
     face: bool [H, W], the cells holding wall points whose face is known; point: the mean
     of the wall points within `window` cells (a thick cloud of noisy points gives its middle
     line, not a line per cell); normal: the unit normal of the points within `window` cells,
-    pointing to the side where more free cells (bool [H, W]) lie within `side` cells.
+    pointing to the side where more free cells (bool [H, W]) lie within `side` cells, when
+    at most ONE_SIDED as many lie on the other; held: bool [H, W], the cells holding wall
+    points.
     """
     h, w = grid.shape
     row, col, on = grid.cell_of(xy)
@@ -106,7 +107,7 @@ def face_frames(
     face = line & (more > 0) & (fewer <= ONE_SIDED * more)
     normal[behind > ahead] *= -1
     normal[~face] = 0
-    return face, point, normal
+    return face, point, normal, has
 
 
 def behind_faces(
@@ -150,13 +151,15 @@ def wall_fronts(
     wall = np.isin(labels, ids_named(classes, WALL_NAME))
     if not wall.any() or len(xy) == 0:
         return labels, 0
-    face, point, normal = face_frames(grid, xy, free)
+    face, point, normal, held = face_frames(grid, xy, free)
     if not face.any():
         return labels, 0
-    dist, (fr, fc) = ndimage.distance_transform_edt(~face, return_indices=True)
+    # the nearest cell holding wall points decides; when its face has no known room side (or
+    # is no thin line) the field's label stands
+    _, (fr, fc) = ndimage.distance_transform_edt(~held, return_indices=True)
     centres = grid.centers()
     s = ((centres - point[fr, fc]) * normal[fr, fc]).sum(-1)  # [H, W] metres, + = in front
-    front = wall & (s > 0) & (dist <= REACH)  # a face judges the cells near it only
+    front = wall & face[fr, fc] & (s > 0)
     other = ~wall & (labels != UNKNOWN)
     if not front.any() or not other.any():
         return labels, 0
