@@ -121,3 +121,16 @@ def test_without_a_floor_class_the_front_takes_the_nearest_other_class() -> None
     out, changed = wall_fronts(labels, {1: "wall", 3: "table"}, grid, xy, x < face + CELL)
     assert changed == 20 * 2  # the columns centred 0.17 and 0.19 (0.21 lies behind)
     assert (out[:, x[0] < face] == 3).all() and (out[:, x[0] > face] == 1).all()
+
+
+def test_a_face_with_free_cells_on_both_sides_is_left_to_the_field() -> None:
+    """Stereo reads through walls: where rays crossed both sides of a face, the room's side
+    is unknown and the wall cells stay as the field drew them; one-sided, they are cut."""
+    grid = Grid((0.0, 0.0), CELL, (20, 20))
+    x = grid.centers()[..., 0]
+    xy = np.c_[np.full(2000, 0.2037), np.linspace(0.0, 0.4, 2000)]
+    labels = np.where((x > 0.15) & (x < 0.3), 1, 0).astype(np.uint8)
+    both, changed = wall_fronts(labels, CLASSES, grid, xy, np.ones((20, 20), bool))
+    assert changed == 0 and (both == labels).all()
+    one, changed = wall_fronts(labels, CLASSES, grid, xy, x < 0.2037 + CELL)
+    assert changed == 20 * 2 and (one[:, x[0] > 0.2037] == labels[:, x[0] > 0.2037]).all()
