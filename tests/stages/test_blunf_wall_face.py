@@ -62,7 +62,8 @@ def test_the_cell_in_front_of_a_face_is_floor_the_one_behind_wall(tmp_path, seed
     ins = _room(tmp_path, np.random.default_rng(seed))
     n = torch.get_num_threads()
     try:
-        cfg = BlueprintConfig(blunf=BlunfConfig(steps=300, batch=2048, threads=1, seed=seed))
+        c = BlunfConfig(steps=300, batch=2048, threads=1, seed=seed, wall_face=True)
+        cfg = BlueprintConfig(blunf=c)
         bp = Blueprint.load(run(cfg, ins, tmp_path).blueprint)
     finally:
         torch.set_num_threads(n)
