@@ -9,8 +9,11 @@ the face where few points lie (floor next to a wall is hidden from most views).
 
 Per plan cell holding wall points, the face is the line through their mean with the normal
 of the wall points round it (the least direction of their spread over `window` cells); the
-normal faces the room, the side the views' rays came from (observed.npz "free"). A cell the
-plan draws wall whose centre lies in front of the nearest such face is made floor.
+normal faces the room, the side the views' rays came from (observed.npz "free"). Each wall
+cell of the plan is judged by the nearest cell holding wall points: when its centre lies in
+front of that cell's face it is made floor. A face that is no thin line (a corner, a band of
+noisy readings) or has free cells on both sides (stereo reads through walls) judges nothing:
+the field's label stands there.
 """
 
 from __future__ import annotations
@@ -143,7 +146,8 @@ def wall_fronts(
     them and drops the floor's). Floor, not the nearest class that is not wall: the strip
     between a wall and a bed or sofa standing a little off it is floor (home3 with sensor
     depth and free_floor: fwIoU 89.46 with floor, 88.01 with the nearest class: bed 92.4
-    and sofa 83.4 against 96.7 and 88.3). A plan without a floor class gets the nearest
+    and sofa 83.4 against 96.7 and 88.3; measured before faces needed one-sided free
+    cells). A plan without a floor class gets the nearest
     class that is not wall.
 
     xy [N, 2]: the wall points (world metres); free: bool [H, W], the cells rays crossed.
