@@ -21,6 +21,7 @@ from skimage.morphology import disk
 from torch import Tensor, nn
 
 from stages.blueprint.config import BlueprintConfig, BlueprintInputs, BlueprintOutputs, BlunfConfig
+from stages.blueprint.faces import behind_faces
 from stages.blueprint.instances import instance_raster
 from stages.common.blueprint import Blueprint, Grid, read_observed
 from stages.common.capture import UNKNOWN
@@ -74,6 +75,9 @@ def run(cfg: BlueprintConfig, inputs: BlueprintInputs, out: Path) -> BlueprintOu
         centers = normalise(xy, center, half)  # [H W, 2]
         labels = class_ids[predict(model, centers, c.eval_chunk)].reshape(grid.shape)
     labels = labels.astype(np.uint8)
+    fronted = 0
+    if c.wall_face and inputs.observed is not None:
+        labels, fronted = behind_faces(labels, classes, grid, pts_xy, pts_label, inputs.observed)
     shrink = round(c.shrink / grid.cell)  # cells
     labels, shrunk = shrink_objects(labels, classes, shrink)
     seen = room = None
@@ -101,6 +105,7 @@ def run(cfg: BlueprintConfig, inputs: BlueprintInputs, out: Path) -> BlueprintOu
             "points": int(inside.sum()),
             "points_outside_grid": int((~inside).sum()),
             "free_floor_cells": n_free,
+            "wall_front_cells": fronted,
             "shrink_cells": shrink,
             "observed": bp.shares(),
             "shrunk_cells": shrunk,

@@ -52,6 +52,16 @@ class BlunfConfig:
     # past, and the field gives it to the floor (the tests' 8-view room: fwIoU 69.9 -> 67.3,
     # its cabinet 47.0 and plant 45.4 -> 0, even with 0.16 m kept clear of object points)
     free_floor: bool = False
+    # a cell is wall only when its centre lies behind the face the views saw (faces.py): the
+    # wall cells in front of the face of the nearest cell holding wall points become floor,
+    # the ground truth's convention (one ray down through each cell centre). Needs the
+    # project stage's observed.npz (its free cells tell the room's side of a face). 3-room
+    # sensor home fwIoU 81.24 -> 85.56 (wall 59.7 -> 79.1), with free_floor 85.81 -> 88.88;
+    # from photos 76.24 -> 78.22; the demo room from photos 84.18 -> 87.02. Opt-in: the
+    # held-out pixel accuracy reads the plan at each pixel's surface point, so a face's
+    # pixels score against the cell the face crosses, which this makes floor when the face
+    # passes behind its centre: office 94.80 -> 68.65, kitchen 96.76 -> 94.50
+    wall_face: bool = False
     shrink: float = 0.0  # metres: object footprints (every class but floor, wall, ceiling)
     #                      shrunk by this where they meet the floor, in whole cells, after
     #                      the field is read (blunf.shrink_objects): for depth that fattens
