@@ -111,6 +111,11 @@ class FieldFillConfig(TrainingConfig):
     # plain floor or wall the photos do not pin down, rendered as fog hanging in front of it
     # (render.py); 0 = off (docs/figures.md#depth-field-max-spread)
     max_spread: float = 0.0
+    # > 0: the limit is this many times the median spread of the field's renders that agree
+    # with stereo (within depth.stereo.tol) in this run, never under max_spread: a briefly
+    # trained field spreads wide everywhere and gets a looser limit (spread.py); 0 = off
+    # (docs/figures.md#depth-field-max-spread-agreeing)
+    max_spread_agreeing: float = 0.0
     # the filling field's marching step: the scene box's diagonal / 256 (512 for fields that
     # edits and views render) (docs/figures.md#depth-field-sampling)
     sampling: SamplingConfig = dataclasses.field(
@@ -125,6 +130,11 @@ class FieldFillConfig(TrainingConfig):
         if not 0.0 <= self.max_spread < float("inf"):
             raise BlunfError(
                 f"depth.field.max_spread: must be a finite number >= 0, got {self.max_spread}"
+            )
+        if not 0.0 <= self.max_spread_agreeing < float("inf"):
+            raise BlunfError(
+                "depth.field.max_spread_agreeing: must be a finite number >= 0, got "
+                f"{self.max_spread_agreeing}"
             )
         if self.render_scale < 1:
             raise BlunfError(f"depth.field.render_scale: must be >= 1, got {self.render_scale}")

@@ -20,6 +20,7 @@ from stages.common.radiance.rays import camera_rays
 from stages.common.radiance.render import FieldRender, render_field, render_view
 from stages.depth.config import DepthCheckConfig, FieldFillConfig
 from stages.depth.consistency import consistent_depth
+from stages.depth.spread import agreeing, at_blocks, sample_blocks, spread_limit
 
 log = logging.getLogger(__name__)
 
@@ -50,10 +51,15 @@ def write_depths(
     # a swept view's render is needed only where a block of its pixels lacks stereo
     need = {i: _block_any(p <= 0, k) for i, p in prior.items()}
     views = track(enumerate(frames), "field fill", len(frames), "view")
-    depths = [render_depth(model, f, cfg, need.get(i)) for i, f in views]
+    if cfg.max_spread > 0 or cfg.max_spread_agreeing > 0:
+        depths, spread_facts = _render_narrow(model, frames, cfg, prior, need, tol, views)
+    else:
+        depths = [render_depth(model, f, cfg, need.get(i)) for i, f in views]
+        spread_facts = None
     facts: dict = {
         "depth_check_kept": None,
         "stereo_check_kept": None,
+        "spread": spread_facts,
         "rendered": round(
             sum(d.size if i not in need else int(need[i].sum()) for i, d in enumerate(depths))
             / max(1, sum(d.size for d in depths)),
@@ -105,6 +111,54 @@ def write_depths(
         write_depth_npy(path, d)
         out.append(replace(f, depth=path))
     return out, facts, depths
+
+
+def _render_narrow(
+    model: RadianceField,
+    frames: list[Frame],
+    cfg: FieldFillConfig,
+    prior: dict[int, np.ndarray],
+    need: dict[int, np.ndarray],
+    tol: float,
+    views,
+) -> tuple[list[np.ndarray], dict]:
+    """render_depth of every view with the readings whose weights spread too far along the
+    ray dropped: past depth.field.max_spread, or past max_spread_agreeing times the median
+    spread of the readings that agree with stereo (within `tol`) on a sample of the blocks
+    stereo read (spread.py). Returns (the depths, facts: the limit, how it was set, the share
+    of the rendered readings it dropped)."""
+    k = max(1, cfg.render_scale)
+    measure = cfg.max_spread_agreeing > 0
+    renders, agree = [], []
+    for i, f in views:
+        w, h = f.intrinsics.width, f.intrinsics.height
+        intr = f.intrinsics.scaled(max(1, w // k), max(1, h // k))
+        want = need.get(i)
+        pixels = want
+        if measure and want is not None:
+            pixels = want | sample_blocks(want)
+        depth, acc, spread = ray_spread(model, np.asarray(f.pose), intr, cfg.chunk, pixels)
+        ok = acc >= cfg.sampling.acc_threshold
+        if measure and want is not None:
+            agree.append(agreeing(depth, ok & ~want, spread, at_blocks(prior[i], depth.shape), tol))
+            ok &= want
+        renders.append((depth, ok, spread))
+    limit, facts = spread_limit(
+        np.concatenate(agree) if agree else np.zeros(0, np.float32),
+        cfg.max_spread_agreeing,
+        cfg.max_spread,
+    )
+    read = sum(int(ok.sum()) for _, ok, _ in renders)
+    out = [np.where(ok & (s <= limit), d, 0.0).astype(np.float32) for d, ok, s in renders]
+    kept = sum(int((d > 0).sum()) for d in out)
+    facts["dropped"] = round(1.0 - kept / read, 4) if read else 0.0
+    log.info(
+        "depth/field: spread limit %s (%s) dropped %.1f %% of the rendered readings",
+        facts["limit"],
+        facts["rule"],
+        100 * facts["dropped"],
+    )
+    return out, facts
 
 
 def _k_at(f: Frame, depth: np.ndarray) -> np.ndarray:

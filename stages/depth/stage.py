@@ -110,6 +110,9 @@ def _run(cfg: DepthConfig, inputs: DepthInputs, out: Path, sweep: bool) -> Depth
             # how the field's training ended: "steps" by default; "time" when the opt-in
             # depth.field.train.time_budget fired (the depth then depends on the load)
             facts["field_stop_reason"] = facts["field"]["stop_reason"]
+            # the spread limit on the fill's readings, how it was set and the share it
+            # dropped (depth.field.max_spread, max_spread_agreeing; None: neither set)
+            facts["field_spread"] = facts["field"].get("spread")
             sources = _field_sources(filled, depths, sources)
             depths = filled
             parts["field"] = _part(sources, time.process_time() - c0)
