@@ -261,19 +261,24 @@ def test_upsample_depth_repeats_blocks_and_edges():
         upsample_depth(d, (4, 6))
 
 
-def test_renders_whose_weights_spread_along_the_ray_are_dropped(tmp_path):
-    # depth.field.max_spread: a reading whose compositing weights spread along its ray by
-    # more than that share of its depth is 0 (fog the photos do not pin down, which reads
-    # short); the others are the plain render's. On a field barely trained (20 steps, 1 %
-    # of the depth) the dropped readings are the worse ones against the room's true depth.
+def barely_trained_field(tmp_path):
+    """A field trained 20 steps on 1 % of the depth of a 5-view room (48 x 36): its config,
+    model, the sparse capture and the room's true layout (for the fill's spread tests)."""
     room = make_room(tmp_path / "room", views=5, seed=3, size=(48, 36))
     frames = _sparse(room, tmp_path / "sparse", keep=0.01)
     cfg = tune(
         FAST, field__train__max_steps=20, field__render_scale=1, field__sampling__acc_threshold=0.0
     )
     outs = _run(run_field, cfg, frames, tmp_path / "out")
-    model = load_field(outs.field / "model.pt")
-    cap, truth = Capture.load(frames), read_layout(room)
+    return cfg, load_field(outs.field / "model.pt"), Capture.load(frames), read_layout(room)
+
+
+def test_renders_whose_weights_spread_along_the_ray_are_dropped(tmp_path):
+    # depth.field.max_spread: a reading whose compositing weights spread along its ray by
+    # more than that share of its depth is 0 (fog the photos do not pin down, which reads
+    # short); the others are the plain render's. On a field barely trained (20 steps, 1 %
+    # of the depth) the dropped readings are the worse ones against the room's true depth.
+    cfg, model, cap, truth = barely_trained_field(tmp_path)
     plain = [render_depth(model, f, cfg.field) for f in cap.frames]
     spread = [ray_spread(model, np.asarray(f.pose), f.intrinsics)[2] for f in cap.frames]
     hit = np.concatenate([(d > 0).reshape(-1) for d in plain])

@@ -10,17 +10,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from stages.common.capture import Capture, read_layout
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth
-from stages.common.radiance.field import load_field
 from stages.depth.config import FieldFillConfig
 from stages.depth.render import ray_spread, write_depths
 from stages.depth.spread import MIN_AGREEING, at_blocks, sample_blocks, spread_limit
-from stages.depth.stage import run_field
-from stages.synth import make_room
-from tests.conftest import tune
-from tests.stages.test_depth_field import FAST, _run, _sparse
+from tests.stages.test_depth_field import barely_trained_field
 
 
 def _field(rng: np.random.Generator, tight: float, wide: float):
@@ -71,14 +66,7 @@ def test_the_fill_drops_what_spreads_past_the_agreeing_readings(tmp_path):
     # The limit is 3 x the median spread of its renders that agree with that stereo (a
     # sample of the left half); the fill keeps exactly the readings under it, and those
     # it drops lie farther from the room's true depth than those it keeps.
-    room = make_room(tmp_path / "room", views=5, seed=3, size=(48, 36))
-    frames = _sparse(room, tmp_path / "sparse", keep=0.01)
-    cfg = tune(
-        FAST, field__train__max_steps=20, field__render_scale=1, field__sampling__acc_threshold=0.0
-    )
-    outs = _run(run_field, cfg, frames, tmp_path / "out")
-    model = load_field(outs.field / "model.pt")
-    cap, truth = Capture.load(frames), read_layout(room)
+    cfg, model, cap, truth = barely_trained_field(tmp_path)
     true = [read_depth(g.depth, truth.depth_scale) for g in truth.frames]
     prior = {}
     for i, t in enumerate(true):
