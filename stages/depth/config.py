@@ -116,6 +116,10 @@ class FieldFillConfig(TrainingConfig):
     # trained field spreads wide everywhere and gets a looser limit (spread.py); 0 = off
     # (docs/figures.md#depth-field-max-spread-agreeing)
     max_spread_agreeing: float = 0.0
+    # divide each fill by the field's median ratio to stereo at its depth, measured beside
+    # stereo in this run (debias.py): the field renders short (docs/depth.md, "Where the
+    # kitchen's floor goes")
+    debias: bool = False
     # the filling field's marching step: the scene box's diagonal / 256 (512 for fields that
     # edits and views render) (docs/figures.md#depth-field-sampling)
     sampling: SamplingConfig = dataclasses.field(

@@ -20,6 +20,7 @@ from stages.common.radiance.rays import camera_rays
 from stages.common.radiance.render import FieldRender, render_field, render_view
 from stages.depth.config import DepthCheckConfig, FieldFillConfig
 from stages.depth.consistency import consistent_depth
+from stages.depth.debias import bias_curve, debiased
 from stages.depth.spread import agreeing, at_blocks, sample_blocks, spread_limit
 
 log = logging.getLogger(__name__)
@@ -51,7 +52,7 @@ def write_depths(
     # a swept view's render is needed only where a block of its pixels lacks stereo
     need = {i: _block_any(p <= 0, k) for i, p in prior.items()}
     views = track(enumerate(frames), "field fill", len(frames), "view")
-    if cfg.max_spread > 0 or cfg.max_spread_agreeing > 0:
+    if cfg.max_spread > 0 or cfg.max_spread_agreeing > 0 or cfg.debias:
         depths, spread_facts = _render_narrow(model, frames, cfg, prior, need, tol, views)
     else:
         depths = [render_depth(model, f, cfg, need.get(i)) for i, f in views]
@@ -128,8 +129,8 @@ def _render_narrow(
     stereo read (spread.py). Returns (the depths, facts: the limit, how it was set, the share
     of the rendered readings it dropped)."""
     k = max(1, cfg.render_scale)
-    measure = cfg.max_spread_agreeing > 0
-    renders, agree = [], []
+    measure = cfg.max_spread_agreeing > 0 or cfg.debias
+    renders, agree, pairs = [], [], []
     for i, f in views:
         w, h = f.intrinsics.width, f.intrinsics.height
         intr = f.intrinsics.scaled(max(1, w // k), max(1, h // k))
@@ -140,13 +141,25 @@ def _render_narrow(
         depth, acc, spread = ray_spread(model, np.asarray(f.pose), intr, cfg.chunk, pixels)
         ok = acc >= cfg.sampling.acc_threshold
         if measure and want is not None:
-            agree.append(agreeing(depth, ok & ~want, spread, at_blocks(prior[i], depth.shape), tol))
+            beside = at_blocks(prior[i], depth.shape)
+            agree.append(agreeing(depth, ok & ~want, spread, beside, tol))
+            both = ok & ~want & (beside > 0)
+            pairs.append((depth[both], beside[both]))
             ok &= want
         renders.append((depth, ok, spread))
     limit, facts = spread_limit(
         np.concatenate(agree) if agree else np.zeros(0, np.float32),
         cfg.max_spread_agreeing,
         cfg.max_spread,
+    )
+    curve = None
+    if cfg.debias and pairs:
+        curve = bias_curve(*(np.concatenate(x) for x in zip(*pairs, strict=True)))
+        renders = [(debiased(d, curve), ok, s) for d, ok, s in renders]
+    facts["debias"] = (
+        None
+        if curve is None
+        else {"depth": curve[0].round(3).tolist(), "ratio": curve[1].round(4).tolist()}
     )
     read = sum(int(ok.sum()) for _, ok, _ in renders)
     out = [np.where(ok & (s <= limit), d, 0.0).astype(np.float32) for d, ok, s in renders]
