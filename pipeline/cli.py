@@ -193,11 +193,23 @@ def main(argv: list[str] | None = None) -> int:
         print(f"blunf: error: {err}", file=sys.stderr)
         return 2
     except Terminated:
-        print("blunf: terminated", file=sys.stderr)
-        return 143
+        return _stopped("blunf: terminated", 143, argv is None)
     except KeyboardInterrupt:
-        print("blunf: interrupted", file=sys.stderr)
-        return 130
+        return _stopped("blunf: interrupted", 130, argv is None)
+
+
+def _stopped(line: str, code: int, leave: bool) -> int:
+    """One line for Ctrl-C or SIGTERM, then `code`. The command (`leave`: main called with
+    no argv) exits at once: the runner has removed its temp folders by now, and once in CI,
+    under load, a Ctrl-C that had printed its line still ended the process by SIGINT (-2)
+    rather than 130, in the interpreter's shutdown that os._exit skips."""
+    print(line, file=sys.stderr)
+    if not leave:
+        return code
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
 
 
 class Terminated(KeyboardInterrupt):
