@@ -77,7 +77,9 @@ def run(cfg: BlueprintConfig, inputs: BlueprintInputs, out: Path) -> BlueprintOu
     labels = labels.astype(np.uint8)
     fronted = 0
     if c.wall_face and inputs.observed is not None:
-        labels, fronted = behind_faces(labels, classes, grid, pts_xy, pts_label, inputs.observed)
+        labels, fronted = behind_faces(
+            labels, classes, grid, pts_xy, pts_label, inputs.observed, c.wall_face_margin
+        )
     shrink = round(c.shrink / grid.cell)  # cells
     labels, shrunk = shrink_objects(labels, classes, shrink)
     seen = room = None

@@ -120,6 +120,7 @@ def behind_faces(
     xy: np.ndarray,
     label: np.ndarray,
     observed: Path,
+    margin: float = 0.0,
 ) -> tuple[np.ndarray, int]:
     """wall_fronts of the plan labels [H, W] with the wall points among the points xy
     [N, 2] (world metres) labelled `label` [N] and the free cells of observed.npz (the plan
@@ -132,14 +133,19 @@ def behind_faces(
     if free is None or free.shape != tuple(grid.shape):
         return labels, 0
     wall = np.isin(label, ids_named(classes, WALL_NAME))
-    return wall_fronts(labels, classes, grid, np.asarray(xy)[wall, :2], free)
+    return wall_fronts(labels, classes, grid, np.asarray(xy)[wall, :2], free, margin)
 
 
 def wall_fronts(
-    labels: np.ndarray, classes: dict[int, str], grid: Grid, xy: np.ndarray, free: np.ndarray
+    labels: np.ndarray,
+    classes: dict[int, str],
+    grid: Grid,
+    xy: np.ndarray,
+    free: np.ndarray,
+    margin: float = 0.0,
 ) -> tuple[np.ndarray, int]:
-    """(The plan [H, W] with every wall cell whose centre lies in front of its nearest face
-    made floor, how many cells changed).
+    """(The plan [H, W] with every wall cell whose centre lies more than `margin` cells in
+    front of its nearest face made floor, how many cells changed).
 
     In front of a face is the room's open space: the field drew wall there from the face's
     own points (a top view keeps the wall's points, the highest, in the cells that hold
@@ -151,6 +157,8 @@ def wall_fronts(
     class that is not wall.
 
     xy [N, 2]: the wall points (world metres); free: bool [H, W], the cells rays crossed.
+    margin: 0 cuts to the ground truth's convention; 0.5 keeps the cell the face crosses (its
+    centre within half a cell of the face) and cuts only the cells wholly in front of it.
     """
     wall = np.isin(labels, ids_named(classes, WALL_NAME))
     if not wall.any() or len(xy) == 0:
@@ -163,7 +171,7 @@ def wall_fronts(
     _, (fr, fc) = ndimage.distance_transform_edt(~held, return_indices=True)
     centres = grid.centers()
     s = ((centres - point[fr, fc]) * normal[fr, fc]).sum(-1)  # [H, W] metres, + = in front
-    front = wall & face[fr, fc] & (s > 0)
+    front = wall & face[fr, fc] & (s > margin * grid.cell)
     other = ~wall & (labels != UNKNOWN)
     if not front.any() or not other.any():
         return labels, 0

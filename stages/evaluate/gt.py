@@ -68,9 +68,9 @@ def run(cfg: EvaluateConfig, inputs: EvaluateInputs, out: Path) -> EvaluateOutpu
         stems = [str(s) for s in read_json(inputs.heldout).get("stems", [])]
         if stems:
             cap = Capture.load(inputs.frames)
-            xy, lab = heldout_pixels(cap, stems, cfg.heldout_stride)  # lifted once
+            xy, lab, inward = heldout_pixels(cap, stems, cfg.heldout_stride)  # lifted once
             for m, p in zip(inputs.methods, inputs.blueprints, strict=True):
-                scores = score_pixels(Blueprint.load(p), cap, xy, lab, len(stems))
+                scores = score_pixels(Blueprint.load(p), cap, xy, lab, len(stems), inward)
                 metrics.setdefault("blueprint", {}).setdefault(m, {}).update(scores)
     if (inputs.points is not None or inputs.observed is not None) and inputs.blueprints:
         metrics["observation"] = observation(

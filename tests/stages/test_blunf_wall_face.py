@@ -62,7 +62,9 @@ def test_the_cell_in_front_of_a_face_is_floor_the_one_behind_wall(tmp_path, seed
     ins = _room(tmp_path, np.random.default_rng(seed))
     n = torch.get_num_threads()
     try:
-        c = BlunfConfig(steps=300, batch=2048, threads=1, seed=seed, wall_face=True)
+        c = BlunfConfig(
+            steps=300, batch=2048, threads=1, seed=seed, wall_face=True, wall_face_margin=0.0
+        )
         cfg = BlueprintConfig(blunf=c)
         bp = Blueprint.load(run(cfg, ins, tmp_path).blueprint)
     finally:
@@ -98,6 +100,21 @@ def test_a_slanted_face_cuts_the_wall_cells_by_their_centres(angle) -> None:
     assert changed == int(((s > 0) & (s < 0.07)).sum())
     assert (out[near & (s > 0)] == 0).all()
     assert (out[near & (s < 0)] == 1).all()
+
+
+def test_a_margin_keeps_the_cell_the_face_crosses() -> None:
+    """margin 0.5: only the wall cells wholly in front of the face's own cell turn floor; the
+    cell the face crosses stays wall whichever side of its centre the face passes."""
+    grid = Grid((0.0, 0.0), CELL, (20, 20))
+    x = grid.centers()[..., 0]
+    for face in (0.2063, 0.2137):  # the cell centred 0.21 3.7 mm behind it, 3.7 mm in front
+        xy = np.c_[np.full(2000, face), np.linspace(0.0, 0.4, 2000)]
+        labels = np.where(x > 0.13, 1, 0).astype(np.uint8)  # wall drawn from 0.14 on
+        out, changed = wall_fronts(labels, CLASSES, grid, xy, x < face + CELL, margin=0.5)
+        own = (x > face - CELL / 2) & (x < face + CELL / 2)  # the face's own cell: within 1 cm
+        assert (out[own] == 1).all() and (out[x > face] == 1).all()
+        assert (out[x < face - CELL / 2] == 0).all()
+        assert changed == 20 * int(((x[0] > 0.13) & (x[0] < face - CELL / 2)).sum())
 
 
 def test_without_free_cells_or_wall_points_the_plan_is_unchanged() -> None:

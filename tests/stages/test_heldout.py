@@ -58,7 +58,13 @@ def test_all_floor_view_on_all_floor_plan_is_100_and_swapped_is_0(tmp_path):
     cap = Capture.load(_capture(tmp_path, [FLOOR_VIEW]))
     # 48 pixels, stride 1, all floor, all on floor cells
     r = heldout_pacc(_plan(np.zeros((4, 4))), cap, ["0"], stride=1)
-    assert r == {"heldout_pacc": 100.0, "heldout_pixels": 48, "heldout_views": 1}
+    assert r == {
+        "heldout_pacc": 100.0,
+        "heldout_pacc_surface": 100.0,  # a flat floor reads the cell under it either way
+        "heldout_pacc_behind": 100.0,
+        "heldout_pixels": 48,
+        "heldout_views": 1,
+    }
     # the plan says wall everywhere: no pixel agrees
     assert heldout_pacc(_plan(np.ones((4, 4))), cap, ["0"], stride=1)["heldout_pacc"] == 0.0
     # swapping the names instead of the ids: the plan's id 0 is now "wall", matched by name
@@ -94,6 +100,50 @@ def test_a_class_the_plan_lacks_and_points_outside_the_plan_are_wrong(tmp_path):
     assert heldout_pacc(far, cap, ["0"], stride=1)["heldout_pacc"] == 0.0
     with pytest.raises(BlunfError, match="'7'"):
         heldout_pacc(far, cap, ["7"], stride=1)
+
+
+# A 16x12 camera 1 m above the floor at the world origin looking along +x (x_cam = -y,
+# y_cam = -z, z_cam = +x), fx = fy = 16: every pixel at depth 0.9 lies on the plane x = 0.9.
+LEVEL = np.array([[0, 0, 1, 0], [-1, 0, 0, 0], [0, -1, 0, 1], [0, 0, 0, 1]], np.float64)
+INTR_16 = Intrinsics(16.0, 16.0, 7.5, 5.5, 16, 12)
+
+
+def test_a_wall_face_is_right_in_its_own_cell_or_half_a_cell_behind(tmp_path):
+    # A wall face at x = 0.9 m, seen head-on. On 0.5 m cells the face runs through the cell
+    # x in [0.5, 1.0), whose centre (0.75) lies in front of the face: by the ground truth's
+    # convention (one ray down through each cell centre) that cell is floor and the wall
+    # begins at x = 1.0; a plan from the points alone makes the face's own cell wall.
+    root = tmp_path / "cap"
+    for sub in ("images", "depth", "labels"):
+        (root / sub).mkdir(parents=True)
+    img, dep, lp = (root / d / "0.png" for d in ("images", "depth", "labels"))
+    write_image(img, np.zeros((12, 16, 3), np.uint8))
+    write_depth_png(dep, np.full((12, 16), 0.9))
+    write_label_png(lp, np.ones((12, 16), np.int32))  # every pixel wall
+    Capture(root, (Frame("0", img, INTR_16, dep, lp, LEVEL),), classes=CLASSES).save(
+        tmp_path / "frames.json"
+    )
+    cap = Capture.load(tmp_path / "frames.json")
+    grid = Grid((-1.0, -1.0), 0.5, (4, 6))  # x in [-1, 2), y in [-1, 1)
+    centre_x = -1.0 + 0.5 * (np.arange(6) + 0.5)
+
+    def score(wall_cols: np.ndarray) -> tuple:
+        labels = np.zeros((4, 6), np.uint8)
+        labels[:, wall_cols] = 1
+        r = heldout_pacc(Blueprint(labels, grid, {0: "floor", 1: "wall"}), cap, ["0"], stride=1)
+        assert r["heldout_pixels"] == 192
+        return r["heldout_pacc"], r["heldout_pacc_surface"], r["heldout_pacc_behind"]
+
+    # drawn to the ground truth's convention: wrong on the surface point (x = 0.9, the floor
+    # cell), right half a cell behind it (x = 1.15)
+    assert score(centre_x > 0.9) == (100.0, 0.0, 100.0)
+    # the wall in the face's own cell only (as from the points alone): the other way round
+    assert score((centre_x > 0.5) & (centre_x < 1.0)) == (100.0, 100.0, 0.0)
+    # from the face's cell on: right both ways
+    assert score(centre_x > 0.5) == (100.0, 100.0, 100.0)
+    # one cell late, or one cell early and thin: wrong both ways
+    assert score(centre_x > 1.5) == (0.0, 0.0, 0.0)
+    assert score((centre_x > 0.0) & (centre_x < 0.5)) == (0.0, 0.0, 0.0)
 
 
 def test_heldout_views_rule():
@@ -157,7 +207,15 @@ def test_evaluate_scores_heldout_views_without_ground_truth(tmp_path):
         EVALUATE["gt"](EvaluateConfig(heldout_stride=1), inputs, out).metrics.read_text()
     )
     assert m == {
-        "blueprint": {"mvr": {"heldout_pacc": 50.0, "heldout_pixels": 48, "heldout_views": 1}}
+        "blueprint": {
+            "mvr": {
+                "heldout_pacc": 50.0,
+                "heldout_pacc_surface": 50.0,
+                "heldout_pacc_behind": 50.0,
+                "heldout_pixels": 48,
+                "heldout_views": 1,
+            }
+        }
     }
     # the score switched off: nothing to report
     out2 = tmp_path / "eval2"
