@@ -7,7 +7,7 @@ PYTHON  := $(BIN)/python
 export GLIBC_TUNABLES ?= glibc.malloc.mmap_threshold=33554432:glibc.malloc.trim_threshold=4294967296
 DEMO    ?= runs/demo
 
-.PHONY: setup sysdeps demo test test-slow check lint typecheck bench bench-quick bench-targets batch clean FORCE
+.PHONY: setup constraints sysdeps demo test test-slow check lint typecheck bench bench-quick bench-targets batch clean FORCE
 
 # System libraries the wheels link against, as `library:Debian package`: open3d needs libusb,
 # torch and open3d need libgomp. Programs, as `program:Debian package`: the studio's browser
@@ -32,17 +32,22 @@ sysdeps:  ## the system libraries the Python packages need (apt-get, when root)
 	  echo "  sudo apt-get install -y$$missing"; exit 1; \
 	fi
 
-$(BIN)/.installed: pyproject.toml | sysdeps
+$(BIN)/.installed: pyproject.toml constraints.txt | sysdeps
 	test -d $(VENV) || $(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 	# CPU torch first: a later range that 2.13.0 satisfies then pulls nothing more.
 	$(BIN)/pip install -q torch==2.13.0
-	$(BIN)/pip install -q -e '.[dev]'
+	# within the versions the figures were measured with (constraints.txt)
+	$(BIN)/pip install -q -e '.[dev]' -c constraints.txt
 	$(PYTHON) -c "import numpy, open3d, pycolmap, torch, kornia, skimage, trimesh" \
 	  || (echo "blunf: a dependency failed to import; on Debian run: apt-get install -y libusb-1.0-0 libgomp1" && exit 1)
 	touch $@
 
 setup: sysdeps $(BIN)/.installed  ## idempotent: system libraries, .venv and the project
+
+constraints: $(BIN)/.installed  ## pin constraints.txt to the installed versions (then re-measure the figures)
+	{ sed -n '/^#/p' constraints.txt; $(BIN)/pip freeze | grep -v '^#\|^-e\|^torch=='; } > constraints.txt.new
+	mv constraints.txt.new constraints.txt
 
 demo: setup  ## the default room from photos alone, then edited through its NeRF (~2 min after setup)
 	# 1. photos and intrinsics only, as a phone gives: SfM poses, stereo depth (no NeRF trained), geometric classes
