@@ -52,20 +52,23 @@ class BlunfConfig:
     # past, and the field gives it to the floor (the tests' 8-view room: fwIoU 69.9 -> 67.3,
     # its cabinet 47.0 and plant 45.4 -> 0, even with 0.16 m kept clear of object points)
     free_floor: bool = False
-    # a cell is wall only when its centre lies behind the face the views saw (faces.py): the
-    # wall cells in front of the face of the nearest cell holding wall points become floor,
-    # the ground truth's convention (one ray down through each cell centre). Needs the
-    # project stage's observed.npz (its free cells tell the room's side of a face). 3-room
-    # sensor home fwIoU 81.24 -> 85.56 (wall 59.7 -> 79.1), with free_floor 85.81 -> 88.88;
-    # from photos 76.24 -> 78.22; the demo room from photos 84.18 -> 87.02. Opt-in: the
-    # held-out pixel accuracy reads the plan at each pixel's surface point, so a face's
-    # pixels score against the cell the face crosses, which this makes floor when the face
-    # passes behind its centre: office 94.80 -> 68.65, kitchen 96.76 -> 94.50
-    wall_face: bool = False
-    # cells: with wall_face, a wall cell turns floor only when its centre lies more than this
-    # in front of the face. 0 is the ground truth's convention exactly; 0.5 keeps the cell the
-    # face crosses and cuts the cells wholly in front of it, which forgives the 1-2 cm by
-    # which views disagree on a real wall: FILLED
+    # a cell is wall only where the views saw wall: the wall cells wholly in front of the
+    # face of the nearest cell holding wall points become floor (faces.py), where the field
+    # drew the wall thick from the face's points. Needs the project stage's observed.npz (its
+    # free cells tell the room's side of a face). With wall_face_margin 0.5, off -> on: 3-room
+    # sensor home fwIoU 81.24 -> 84.36 (wall 59.5 -> 73.2), with free_floor 85.84 -> 87.62;
+    # the demo room's edit run 90.76 -> 91.96; held-out pixel accuracy (heldout.py) kitchen
+    # 96.94 -> 96.59, office 95.37 -> 95.16. Off in configs/phone.yaml: from photos the
+    # procedural rooms gain (the home 76.16 -> 77.65, the demo room 84.50 -> 86.34) but the
+    # office against its sensor at SfM poses loses 61.95 -> 61.11 (wall 43.6 -> 29.1), the
+    # kitchen 68.77 -> 68.74 (README "Where a wall cell ends")
+    wall_face: bool = True
+    # cells: a wall cell turns floor only when its centre lies more than this in front of
+    # the face. 0 is the ground truth's convention exactly (a cell is wall when its centre lies
+    # behind the face; the sensor home 85.54, the demo room from photos 87.09) but real views
+    # disagree on a wall by 1-2 cm, a 2 cm cell: the held-out pixels of the office's walls lie
+    # up to a cell in front of the face the other views fused (held-out pAcc 91.48, kitchen
+    # 96.10); 0.5 keeps the cell the face crosses and cuts only the cells wholly in front of it
     wall_face_margin: float = 0.5
     shrink: float = 0.0  # metres: object footprints (every class but floor, wall, ceiling)
     #                      shrunk by this where they meet the floor, in whole cells, after
