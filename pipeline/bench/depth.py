@@ -246,7 +246,8 @@ def depth_metrics(
     total, by_source = _Tally(), {n: _Tally() for n in SOURCES.values()}
     by_class = {n: _Tally() for n in CLASSES}
     bands: dict[str, _Tally] = {}
-    tracks, by_track_band = _Tally(), {}
+    tracks = _Tally()
+    by_track_band: dict[str, _Tally] = {}
     sfm = track_maps(photos_run)
     per_view = {}
     has_sources = (folder / "sources").is_dir()

@@ -19,6 +19,7 @@ import shutil
 import sys
 import time
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 
@@ -28,7 +29,7 @@ from stages.common.io import read_json, write_json
 from stages.evaluate.poses import pose_metrics
 from stages.ingest import load
 from stages.poses import sfm
-from stages.poses.config import MATCHINGS, MatchingConfig, PosesConfig, PosesInputs
+from stages.poses.config import MATCHINGS, Matching, MatchingConfig, PosesConfig, PosesInputs
 
 
 def measure(capture: Path, out: Path, kinds: list[str]) -> dict:
@@ -48,9 +49,9 @@ def measure(capture: Path, out: Path, kinds: list[str]) -> dict:
         run_dir = out / kind
         shutil.rmtree(run_dir, ignore_errors=True)
         run_dir.mkdir()
-        cfg = PosesConfig(
-            impl="sfm", scale_from="none", threads=1, matching=MatchingConfig(kind=kind)
-        )
+        # main took only kinds among MATCHINGS (and MatchingConfig checks it again)
+        matching = MatchingConfig(kind=cast(Matching, kind))
+        cfg = PosesConfig(impl="sfm", scale_from="none", threads=1, matching=matching)
         t0, c0 = time.perf_counter(), time.process_time()
         sfm.run(cfg, PosesInputs(out / "ingest" / "frames.json"), run_dir)
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0

@@ -22,6 +22,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import trimesh
@@ -42,7 +43,8 @@ def _triangles(mesh: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Centres [T, 3], unit normals [T, 3] and areas [T] of the mesh's triangles."""
     if not Path(mesh).is_file():
         raise BlunfError(f"{mesh}: mesh file not found")
-    m = trimesh.load(mesh, process=False, force="mesh")
+    # force="mesh" gives one Trimesh (a scene's geometries concatenated)
+    m = cast(trimesh.Trimesh, trimesh.load(mesh, process=False, force="mesh"))
     p = np.asarray(m.vertices, np.float64)[np.asarray(m.faces, np.int64)]  # [T, 3, 3]
     cross = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
     norm = np.linalg.norm(cross, axis=1)

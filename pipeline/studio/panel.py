@@ -191,7 +191,8 @@ class Panel:
     def _full_path(self) -> None:
         if self.full_path.value not in FULL_PATHS:  # a value the page was not offered
             self.full_path.options = FULL_PATHS
-            self.full_path.value = FULL_PATHS[0]
+            # viser defines value's setter apart from its getter: mypy reads it as read-only
+            self.full_path.value = FULL_PATHS[0]  # type: ignore[misc]
             raise BlunfError("full view: not one of the choices offered")
 
     def _undo(self) -> None:

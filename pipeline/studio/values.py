@@ -45,8 +45,9 @@ def rgb(value: Any) -> list[int]:
     raise BlunfError(f"colour: must be [r, g, b] in 0..255, got {str(value)[:80]!r}")
 
 
-def inside(folder: Path, name: str, what: str) -> Path:
-    """`folder / name` resolved, when `name` is a plain file name that stays inside `folder`."""
+def inside(folder: Path, name: Any, what: str) -> Path:
+    """`folder / name` resolved, when `name` is a plain file name that stays inside `folder`
+    (a request's value: anything else is a one-line error)."""
     bad = not isinstance(name, str) or not name or name != Path(name).name or name[0] == "."
     p = (folder / str(name)).resolve()
     if bad or not p.is_relative_to(folder.resolve()):

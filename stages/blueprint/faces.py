@@ -59,7 +59,7 @@ def face_frames(
     has = n > 0
     # moments of the points within `window` cells about this cell's centre: a neighbour's
     # offsets are moved by its centre's (dj cell, -di cell) from ours
-    m = dict.fromkeys(("n", "x", "y", "xx", "xy", "yy"), 0.0)
+    m: dict[str, float | np.ndarray] = dict.fromkeys(("n", "x", "y", "xx", "xy", "yy"), 0.0)
     for di in range(-window, window + 1):
         for dj in range(-window, window + 1):
             ox, oy = dj * grid.cell, -di * grid.cell

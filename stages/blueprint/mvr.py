@@ -76,7 +76,7 @@ def majority_vote(
     if h * w * len(ids) > TABLE_MAX:
         return _vote_at_once(xy, label, grid, min_votes)
     index = np.cumsum(present) - 1  # class id -> its column
-    votes = np.zeros((h * w) * len(ids), np.int64)  # [H W K]
+    votes: np.ndarray = np.zeros((h * w) * len(ids), np.int64)  # [H W K], then [H W, K]
     for s in range(0, len(label), CHUNK):
         row, col, inside = grid.cell_of(xy[s : s + CHUNK])
         cell = (row * w + col)[inside]

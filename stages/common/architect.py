@@ -133,8 +133,8 @@ def overlay(rgb: np.ndarray, grid: Grid, plan: dict, long_px: int = 1400) -> Ima
     draw = ImageDraw.Draw(img)
     for wl in plan.get("walls", []):  # inferred walls: their face dashed
         if not wl.get("seen", True):
-            a, b = px(np.array([wl["start"], wl["end"]]))
-            for seg in dashes(np.array(a), np.array(b), 4.0 * k, 3.0 * k):
+            pa, pb = px(np.array([wl["start"], wl["end"]]))
+            for seg in dashes(np.array(pa), np.array(pb), 4.0 * k, 3.0 * k):
                 draw.line([tuple(p) for p in seg], fill=(0, 0, 0), width=max(2, k))
     for o in plan.get("objects", []):
         ring = px(np.asarray(o["polygon"]))

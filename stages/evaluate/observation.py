@@ -18,6 +18,7 @@ No figure needs ground truth: the evaluate stage gives them on every run.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 
@@ -74,7 +75,7 @@ def vertical_points(xyz: np.ndarray) -> np.ndarray:
     return up[(hi - lo)[col] >= VERTICAL_SPAN, :2]
 
 
-def wall_support(walls: list[dict], xyz: np.ndarray, openings: list[dict] = ()) -> dict:
+def wall_support(walls: list[dict], xyz: np.ndarray, openings: Sequence[dict] = ()) -> dict:
     """Length of the seen and inferred walls (m) and the percent of the seen walls' drawn
     length (their openings cut out) with a vertical surface's point within SUPPORT_RADIUS of
     the face."""

@@ -155,7 +155,8 @@ def merged_mesh(parts: list[dict], index_dtype) -> o3d.t.geometry.TriangleMesh:
 
 def _tensor(a: np.ndarray) -> o3c.Tensor:
     """An Open3D tensor on the CPU of the array's own dtype."""
-    return o3c.Tensor(np.ascontiguousarray(a), device=CPU)
+    # open3d's stub makes dtype required; it defaults to None (the array's dtype)
+    return o3c.Tensor(np.ascontiguousarray(a), device=CPU)  # type: ignore[call-overload]
 
 
 def merged_cloud(parts: list[dict]) -> o3d.t.geometry.PointCloud:

@@ -8,6 +8,7 @@ import math
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import ezdxf
 import numpy as np
@@ -201,7 +202,8 @@ def write_dxf(plan: dict, path: Path) -> None:
     doc = ezdxf.new("R2010", setup=True)
     doc.units = ezdxf.units.M
     for name, color in LAYERS.items():
-        attribs = {"linetype": "DASHED"} if name == "WALLS_INFERRED" else {}
+        # keyword arguments of LayerTable.add (its other keywords take ints and bools)
+        attribs: dict[str, Any] = {"linetype": "DASHED"} if name == "WALLS_INFERRED" else {}
         doc.layers.add(name, color=color, **attribs)
     msp = doc.modelspace()
     for poly in _polys(wall_shapes(plan, seen=False)):

@@ -8,6 +8,7 @@ sides of it at their heights."""
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import cast
 
 import numpy as np
 import open3d as o3d
@@ -57,6 +58,7 @@ def mesh_openings(
     scene of it (one scene for the stage: each holds its own copy of the mesh and its BVH),
     else one made of `verts` and `tris`."""
     if scene is None:
+        assert verts is not None and tris is not None  # callers give a scene or the mesh
         scene = scene_of(verts, tris)
     out = []
     for wi, w in enumerate(walls):
@@ -139,7 +141,7 @@ def _specks_out(wall: np.ndarray) -> np.ndarray:
     that no ray met. A wall, a jamb, furniture in a doorway stand over heights; a fleck of
     stereo's noise floating in a doorway meets one ray (the 3-room home from photos: one
     bin at 1.0 m cut a 1.7 m passage to 1.43 m)."""
-    hit = wall.any(0)
+    hit = cast(np.ndarray, wall.any(0))  # [S]: along an axis, an array (numpy types a bool too)
     for i, j in _runs(hit):
         if 0 < i and j < len(hit) and j - i <= SPECK and wall[:, i:j].sum(0).max() <= 1:
             hit[i:j] = False

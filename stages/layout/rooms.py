@@ -295,7 +295,8 @@ def split_seen(plan: dict) -> dict:
     """The plan with each wall that carries `pieces` (seen_pieces) split into its pieces along
     its length, each with its own `seen`; openings on it move to the piece that holds their
     middle; a room with an inferred piece continues beyond it."""
-    walls, index = [], []  # index[w] = [(new index, start fraction, end fraction), ...]
+    walls: list[dict] = []
+    index: list[list] = []  # index[w] = [(new index, start fraction, end fraction), ...]
     for w in plan["walls"]:
         pieces = w.get("pieces")
         w = {k: v for k, v in w.items() if k != "pieces"}

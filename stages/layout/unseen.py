@@ -77,8 +77,8 @@ def notched(
         if not good.any():
             i += 1
             continue
-        h, w = np.unravel_index(np.argmax(np.where(good, size, 0)), size.shape)
-        h, w = (h + 1) * cell, (w + 1) * cell
+        ih, iw = np.unravel_index(np.argmax(np.where(good, size, 0)), size.shape)
+        h, w = (ih + 1) * cell, (iw + 1) * cell
         if others is not None and (
             _faces(others, fr, c, v, h, -u) or _faces(others, fr, c, u, w, -v)
         ):

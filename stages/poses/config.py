@@ -11,6 +11,7 @@ from stages.common.errors import BlunfError
 
 MAPPERS = ("incremental", "global")
 MATCHINGS = ("auto", "sequential", "exhaustive", "retrieval")
+Matching = Literal["auto", "sequential", "exhaustive", "retrieval"]  # one of MATCHINGS
 SCALE_FROM = ("auto", "depth", "distance", "camera_height", "priors", "none")
 
 
@@ -42,7 +43,7 @@ class RetrievalConfig:
 class MatchingConfig:
     """Which image pairs SIFT matches are sought between (matching.py)."""
 
-    kind: Literal["auto", "sequential", "exhaustive", "retrieval"] = "auto"  # "auto" =
+    kind: Matching = "auto"  # "auto" =
     #   exhaustive up to exhaustive_max_images, sequential up to retrieval_above, else
     #   retrieval; "sequential": the capture order's neighbours only (no loop closes);
     #   "retrieval": sequential plus each image's `retrieval.neighbours` most similar images

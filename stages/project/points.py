@@ -49,7 +49,13 @@ def run(cfg: ProjectConfig, inputs: ProjectInputs, out: Path) -> ProjectOutputs:
     ignore = np.asarray([*cap.ignore, UNKNOWN], np.int64)  # label ids never projected
     origin = _local_origin(cap)  # [3] float64; points are kept as float32 offsets from it
     xyz_l, lab_l, view_l, inst_l = [], [], [], []
-    counts = {"sampled": 0, "no_depth": 0, "dropped_label": 0, "dropped_height": 0}
+    # counts, and past_height (metres) among them
+    counts: dict[str, int | float] = {
+        "sampled": 0,
+        "no_depth": 0,
+        "dropped_label": 0,
+        "dropped_height": 0,
+    }
     held_out = labelling == "labels" and inputs.holdout
     held = heldout_views(len(cap.frames), cfg.holdout_every) if held_out else []
     todo = [i for i in range(len(cap.frames)) if i not in held]

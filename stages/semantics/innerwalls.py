@@ -35,6 +35,8 @@ of a wall the bounding walls already hold (pointwalls.py) are left to them.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from stages.common.classes import WALL_NAME
@@ -57,7 +59,7 @@ def inner_walls(
     floor_z: float,
     opt: PointWallOptions,
     behind: float,
-    have: list[dict] = (),
+    have: Sequence[dict] = (),
 ) -> list[dict]:
     """The faces of the walls among the points that no ray crossed (see the module doc).
 
@@ -161,7 +163,7 @@ def _faces(
         return []
     # the plane holds a wall: its shorter stretches (beside a doorway, by a corner) count too
     stub = [_stretch(p[on], u_on, over, a, b, n, s0, side, floor_z, opt, MIN_STUB) for a, b in runs]
-    return [w or t for w, t in zip(walls, stub, strict=True) if w or t]
+    return [wt for w, t in zip(walls, stub, strict=True) if (wt := w or t)]
 
 
 def _bridged(open_: np.ndarray) -> np.ndarray:

@@ -162,10 +162,7 @@ def draw_plan(seed: int, n: int) -> HomePlan:
     if rng.random() < ENTRANCE:
         gaps.append(_entrance(rng, plan))
     return HomePlan(
-        *[getattr(plan, f) for f in ("xs", "widths", "ys", "depths", "cells")],
-        wall,
-        height,
-        tuple(gaps),
+        plan.xs, plan.widths, plan.ys, plan.depths, plan.cells, wall, height, tuple(gaps)
     )
 
 

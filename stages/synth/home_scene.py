@@ -11,6 +11,7 @@ floor in front of each gap kept free and tall pieces kept LOOP_CLEAR off the cam
 from __future__ import annotations
 
 import logging
+from typing import cast
 
 import numpy as np
 import trimesh
@@ -64,11 +65,11 @@ def wall_boxes(plan: HomePlan) -> list[tuple[float, float, float, float]]:
         for a, b in zip(rows, rows[1:] + [None], strict=True):
             if b != a + 1:
                 out.append((xs[i0], xs[i1], ys[start], ys[a + 1]))
-                start = b
+                start = cast(int, b)  # None past the last row only, where the loop ends
     return sorted(out)
 
 
-def _beyond(g: Gap, plan: HomePlan) -> tuple[float, ...]:
+def _beyond(g: Gap, plan: HomePlan) -> tuple[float, float, float, float, float, float]:
     """The wall an outside door looks onto: BEYOND past the outer band, 0.5 m wider a side."""
     s0, s1 = g.start - 0.5, g.end + 0.5
     out = g.band[1] + BEYOND if g.normal[0] + g.normal[1] > 0 else g.band[0] - BEYOND
@@ -176,7 +177,8 @@ def home_layout(plan: HomePlan) -> dict:
     walls (each room's own, interior face, room on the left, with `room`), openings (each
     with `rooms`: the two it joins, or one for a door to the outside; `wall`: the index of
     the wall of rooms[0] it cuts; its ends on that wall's face)."""
-    rooms, walls = [], []
+    rooms: list[dict] = []
+    walls: list[dict] = []
     for k in range(plan.n_rooms):
         poly = [[float(x), float(y)] for x, y in plan.polygon(k)]
         rooms.append({"name": f"room {k + 1}", "polygon": poly, "area": round(_area(poly), 6)})

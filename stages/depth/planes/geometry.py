@@ -51,7 +51,7 @@ def plane_valid(
     r: np.ndarray,
     centre: np.ndarray,
     planes: list[Plane],
-    margin: float,
+    margin: float | tuple[float, float],
     ceiling: float | None,
 ) -> np.ndarray:
     """[P, N] True where plane p's point along ray n is a possible surface: in front of the

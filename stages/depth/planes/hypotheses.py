@@ -71,6 +71,10 @@ class Cells:
         return out
 
 
+# a hypothesis before its kind: (normal, offset, support, lo, hi, cells), as Plane's fields
+Found = tuple[np.ndarray, float, int, np.ndarray, np.ndarray, Cells | None]
+
+
 @dataclass(frozen=True)
 class Plane:
     """n . X = d in the world (unit n), with its kind and the box of its inliers."""
@@ -178,7 +182,7 @@ def find_planes(points: np.ndarray, normals: np.ndarray, cfg: PlanesConfig) -> l
     pts, nrm = thin(np.asarray(points, np.float64), np.asarray(normals, np.float64), cfg.voxel)
     axes = room_axes(nrm)
     known = np.linalg.norm(nrm, axis=1) > 0.5
-    found: list[tuple[np.ndarray, float, int, np.ndarray, np.ndarray]] = []
+    found: list[Found] = []
     for a in axes:
         votes = ~known | (np.abs(nrm @ a) >= cfg.normal_cos)
         for n, d, idx in _axis_planes(pts, votes, a, cfg):
@@ -215,7 +219,7 @@ def _bounding_walls(pts: np.ndarray, axes: list, found: list, box: tuple, cfg: P
     """Walls no peak shows (plain paint: stereo reads nothing there): on each side of each
     wall axis, a plane at the outermost points' offset (their 0.2th / 99.8th percentile),
     spanning the room, unless a found vertical plane lies within 0.1 m of it."""
-    out = []
+    out: list[Found] = []
     if len(pts) < cfg.min_support:
         return out
     for a in axes[1:]:
@@ -243,7 +247,7 @@ def _axis_planes(
     # a plane's peak holds about its support spread over the band's bins
     height = cfg.min_support / max(1.0, 2 * cfg.band / cfg.bin)
     peaks, _ = find_peaks(sm, height=height, distance=max(1, int(round(cfg.band / cfg.bin))))
-    out = []
+    out: list[tuple[np.ndarray, float, np.ndarray]] = []
     for p in peaks[np.argsort(-sm[peaks])]:
         d0 = (lo + p + 0.5) * cfg.bin
         fit = _refit(pts[sel], axis, d0, cfg)

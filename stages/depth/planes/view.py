@@ -202,8 +202,8 @@ def _photo(
         inside = (z > EPS) & (gx.abs() <= 1) & (gy.abs() <= 1)
         img = torch.from_numpy(nb.gray).float()[None, None].expand(len(planes), 1, hn, wn)
         grid = torch.stack([gx, gy], -1).reshape(len(planes), h, w, 2)
-        b = F.grid_sample(img, grid, align_corners=False, padding_mode="border")
-        b = b.reshape(len(planes), -1).double().numpy()
+        warped = F.grid_sample(img, grid, align_corners=False, padding_mode="border")
+        b = warped.reshape(len(planes), -1).double().numpy()
         m = (inside.numpy() & ok).astype(np.float64)  # [P, N]
         n = (onehot @ m.T).T  # [P, S]
         sa = (onehot @ (m * a[None]).T).T
