@@ -5,7 +5,7 @@ the plan's label at its (x, y) cell is compared with the pixel's own label:
 
   heldout_pacc = |plan label = pixel label| / |pixels scored|  (percent)
 
-A pixel on a steep surface (its normal within 60 degrees of horizontal: a wall, a cabinet's
+A pixel on a steep surface (its normal within 30 degrees of horizontal: a wall, a cabinet's
 front) is right when the plan has its class either in the cell under its surface point or
 half a plan cell behind it, along the surface's horizontal normal: the face runs through a
 cell, and two conventions place it. The ground truth's (one ray down through each cell
@@ -13,10 +13,10 @@ centre) makes a cell wall when its centre lies behind the face, so the face's ow
 rightly be floor, and half a cell behind the face lies always in the first cell whose
 centre is behind it (for faces along the grid's axes); a plan drawn from the points alone
 (MVR) puts the wall in the cell holding the face. Read on the surface only, the office's
-plan with `blueprint.blunf.wall_face` (drawn to the first) scored 68.65; read behind only,
-MVR's fell from 95.29 to 75.64. `heldout_pacc_surface` and `heldout_pacc_behind` give the
-two readings alone. Floor, table tops and other flat surfaces read the cell under their
-point either way.
+plan with `blueprint.blunf.wall_face` at margin 0 (drawn to the first) scored 68.65; read
+behind only, MVR's fell from 95.29 to 75.64. `heldout_pacc_surface` and
+`heldout_pacc_behind` give the two readings alone. Floor, table tops and other flat
+surfaces read the cell under their point either way.
 
 Pixels whose label is ignored (e.g. ceiling) or unknown are not scored. A pixel falling on
 an unknown cell, outside the plan, or whose class the plan does not have counts as wrong
@@ -91,7 +91,7 @@ def heldout_pixels(
     return np.concatenate(xys), np.concatenate(labs), np.concatenate(ins)
 
 
-STEEP = 0.5  # |normal z| under this: a steep surface (within 60 degrees of vertical)
+STEEP = 0.5  # |normal z| under this: a steep surface (within 30 degrees of vertical)
 NORMAL_STEP = 2  # pixels either side the normal is taken over
 NORMAL_JUMP = 0.05  # a neighbour whose depth differs by more than this share: an edge, no normal
 
