@@ -23,7 +23,7 @@ from torch import Tensor, nn
 from stages.blueprint.config import BlueprintConfig, BlueprintInputs, BlueprintOutputs, BlunfConfig
 from stages.blueprint.faces import behind_faces
 from stages.blueprint.instances import instance_raster
-from stages.common.blueprint import Blueprint, Grid, read_observed
+from stages.common.blueprint import Blueprint, Grid, observed_layer, read_observed
 from stages.common.capture import UNKNOWN
 from stages.common.classes import FLOOR_NAME, STRUCTURE, ids_named
 from stages.common.encoding import (
@@ -157,14 +157,11 @@ def add_free_floor(
     "past" layer (an older observed.npz) nothing is added.
     """
     floor = ids_named(classes, FLOOR_NAME)
-    try:
-        with np.load(observed, allow_pickle=False) as z:
-            have = "free" in z.files and "past" in z.files
-            free = (z["free"] > 0) & (z["past"] >= PAST_VIEWS) if have else None
-    except (OSError, ValueError) as e:
-        raise BlunfError(f"{observed}: not an observed.npz ({e})") from None
-    if free is None or not floor or free.shape != tuple(grid.shape):
+    looked = observed_layer(observed, "free", grid.shape)
+    past = observed_layer(observed, "past", grid.shape)
+    if looked is None or past is None or not floor:
         return xyz, label, row, col, inside, 0
+    free = (looked > 0) & (past >= PAST_VIEWS)
     occ = np.zeros(grid.shape, bool)
     occ[row[inside], col[inside]] = True
     obj = np.zeros(grid.shape, bool)  # cells holding a point of an object (not structure)

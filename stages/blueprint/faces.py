@@ -23,10 +23,9 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from stages.common.blueprint import Grid
+from stages.common.blueprint import Grid, observed_layer
 from stages.common.capture import UNKNOWN
 from stages.common.classes import FLOOR_NAME, WALL_NAME, ids_named
-from stages.common.errors import BlunfError
 
 FLAT = 0.2  # a face's spread across / along (eigenvalue ratio) above which it is no line
 ONE_SIDED = 0.25  # a face's free cells behind it at most this share of those in front
@@ -125,15 +124,11 @@ def behind_faces(
     """wall_fronts of the plan labels [H, W] with the wall points among the points xy
     [N, 2] (world metres) labelled `label` [N] and the free cells of observed.npz (the plan
     unchanged when the file has none)."""
-    try:
-        with np.load(observed, allow_pickle=False) as z:
-            free = z["free"] > 0 if "free" in z.files else None
-    except (OSError, ValueError) as e:
-        raise BlunfError(f"{observed}: not an observed.npz ({e})") from None
-    if free is None or free.shape != tuple(grid.shape):
+    free = observed_layer(observed, "free", grid.shape)
+    if free is None:
         return labels, 0
     wall = np.isin(label, ids_named(classes, WALL_NAME))
-    return wall_fronts(labels, classes, grid, np.asarray(xy)[wall, :2], free, margin)
+    return wall_fronts(labels, classes, grid, np.asarray(xy)[wall, :2], free > 0, margin)
 
 
 def wall_fronts(

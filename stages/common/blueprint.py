@@ -153,6 +153,17 @@ class Blueprint:
         return Blueprint(labels, grid, classes, instances, seen, inside)
 
 
+def observed_layer(path: Path, name: str, shape: tuple[int, int]) -> np.ndarray | None:
+    """One layer of the project stage's observed.npz (e.g. "free", "past") as it is stored, or
+    None when the file (an older one) lacks it or its cells do not match the grid `shape`."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            a = z[name] if name in z.files else None
+    except (OSError, ValueError) as e:
+        raise BlunfError(f"{path}: not an observed.npz ({e})") from None
+    return a if a is not None and a.shape == tuple(shape) else None
+
+
 def read_observed(path: Path, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(seen, inside, labelled) bool [H, W] from the project stage's observed.npz."""
     try:

@@ -53,7 +53,7 @@ def write_depths(
     need = {i: _block_any(p <= 0, k) for i, p in prior.items()}
     views = track(enumerate(frames), "field fill", len(frames), "view")
     if cfg.max_spread > 0 or cfg.max_spread_agreeing > 0 or cfg.debias:
-        depths, spread_facts = _render_narrow(model, frames, cfg, prior, need, tol, views)
+        depths, spread_facts = _render_narrow(model, cfg, prior, need, tol, views)
     else:
         depths = [render_depth(model, f, cfg, need.get(i)) for i, f in views]
         spread_facts = None
@@ -116,7 +116,6 @@ def write_depths(
 
 def _render_narrow(
     model: RadianceField,
-    frames: list[Frame],
     cfg: FieldFillConfig,
     prior: dict[int, np.ndarray],
     need: dict[int, np.ndarray],

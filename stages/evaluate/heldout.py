@@ -30,7 +30,7 @@ from __future__ import annotations
 import numpy as np
 
 from stages.common.blueprint import Blueprint
-from stages.common.camera import depth_to_points, pixel_grid, unproject
+from stages.common.camera import depth_to_points, unproject
 from stages.common.capture import UNKNOWN, Capture
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth, read_label
@@ -84,7 +84,7 @@ def heldout_pixels(
         lab = label[stride // 2 :: stride, stride // 2 :: stride].reshape(-1)[idx]  # [N]
         keep = (lab >= 0) & (lab < UNKNOWN)
         keep[keep] = ~np.isin(lab[keep], cap.ignore)
-        inward = _inward(depth, intr.K, c2w)[stride // 2 :: stride, stride // 2 :: stride]
+        inward = _inward(depth, intr.K, c2w, stride)
         xys.append(xyz[keep, :2])
         labs.append(lab[keep].astype(np.int64))
         ins.append(inward.reshape(-1, 2)[idx][keep])
@@ -96,26 +96,34 @@ NORMAL_STEP = 2  # pixels either side the normal is taken over
 NORMAL_JUMP = 0.05  # a neighbour whose depth differs by more than this share: an edge, no normal
 
 
-def _inward(depth: np.ndarray, K: np.ndarray, c2w: np.ndarray) -> np.ndarray:
-    """[H, W, 2] float64: the unit horizontal direction into the surface at each pixel (away
-    from the camera, along the surface's normal from its neighbours NORMAL_STEP pixels away,
-    one-sided at the image's border), 0 where the surface is flatter than STEEP, at depth edges
-    and where depth is missing."""
+def _inward(depth: np.ndarray, K: np.ndarray, c2w: np.ndarray, stride: int = 1) -> np.ndarray:
+    """[H', W', 2] float64 on the strided pixel grid (pixel_grid's): the unit horizontal
+    direction into the surface at each pixel (away from the camera, along the surface's normal
+    from its full-resolution neighbours NORMAL_STEP pixels away, one-sided at the image's
+    border), 0 where the surface is flatter than STEEP, at depth edges and where depth is
+    missing. Only the scored pixels and their neighbours are lifted."""
     h, w = depth.shape
-    out = np.zeros((h, w, 2))
+    v, u = np.arange(stride // 2, h, stride), np.arange(stride // 2, w, stride)
+    out = np.zeros((len(v), len(u), 2))
     if h < 2 or w < 2:
         return out
     d = np.where(np.isfinite(depth) & (depth > 0), depth, np.nan)
-    p = unproject(pixel_grid(w, h).reshape(-1, 2), np.nan_to_num(d).reshape(-1), K, c2w)
-    p = p.reshape(h, w, 3)
-    u, v = np.arange(w), np.arange(h)
     u0, u1 = np.clip(u - NORMAL_STEP, 0, w - 1), np.clip(u + NORMAL_STEP, 0, w - 1)
     v0, v1 = np.clip(v - NORMAL_STEP, 0, h - 1), np.clip(v + NORMAL_STEP, 0, h - 1)
-    ok = np.isfinite(d)
+
+    def lift(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:  # [len(rows), len(cols), 3]
+        uu, vv = np.meshgrid(cols.astype(np.float64), rows.astype(np.float64))
+        uv = np.stack([uu, vv], axis=-1).reshape(-1, 2)
+        z = np.nan_to_num(d[np.ix_(rows, cols)]).reshape(-1)
+        return unproject(uv, z, K, c2w).reshape(len(rows), len(cols), 3)
+
+    dc = d[np.ix_(v, u)]
+    ok = np.isfinite(dc)
     with np.errstate(invalid="ignore"):
-        for dn in (d[:, u0], d[:, u1], d[v0], d[v1]):
-            ok &= np.isfinite(dn) & (np.abs(dn - d) <= NORMAL_JUMP * d)
-    n = np.cross(p[:, u1] - p[:, u0], p[v1] - p[v0])  # [H, W, 3]
+        for dn in (d[np.ix_(v, u0)], d[np.ix_(v, u1)], d[np.ix_(v0, u)], d[np.ix_(v1, u)]):
+            ok &= np.isfinite(dn) & (np.abs(dn - dc) <= NORMAL_JUMP * dc)
+    p = lift(v, u)
+    n = np.cross(lift(v, u1) - lift(v, u0), lift(v1, u) - lift(v0, u))  # [H', W', 3]
     norm = np.linalg.norm(n, axis=-1)
     ok &= norm > 0
     n = n / np.maximum(norm, 1e-12)[..., None]
