@@ -74,7 +74,11 @@ class BlunfConfig:
     #                      shrunk by this where they meet the floor, in whole cells, after
     #                      the field is read (blunf.shrink_objects): for depth that fattens
     #                      objects (stereo). 0 = off; the saved field stays unshrunk
-    threads: int = 0  # torch threads while training (0 = leave torch's setting)
+    # torch threads while training: a fixed count, not the free cores, so the plan does not
+    # depend on how busy the machine is (2 threads against 1 sum the weight gradients in
+    # another order: 62 of the synthetic room's cells differ; docs/figures.md#train-threads);
+    # 0 = the stage's thread count
+    threads: int = 1
     eval_chunk: int = 65536  # cell centres per forward pass when rendering the plan
 
     def __post_init__(self) -> None:  # checked when the config loads, before any stage runs

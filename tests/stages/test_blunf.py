@@ -59,11 +59,21 @@ def _gt() -> np.ndarray:
     return _labels(GRID.centers().reshape(-1, 2)).reshape(GRID.shape)
 
 
-def _run(tmp: Path, cfg: BlunfConfig, xyz=None, grid: Grid = GRID, name: str = "out", bounds=None):
+def _run(
+    tmp: Path,
+    cfg: BlunfConfig,
+    xyz=None,
+    grid: Grid = GRID,
+    name: str = "out",
+    bounds=None,
+    lab=None,
+    classes=CLASSES,
+):
     if xyz is None:
-        xyz, lab = _points()
+        xyz, lab0 = _points()
     else:
-        lab = _points()[1]
+        lab0 = _points()[1]
+    lab = lab0 if lab is None else lab
     d = tmp / name
     d.mkdir()
     np.savez(
@@ -71,7 +81,7 @@ def _run(tmp: Path, cfg: BlunfConfig, xyz=None, grid: Grid = GRID, name: str = "
         xyz=xyz.astype(np.float32),
         label=lab,
         view=np.zeros(len(lab), np.int32),
-        classes=json.dumps({str(k): v for k, v in CLASSES.items()}),
+        classes=json.dumps({str(k): v for k, v in classes.items()}),
     )
     extra = {} if bounds is None else {"bounds": list(bounds)}
     (d / "grid.json").write_text(json.dumps({**grid.to_json(), **extra}))
@@ -114,6 +124,28 @@ def test_same_seed_same_plan_other_seed_other_field(tmp_path):
     np.testing.assert_array_equal(a.labels, b.labels)
     loss = [json.loads(o.stats.read_text())["final_loss"] for o in (ao, bo, co)]
     assert loss[0] == loss[1] and loss[0] != loss[2]
+
+
+def test_field_does_not_depend_on_the_callers_thread_count(tmp_path):
+    # The runner gives the stage the free cores' count; the field trains with
+    # blueprint.blunf.threads (1) whatever that is. With threads=0 (the caller's count) 2
+    # threads and 1 train other weights: with 5 classes torch's CPU matrix product splits the
+    # last layer's weight gradient (5 x 64, summed over the batch) between threads (3 or 8
+    # classes it does not split).
+    xyz, lab = _points()
+    lab = np.where(xyz[:, 0] > 1.5, 4, np.where(xyz[:, 1] > 1.5, 5, lab)).astype(np.uint8)
+    classes = {**CLASSES, 4: "chair", 5: "sofa"}
+
+    def weights(caller: int, threads: int) -> dict:
+        cfg = BlunfConfig(**dict(SETTINGS["pe"], steps=10, threads=threads))
+        torch.set_num_threads(caller)
+        _, outs = _run(tmp_path, cfg, xyz, name=f"t{caller}-{threads}", lab=lab, classes=classes)
+        return torch.load(outs.blueprint.parent / "model.pt", weights_only=True)["state_dict"]
+
+    one, two = weights(1, 1), weights(2, 1)
+    assert all(torch.equal(one[k], two[k]) for k in one)
+    free1, free2 = weights(1, 0), weights(2, 0)
+    assert any(not torch.equal(free1[k], free2[k]) for k in free1), "2 threads split nothing"
 
 
 @pytest.mark.parametrize(

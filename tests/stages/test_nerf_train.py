@@ -82,6 +82,40 @@ def test_same_seed_same_weights(room8, dense):
     assert not torch.equal(other["trunk.0.weight"], a["trunk.0.weight"])
 
 
+def test_weights_do_not_depend_on_the_callers_thread_count(room8):
+    # The runner gives a stage the free cores' count; training computes with train.threads
+    # (1) whatever that is, so a loaded and an idle machine train the same weights. With
+    # threads=0 (the caller's count) 2 threads and 1 differ: the batch is large enough for
+    # torch to split the weight gradients' sums and the element-wise kernels between threads.
+    cfg = tune(FAST, train__max_steps=2, train__batch_rays=2048, losses__surface_rays=2048,
+               losses__geo_rays=2048)  # fmt: skip
+    cap = read_layout(room8)
+    views = load_views(cap, cfg.semantics)
+    tr, _ = split(len(cap.frames), cfg.train.holdout_every)
+    pts = depth_points(cap, views, tr, cfg.box.depth_stride)
+    lo, hi = scene_box(cap.poses()[:, :3, 3], pts, cfg)
+    rays = gather_rays(cap, views, tr)
+
+    def run(caller: int, threads: int) -> dict:
+        c = tune(cfg, train__threads=threads)
+        torch.manual_seed(0)
+        model = build_model(c, lo, hi, views.class_ids, [pts], dense=True)
+        old = torch.get_num_threads()
+        torch.set_num_threads(caller)
+        try:
+            train(c, model, rays, None, dense=True)
+            assert torch.get_num_threads() == caller  # put back after training
+        finally:
+            torch.set_num_threads(old)
+        return model.state_dict()
+
+    one, two = run(1, 1), run(2, 1)
+    for key in one:
+        assert torch.equal(one[key], two[key]), key
+    free1, free2 = run(1, 0), run(2, 0)
+    assert any(not torch.equal(free1[k], free2[k]) for k in free1), "2 threads split nothing"
+
+
 # ---- silhouettes ---------------------------------------------------------------------------
 
 

@@ -132,12 +132,20 @@ class TrainConfig:
     max_steps: int = 250  # stop after this many steps (reproducible); 0 = no limit (then
     #                       the time budget or a held-out plateau stops it)
     min_steps: int = 100  # the time budget never stops training before this many steps
+    # torch threads while training: a fixed count, not the free cores, so the weights do not
+    # depend on how busy the machine is (2 threads against 1 split the weight gradients' sums
+    # and the element-wise kernels' vector tails differently: the kitchen's field fill gave 52 %
+    # other depth pixels). 1 costs the kitchen's field fill 122 s of training against 78 s on
+    # two idle cores (docs/figures.md#train-threads); 0 = the stage's thread count
+    threads: int = 1
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.edge_batch <= 1.0:
             raise BlunfError(f"nerf.train.edge_batch: must be in [0, 1], got {self.edge_batch}")
         if self.min_steps < 0:
             raise BlunfError(f"nerf.train.min_steps: must be >= 0, got {self.min_steps}")
+        if self.threads < 0:
+            raise BlunfError(f"nerf.train.threads: must be >= 0, got {self.threads}")
         if self.max_steps < 0 or not 0.0 <= self.time_budget < float("inf"):
             raise BlunfError(
                 "nerf.train.max_steps must be >= 0 and nerf.train.time_budget a finite number "

@@ -25,6 +25,7 @@ from stages.common.radiance.losses import (
 from stages.common.radiance.render import FieldRender, render_field
 from stages.common.radiance.scene import occupancy_threshold
 from stages.common.radiance.views import Rays
+from stages.common.threads import torch_threads
 
 log = logging.getLogger(__name__)
 
@@ -33,8 +34,16 @@ def train(
     cfg: TrainingConfig, model: RadianceField, rays: Rays, held: Rays | None, dense: bool = True
 ) -> dict:
     """Optimise the model on `rays`; stop on a held-out plateau, the time budget (once past
-    min_steps) or max_steps.
+    min_steps) or max_steps. Torch computes with train.threads threads meanwhile (the same
+    count whatever the machine's load: the weights depend on it).
     `dense`: the depth covers most pixels (sensor or fused), not just SfM tracks."""
+    with torch_threads(cfg.train.threads):
+        return _train(cfg, model, rays, held, dense)
+
+
+def _train(
+    cfg: TrainingConfig, model: RadianceField, rays: Rays, held: Rays | None, dense: bool
+) -> dict:
     if cfg.losses.rgb not in RGB_LOSSES:
         raise BlunfError(f"nerf.losses.rgb must be one of {RGB_LOSSES}, got {cfg.losses.rgb!r}")
     tc, lc, oc = cfg.train, cfg.losses, cfg.occupancy
