@@ -92,7 +92,7 @@ def _run(cfg: DepthConfig, inputs: DepthInputs, out: Path, sweep: bool) -> Depth
             need = cfg.planes.enabled and facts["kept"] < cfg.planes.below
             if need:
                 depths, sources, facts["plane_fill"] = planes.fill(
-                    images, Ks, poses, sparse, depths, cfg.planes, max(1, cfg.threads)
+                    images, Ks, poses, sparse, depths, cfg.planes, cfg.threads
                 )
             facts["plane_fill_reason"] = _planes_reason(cfg.planes, facts["kept"])
             log.info("depth: %s", facts["plane_fill_reason"])

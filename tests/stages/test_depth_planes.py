@@ -165,6 +165,11 @@ def test_fill_reads_blank_walls_from_the_planes(plain_room):
     for o, s, d in zip(out, src, depths, strict=True):
         assert o.shape == d.shape and s.dtype == np.uint8 and np.isfinite(o).all()
         np.testing.assert_array_equal(o[s == 1], d[s == 1])  # kept stereo is untouched
+    # two views labelled side by side, one per thread: the same depth, pixel for pixel
+    out2, src2, _ = fill(images, Ks, poses, sparse, depths, PlanesConfig(enabled=True), threads=2)
+    for a, b, s, t in zip(out, out2, src, src2, strict=True):
+        np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(s, t)
 
 
 def test_fill_rejects_mismatched_inputs():

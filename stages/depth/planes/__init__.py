@@ -42,7 +42,7 @@ def fill(
     sparse: list[np.ndarray],
     depths: list[np.ndarray],
     cfg: PlanesConfig,
-    threads: int = 1,
+    threads: int = 0,
 ) -> tuple[list[np.ndarray], list[np.ndarray], dict]:
     """images: list of HxWx3 float32 in 0..1 (full size); Ks: 3x3 intrinsics at full size;
     poses: 4x4 camera-to-world, OpenCV axes, in the aligned world (metres, z up, floor z=0,
@@ -52,7 +52,9 @@ def fill(
     Returns (depths, sources, facts): the depth maps at the same h x w with plane depth filled
     where a plane wins and wrong stereo dropped, sources uint8 h x w (0 none, 1 stereo, 2 planes),
     and facts for report.json (CPU-s, coverage before/after by plane kind, share of fills the
-    multi-view check dropped, the planes found with kind/normal/offset/support)."""
+    multi-view check dropped, the planes found with kind/normal/offset/support).
+    threads: views labelled side by side, one per torch thread (0: the caller's count, the
+    stage's); the labels do not depend on it."""
     n = len(images)
     if not n == len(Ks) == len(poses) == len(sparse) == len(depths):
         raise BlunfError("depth.planes: images, intrinsics, poses, sparse and depth maps differ")
