@@ -89,15 +89,19 @@ class HashGrid3D(nn.Module):
         lo = pos.floor()
         frac = pos - lo  # [N, L, 3]
         a = lo.to(torch.int32) * self.mult  # [N, L, 3] per-axis hash terms of the low corner
-        t = torch.stack([a, a + self.mult], dim=-1)  # [N, L, 3, 2]
-        xy = t[:, :, 0, None, :] ^ t[:, :, 1, :, None]  # [N, L, 2 (y), 2 (x)]
-        h = (xy[:, :, None] ^ t[:, :, 2, :, None, None]) & self.mask[:, None, None, None]
-        idx = h.view(n, lv, 8).to(torch.int64) + self.offset[:, None]  # [N, L, 8] (z, y, x)
-        w = torch.stack([1.0 - frac, frac], dim=-1)  # [N, L, 3, 2]
-        wxy = w[:, :, 0, None, :] * w[:, :, 1, :, None]  # [N, L, 2, 2]
-        wt = (wxy[:, :, None] * w[:, :, 2, :, None, None]).view(n, lv, 8, 1)
+        lo_t, hi_t = a.unbind(-1), (a + self.mult).unbind(-1)  # 3 x [N, L] each
+        (tx, ty, tz), m = tuple(zip(lo_t, hi_t, strict=True)), self.mask
+        fx, fy, fz = frac.unbind(-1)  # [N, L]
+        wx, wy, wz = (1.0 - fx, fx), (1.0 - fy, fy), (1.0 - fz, fz)
+        # the 8 corners in (z, y, x) order, each an [N, L] term: broadcasting [N, L, 2, 2, 2]
+        # products over trailing axes of 2 ran 1.3x slower on one thread (the same values: the
+        # same products in the same order, (wx wy) wz)
+        corners = [(k, j, i) for k in range(2) for j in range(2) for i in range(2)]
+        h = torch.stack([(ty[j] ^ tx[i] ^ tz[k]) & m for k, j, i in corners], -1)  # [N, L, 8]
+        idx = h.to(torch.int64) + self.offset[:, None]  # [N, L, 8]
+        wt = torch.stack([(wx[i] * wy[j]) * wz[k] for k, j, i in corners], -1)  # [N, L, 8]
         feat = gather_rows(self.table, idx.view(-1)).view(n, lv, 8, self.features)
-        return (feat * wt).sum(dim=2).view(n, self.out_dim)
+        return (feat * wt[..., None]).sum(dim=2).view(n, self.out_dim)
 
 
 class FieldOut(NamedTuple):
