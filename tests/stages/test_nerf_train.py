@@ -46,6 +46,16 @@ def room8(tmp_path_factory) -> Path:
 # ---- seeds ---------------------------------------------------------------------------------
 
 
+def _training_inputs(room: Path, cfg: NerfConfig):
+    """What train() takes for `room`'s training views: (views, depth points, box lo, hi, rays)."""
+    cap = read_layout(room)
+    views = load_views(cap, cfg.semantics)
+    tr, _ = split(len(cap.frames), cfg.train.holdout_every)
+    pts = depth_points(cap, views, tr, cfg.box.depth_stride)
+    lo, hi = scene_box(cap.poses()[:, :3, 3], pts, cfg)
+    return views, pts, lo, hi, gather_rays(cap, views, tr)
+
+
 @pytest.mark.parametrize("dense", [True, False])
 def test_same_seed_same_weights(room8, dense):
     # the whole training (init, batches, jitter, occupancy updates) is seeded: two runs give
@@ -61,12 +71,7 @@ def test_same_seed_same_weights(room8, dense):
         occupancy__cells=4096,
         occupancy__res=32,
     )
-    cap = read_layout(room8)
-    views = load_views(cap, cfg.semantics)
-    tr, _ = split(len(cap.frames), cfg.train.holdout_every)
-    pts = depth_points(cap, views, tr, cfg.box.depth_stride)
-    lo, hi = scene_box(cap.poses()[:, :3, 3], pts, cfg)
-    rays = gather_rays(cap, views, tr)
+    views, pts, lo, hi, rays = _training_inputs(room8, cfg)
 
     def run(seed: int) -> dict:
         c = replace(cfg, seed=seed)
@@ -89,12 +94,7 @@ def test_weights_do_not_depend_on_the_callers_thread_count(room8):
     # torch to split the weight gradients' sums and the element-wise kernels between threads.
     cfg = tune(FAST, train__max_steps=2, train__batch_rays=2048, losses__surface_rays=2048,
                losses__geo_rays=2048)  # fmt: skip
-    cap = read_layout(room8)
-    views = load_views(cap, cfg.semantics)
-    tr, _ = split(len(cap.frames), cfg.train.holdout_every)
-    pts = depth_points(cap, views, tr, cfg.box.depth_stride)
-    lo, hi = scene_box(cap.poses()[:, :3, 3], pts, cfg)
-    rays = gather_rays(cap, views, tr)
+    views, pts, lo, hi, rays = _training_inputs(room8, cfg)
 
     def run(caller: int, threads: int) -> dict:
         c = tune(cfg, train__threads=threads)
