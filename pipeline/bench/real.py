@@ -10,6 +10,8 @@ from the geometry the same way):
                comes from the sensor depth (poses.scale_from auto), and that depth gives the
                plan, so the poses it is read at are the photos-only run's but for the scale;
   ref          the old reference: the sensor depth at the dataset's poses (and gravity).
+The references draw the plan as the photos-only run does (its blueprint.blunf.wall_face and
+margin: `drawn_alike`), then take --ref-set.
 The photos-only plan is scored against each reference per class, on the reference's cells
 within its projected points' bounds (`observed`; "padded" keeps the whole grid), through
 the similarity between the two runs' whole poses (stages.common.gt_frame), so a wrong metric
@@ -45,6 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.bench.runs import run_poses
+from pipeline.config import load_config
 from stages.common.blueprint import Blueprint
 from stages.common.capture import UNKNOWN, write_layout
 from stages.common.classes import GEOMETRY, GEOMETRY_IGNORE, UNKNOWN_NAME
@@ -291,8 +294,8 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
     photo = ["--config", a.config, *(x for s in a.set for x in ("--set", s))]
-    ref = [x for s in a.ref_set for x in ("--set", s)]
     try:
+        ref = [x for s in drawn_alike(Path(a.config), a.set) + a.ref_set for x in ("--set", s)]
         res = measure(a.capture, a.out, photo, ref, a.frames, a.ref_run, a.depth_erode)
     except BlunfError as e:
         print(f"error: {e}", file=sys.stderr)
@@ -300,6 +303,19 @@ def main(argv: list[str] | None = None) -> int:
     print(summary(res))
     print(json.dumps(res["seconds"]))
     return 0
+
+
+def drawn_alike(config: Path, sets: list[str]) -> list[str]:
+    """The photos-only run's choices of how a plan is drawn, as --set items for the
+    references (before their own --ref-set): blueprint.blunf.wall_face and its margin. The
+    references must draw walls as the photos-only plan does, or the way of drawing is scored
+    as depth error: with the default's wall_face against phone.yaml's plan without it, the
+    office read 61.09 (wall 29.6) where both drawn without it read 61.95 (wall 43.6)."""
+    b = load_config(config, sets)["blueprint"].blunf
+    return [
+        f"blueprint.blunf.wall_face={str(b.wall_face).lower()}",
+        f"blueprint.blunf.wall_face_margin={b.wall_face_margin}",
+    ]
 
 
 def _num(x: float | None) -> float:

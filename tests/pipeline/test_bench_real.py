@@ -22,3 +22,26 @@ def test_reference_cells_beyond_its_points_bounds_are_not_scored(tmp_path):
     want[2:8, 2:8] = 1  # cell centres 0.25 .. 0.75
     np.testing.assert_array_equal(got, want)
     assert observed(tmp_path / "none", ref) is ref  # no project stage: the plan as it is
+
+
+def test_references_draw_walls_as_the_photos_run_does():
+    # phone.yaml draws no wall_face; the default does. The references take the photos-only
+    # run's choice (else the drawing is scored as depth error), and their own --ref-set
+    # still has the last word.
+    from pathlib import Path
+
+    from pipeline.bench.real import drawn_alike
+    from pipeline.config import load_config
+
+    root = Path(__file__).resolve().parents[2]
+    phone = root / "configs" / "phone.yaml"
+    assert load_config()["blueprint"].blunf.wall_face
+    assert not load_config(phone)["blueprint"].blunf.wall_face
+    ref = drawn_alike(phone, [])
+    assert not load_config(None, ref)["blueprint"].blunf.wall_face
+    moved = drawn_alike(
+        phone, ["blueprint.blunf.wall_face=true", "blueprint.blunf.wall_face_margin=0"]
+    )
+    assert load_config(None, moved)["blueprint"].blunf.wall_face_margin == 0
+    last = load_config(None, ref + ["blueprint.blunf.wall_face=true"])["blueprint"].blunf
+    assert last.wall_face
