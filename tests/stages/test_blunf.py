@@ -17,6 +17,7 @@ from stages.common.blueprint import Blueprint, Grid
 from stages.common.encoding import HashGrid2D
 from stages.common.errors import BlunfError
 from stages.common.plan_metrics import plan_metrics
+from stages.common.threads import torch_threads
 
 # A 2 x 2 m floor (class 0) with a rug (class 1) and a table (class 3: ids need not be
 # contiguous), on 32 x 32 cells of 1/16 m. Every coordinate is a multiple of 2^-9 m so that
@@ -69,10 +70,8 @@ def _run(
     lab=None,
     classes=CLASSES,
 ):
-    if xyz is None:
-        xyz, lab0 = _points()
-    else:
-        lab0 = _points()[1]
+    xyz0, lab0 = _points()
+    xyz = xyz0 if xyz is None else xyz
     lab = lab0 if lab is None else lab
     d = tmp / name
     d.mkdir()
@@ -138,8 +137,9 @@ def test_field_does_not_depend_on_the_callers_thread_count(tmp_path):
 
     def weights(caller: int, threads: int) -> dict:
         cfg = BlunfConfig(**dict(SETTINGS["pe"], steps=10, threads=threads))
-        torch.set_num_threads(caller)
-        _, outs = _run(tmp_path, cfg, xyz, name=f"t{caller}-{threads}", lab=lab, classes=classes)
+        with torch_threads(caller):
+            name = f"t{caller}-{threads}"
+            _, outs = _run(tmp_path, cfg, xyz, name=name, lab=lab, classes=classes)
         return torch.load(outs.blueprint.parent / "model.pt", weights_only=True)["state_dict"]
 
     one, two = weights(1, 1), weights(2, 1)

@@ -29,6 +29,7 @@ from stages.common.radiance.views import (
     seed_points,
     split,
 )
+from stages.common.threads import torch_threads
 from stages.nerf import NerfConfig
 from stages.synth import make_room
 from tests.conftest import tune
@@ -100,13 +101,9 @@ def test_weights_do_not_depend_on_the_callers_thread_count(room8):
         c = tune(cfg, train__threads=threads)
         torch.manual_seed(0)
         model = build_model(c, lo, hi, views.class_ids, [pts], dense=True)
-        old = torch.get_num_threads()
-        torch.set_num_threads(caller)
-        try:
+        with torch_threads(caller):
             train(c, model, rays, None, dense=True)
             assert torch.get_num_threads() == caller  # put back after training
-        finally:
-            torch.set_num_threads(old)
         return model.state_dict()
 
     one, two = run(1, 1), run(2, 1)
