@@ -175,7 +175,8 @@ def architecture(bp: Blueprint, cfg: LayoutConfig) -> dict:
                 along = _seen_along(fr, seen_face, a, b, _thickness(fr, closed, a, b, cfg))
                 return len(along) > 0 and along.mean() >= SEEN_SHARE
 
-            poly = recessed(notched(poly, mask, fr, seen_edge, others), mask, fr, seen_edge)
+            poly = notched(poly, mask, fr, seen_edge, others)
+            poly = recessed(poly, mask, fr, seen_edge, others)
         if cfg.face_offset > 0:
             grown = Polygon(poly).buffer(cfg.face_offset * cell, join_style="mitre", mitre_limit=10)
             # kept as traced where the offset would change the outline's corners

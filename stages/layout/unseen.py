@@ -165,7 +165,11 @@ def _largest_run(depth: np.ndarray, least: int) -> tuple[int, int, int]:
 
 
 def recessed(
-    poly: np.ndarray, mask: np.ndarray, fr: Frame, seen: Callable[[np.ndarray, np.ndarray], bool]
+    poly: np.ndarray,
+    mask: np.ndarray,
+    fr: Frame,
+    seen: Callable[[np.ndarray, np.ndarray], bool],
+    others: np.ndarray | None = None,
 ) -> np.ndarray:
     """The outline poly (frame xy, counter-clockwise) with a recess in each edge along the
     frame's axes that no view saw as a surface (`seen`(a, b) false) where the room's cells
@@ -173,7 +177,10 @@ def recessed(
     RECESS_MIN wide and NOTCH_MIN deep, NOTCH_MIN or more from both its ends, whose cells
     lie outside the mask (each step along the edge empty with its neighbours across), is cut
     off: four corners more. An open side is drawn where the views stopped along it, not straight
-    across the gap."""
+    across the gap. A recess facing another room's cells (`others`) across the edge, as
+    notched() asks of a corner, stays: the unseen space lies between two rooms (the 3-room
+    home from photos: the strip between a cabinet and the partition behind it, which no
+    view fused, cut a recess 1.9 m wide into its room)."""
     cell = fr.grid.cell
     least = int(np.ceil(NOTCH_MIN / cell))
     out = []
@@ -203,6 +210,8 @@ def recessed(
         depth[-least:] = 0
         start, w, h = _largest_run(depth, least)
         if w * cell < RECESS_MIN or w * cell > 0.9 * length:
+            continue
+        if others is not None and _faces(others, fr, a + start * cell * u, u, w * cell, -v):
             continue
         p0 = a + start * cell * u
         p1 = a + (start + w) * cell * u

@@ -389,3 +389,26 @@ def test_unseen_floor_between_two_rooms_stays_in_the_rooms():
     # the same unseen corner with no room beyond it: an open side, cut back to what was seen
     alone = build_plan(_home_unseen_between(unseen, walled=True)[0], GT_PLAN)
     assert sorted(len(r["polygon"]) for r in alone["rooms"]) == [6, 6], alone["rooms"]
+
+
+def test_unseen_floor_in_the_middle_of_a_partition_is_no_recess():
+    # the floor along 2.2 m of the middle of the partition between the east rooms, 0.8 m
+    # deep on the south room's side, and the partition there unseen (a cabinet standing
+    # before it that no view fused, as in the 3-room home from photos): the south room is
+    # still a rectangle, for the north room's floor lies beyond. Before: a recess was cut
+    # into it, eight corners.
+    unseen = box(4.2, 2.5, 6.4, 3.3 + T)
+    plan = build_plan(_home_unseen_between(unseen, walled=False)[0], GT_PLAN)
+    rooms = [box(0, 0, 3.5, 7), box(3.5 + T, 0, 7.5, 3.3), box(3.5 + T, 3.3 + T, 7.5, 7)]
+    s = score_layout(plan, {"rooms": [{"polygon": r.exterior.coords[:-1]} for r in rooms]})
+    assert len(plan["rooms"]) == 3 and all(len(r["polygon"]) == 4 for r in plan["rooms"])
+    assert s["room_f1"] == 1.0 and s["corner_f1"] == 1.0, s
+    # the south room alone, the same floor unseen along its north side: an open side, its
+    # recess cut
+    bp = _raster([rooms[1]], T, [], 0.0)
+    xy = bp.grid.centers()
+    labels = bp.labels.copy()
+    labels[contains_xy(unseen, xy[..., 0], xy[..., 1])] = UNKNOWN
+    seen = (labels != UNKNOWN).astype(np.uint8)
+    alone = build_plan(Blueprint(labels, bp.grid, bp.classes, None, seen, seen), GT_PLAN)
+    assert [len(r["polygon"]) for r in alone["rooms"]] == [8], alone["rooms"]
