@@ -116,7 +116,11 @@ def test_walk_stays_inside_keeps_off_walls_and_closes_a_loop(n: int, seed: int) 
     assert np.median(c[:, 2]) == pytest.approx(1.45, abs=0.02)  # a hand-held camera's
     fwd = poses[:, :3, 2]
     pitch = np.degrees(np.arcsin(fwd[:, 2]))
-    assert -15 < pitch.min() and pitch.max() < -7
+    # looking down as people filming a room do: the 7-Scenes kitchen's and Replica office0's
+    # views look down a median 27.6 and 27.3 degrees (quartiles 23.5-30.6 and 22.1-38.4);
+    # the walk's earlier 8-14 degrees left the floor within 2 m of each spot unseen
+    assert -36 < pitch.min() and pitch.max() < -19
+    assert np.median(pitch) == pytest.approx(-27.5, abs=2.0)
     # a full turn at each spot: the heading winds once round per spot, plus the last one
     n_spots = sum(len(spots(plan, k)) for k in range(n)) + 1
     assert (keys[-1, 2] - keys[0, 2]) / (2 * math.pi) > n_spots - 1
