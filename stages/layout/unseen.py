@@ -26,6 +26,11 @@ NEIGHBOUR_SHARE = 0.5  # share of a cut's edge that must face another room withi
 BETWEEN_UNSEEN = 0.5  # least share of unseen cells in a step filled between two rooms (the
 #                      3-room home from photos: 0.72 and 0.90 in its two steps)
 BETWEEN_WALL = 0.15  # most share of wall cells there (0.04 and 0.09): no wall runs through it
+BETWEEN_FACE = 0.2  # metres from a side facing another room within which wall cells are that
+#                    partition's ragged face, not a wall through the step (the 3-room home
+#                    from photos on the walk that looks down 20-35 degrees: all 593 wall
+#                    cells of its step by the partition lie within 0.2 m of it, 18.6 % of
+#                    the step, 0 % past that band)
 RECESS_MIN = 1.0  # metres: the least width of a recess in an open side (0.84 m on the 3-room
 #                  home from photos was floor the photos' mesh missed, not the room's edge)
 
@@ -97,8 +102,9 @@ def filled_between(poly: np.ndarray, fr: Frame, others: np.ndarray, wall: np.nda
     """The outline poly (frame xy, counter-clockwise, edges along the frame's axes) with each
     step cut out of its bounding box filled where the step is space no view saw between this
     room and another: at least NOTCH_MIN on each side, at least BETWEEN_UNSEEN of its cells
-    unknown, at most BETWEEN_WALL wall, none of another room's (`others`), and facing another
-    room across one of its sides on the box's edge (within NEIGHBOUR_REACH). Inside a home
+    unknown, none of another room's (`others`), facing another room across one of its sides
+    on the box's edge (within NEIGHBOUR_REACH), and at most BETWEEN_WALL of its cells wall
+    farther than BETWEEN_FACE from those sides (nearer, they are the partition's own face). Inside a home
     the floor by an unseen inner wall is the room's, up to the line of its seen walls; beyond
     an open side of the home (nothing faces it) the outline keeps what the views saw."""
     if others is None or not others.any():
@@ -116,8 +122,7 @@ def filled_between(poly: np.ndarray, fr: Frame, others: np.ndarray, wall: np.nda
         inside = contains_xy(g, xy[..., 0], xy[..., 1])
         if not inside.any() or others[inside].any():
             continue
-        unseen = (fr.labels[inside] == UNKNOWN).mean()
-        if unseen < BETWEEN_UNSEEN or wall[inside].mean() > BETWEEN_WALL:
+        if (fr.labels[inside] == UNKNOWN).mean() < BETWEEN_UNSEEN:
             continue
         e = cell / 2  # the sides of the step on the box's edge, each with its outward normal
         sides = [
@@ -126,8 +131,18 @@ def filled_between(poly: np.ndarray, fr: Frame, others: np.ndarray, wall: np.nda
             (np.array([x0, y0]), np.array([1.0, 0.0]), x1 - x0, np.array([0.0, -1.0]), y0 - by0),
             (np.array([x0, y1]), np.array([1.0, 0.0]), x1 - x0, np.array([0.0, 1.0]), by1 - y1),
         ]
-        if any(gap < e and _faces(others, fr, a, u, n_, out) for a, u, n_, out, gap in sides):
-            filled = filled.union(g)
+        facing = [(a, out) for a, u, n_, out, gap in sides
+                  if gap < e and _faces(others, fr, a, u, n_, out)]  # fmt: skip
+        if not facing:
+            continue
+        # wall cells within BETWEEN_FACE of a facing side are that partition's face
+        at = xy[inside]  # [K, 2]
+        face = np.zeros(len(at), bool)
+        for a, out in facing:
+            face |= (at - a) @ out > -BETWEEN_FACE
+        if wall[inside][~face].sum() > BETWEEN_WALL * len(at):
+            continue
+        filled = filled.union(g)
     if filled is room or filled.geom_type != "Polygon":
         return poly
     out = orient(filled.simplify(0.0), 1.0)

@@ -412,3 +412,25 @@ def test_unseen_floor_in_the_middle_of_a_partition_is_no_recess():
     seen = (labels != UNKNOWN).astype(np.uint8)
     alone = build_plan(Blueprint(labels, bp.grid, bp.classes, None, seen, seen), GT_PLAN)
     assert [len(r["polygon"]) for r in alone["rooms"]] == [8], alone["rooms"]
+
+
+def test_a_partitions_ragged_face_in_an_unseen_step_is_no_wall_through_it():
+    # the same unseen floor by the partition, with the partition's underside read as a band
+    # of wall cells 0.18 m deep inside the step (as photos' faces: 20 % of the step's cells):
+    # the step is still the south room's, filled up to the partition. Before: over 15 % wall,
+    # the step stayed cut out of the room, four corners more.
+    unseen = box(4.2, 2.5, 6.4, 3.3 + T)
+    bp = _home_unseen_between(unseen, walled=False)[0]
+    xy = bp.grid.centers()
+    labels = bp.labels.copy()
+    ragged = contains_xy(box(4.2, 3.3 - 0.18, 6.4, 3.3), xy[..., 0], xy[..., 1])
+    labels[ragged] = 1
+    seen = (labels != UNKNOWN).astype(np.uint8)
+    plan = build_plan(Blueprint(labels, bp.grid, bp.classes, None, seen, seen), GT_PLAN)
+    corners = [len(r["polygon"]) for r in plan["rooms"]]
+    assert corners == [4, 4, 4], plan["rooms"]
+    # a wall running through the step, 0.3 m past that band, keeps it out
+    labels[contains_xy(box(4.2, 2.75, 6.4, 2.95), xy[..., 0], xy[..., 1])] = 1
+    seen = (labels != UNKNOWN).astype(np.uint8)
+    cut = build_plan(Blueprint(labels, bp.grid, bp.classes, None, seen, seen), GT_PLAN)
+    assert [len(r["polygon"]) for r in cut["rooms"]] != [4, 4, 4], cut["rooms"]
