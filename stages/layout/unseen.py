@@ -104,9 +104,10 @@ def filled_between(poly: np.ndarray, fr: Frame, others: np.ndarray, wall: np.nda
     room and another: at least NOTCH_MIN on each side, at least BETWEEN_UNSEEN of its cells
     unknown, none of another room's (`others`), facing another room across one of its sides
     on the box's edge (within NEIGHBOUR_REACH), and at most BETWEEN_WALL of its cells wall
-    farther than BETWEEN_FACE from those sides (nearer, they are the partition's own face). Inside a home
-    the floor by an unseen inner wall is the room's, up to the line of its seen walls; beyond
-    an open side of the home (nothing faces it) the outline keeps what the views saw."""
+    farther than BETWEEN_FACE from those sides (nearer, they are the partition's own face).
+    Inside a home the floor by an unseen inner wall is the room's, up to the line of its seen
+    walls; beyond an open side of the home (nothing faces it) the outline keeps what the
+    views saw."""
     if others is None or not others.any():
         return poly
     cell = fr.grid.cell
