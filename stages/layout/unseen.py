@@ -227,9 +227,9 @@ def recessed(
         start, w, h = _largest_run(depth, least)
         if w * cell < RECESS_MIN or w * cell > 0.9 * length:
             continue
-        if others is not None and _faces(others, fr, a + start * cell * u, u, w * cell, -v):
-            continue
         p0 = a + start * cell * u
+        if others is not None and _faces(others, fr, p0, u, w * cell, -v):
+            continue
         p1 = a + (start + w) * cell * u
         out += [p0, p0 + h * cell * v, p1 + h * cell * v, p1]
     return np.array(out)

@@ -367,12 +367,17 @@ def _home_unseen_between(unseen: Polygon, walled: bool) -> tuple[Blueprint, dict
     a, b, c = box(0, 0, 3.5, 7), box(3.5 + T, 0, 7.5, 3.3), box(3.5 + T, 3.3 + T, 7.5, 7)
     gaps = [box(3.4, 1.0, 3.7, 1.9), box(3.4, 4.8, 3.7, 6.5), box(6.4, 3.2, 7.3, 3.5)]
     rooms = [b, c] if walled else [a, b, c]
-    bp = _raster(rooms, T, [] if walled else gaps, 0.0)
+    return _painted(_raster(rooms, T, [] if walled else gaps, 0.0), unseen, UNKNOWN), rooms, gaps
+
+
+def _painted(bp: Blueprint, area: Polygon, label: int) -> Blueprint:
+    """bp with the cells whose centres lie in `area` labelled `label`; seen and inside: the
+    labelled cells (UNKNOWN: none saw them)."""
     xy = bp.grid.centers()
     labels = bp.labels.copy()
-    labels[contains_xy(unseen, xy[..., 0], xy[..., 1])] = UNKNOWN
+    labels[contains_xy(area, xy[..., 0], xy[..., 1])] = label
     seen = (labels != UNKNOWN).astype(np.uint8)
-    return Blueprint(labels, bp.grid, bp.classes, None, seen, seen), rooms, gaps
+    return Blueprint(labels, bp.grid, bp.classes, None, seen, seen)
 
 
 def test_unseen_floor_between_two_rooms_stays_in_the_rooms():
@@ -405,12 +410,7 @@ def test_unseen_floor_in_the_middle_of_a_partition_is_no_recess():
     assert s["room_f1"] == 1.0 and s["corner_f1"] == 1.0, s
     # the south room alone, the same floor unseen along its north side: an open side, its
     # recess cut
-    bp = _raster([rooms[1]], T, [], 0.0)
-    xy = bp.grid.centers()
-    labels = bp.labels.copy()
-    labels[contains_xy(unseen, xy[..., 0], xy[..., 1])] = UNKNOWN
-    seen = (labels != UNKNOWN).astype(np.uint8)
-    alone = build_plan(Blueprint(labels, bp.grid, bp.classes, None, seen, seen), GT_PLAN)
+    alone = build_plan(_painted(_raster([rooms[1]], T, [], 0.0), unseen, UNKNOWN), GT_PLAN)
     assert [len(r["polygon"]) for r in alone["rooms"]] == [8], alone["rooms"]
 
 
@@ -420,17 +420,10 @@ def test_a_partitions_ragged_face_in_an_unseen_step_is_no_wall_through_it():
     # the step is still the south room's, filled up to the partition. Before: over 15 % wall,
     # the step stayed cut out of the room, four corners more.
     unseen = box(4.2, 2.5, 6.4, 3.3 + T)
-    bp = _home_unseen_between(unseen, walled=False)[0]
-    xy = bp.grid.centers()
-    labels = bp.labels.copy()
-    ragged = contains_xy(box(4.2, 3.3 - 0.18, 6.4, 3.3), xy[..., 0], xy[..., 1])
-    labels[ragged] = 1
-    seen = (labels != UNKNOWN).astype(np.uint8)
-    plan = build_plan(Blueprint(labels, bp.grid, bp.classes, None, seen, seen), GT_PLAN)
+    bp = _painted(_home_unseen_between(unseen, walled=False)[0], box(4.2, 3.12, 6.4, 3.3), 1)
+    plan = build_plan(bp, GT_PLAN)
     corners = [len(r["polygon"]) for r in plan["rooms"]]
     assert corners == [4, 4, 4], plan["rooms"]
     # a wall running through the step, 0.3 m past that band, keeps it out
-    labels[contains_xy(box(4.2, 2.75, 6.4, 2.95), xy[..., 0], xy[..., 1])] = 1
-    seen = (labels != UNKNOWN).astype(np.uint8)
-    cut = build_plan(Blueprint(labels, bp.grid, bp.classes, None, seen, seen), GT_PLAN)
+    cut = build_plan(_painted(bp, box(4.2, 2.75, 6.4, 2.95), 1), GT_PLAN)
     assert [len(r["polygon"]) for r in cut["rooms"]] != [4, 4, 4], cut["rooms"]

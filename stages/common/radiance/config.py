@@ -135,9 +135,9 @@ class TrainConfig:
     # torch threads while training: a fixed count, not the free cores, so the weights do not
     # depend on how busy the machine is (2 threads against 1 split the weight gradients' sums
     # and the element-wise kernels' vector tails differently: the kitchen's field fill gave 52 %
-    # other depth pixels). 1 costs the kitchen's field fill 88 s of training against 78 s on
-    # two idle cores before the faster hash grid (docs/figures.md#train-threads); 0 = the
-    # stage's thread count
+    # other depth pixels). On one thread the kitchen's field fill trains in 88 s (108 s before
+    # the faster hash grid, 78 s on two idle cores then) (docs/figures.md#train-threads); 0 =
+    # the stage's thread count
     threads: int = 1
 
     def __post_init__(self) -> None:
