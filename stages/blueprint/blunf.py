@@ -22,6 +22,7 @@ from torch import Tensor, nn
 
 from stages.blueprint.config import BlueprintConfig, BlueprintInputs, BlueprintOutputs, BlunfConfig
 from stages.blueprint.faces import behind_faces
+from stages.blueprint.hidden import hidden_insides
 from stages.blueprint.instances import instance_raster
 from stages.common.blueprint import Blueprint, Grid, observed_layer, read_observed
 from stages.common.capture import UNKNOWN
@@ -83,9 +84,14 @@ def run(cfg: BlueprintConfig, inputs: BlueprintInputs, out: Path) -> BlueprintOu
     shrink = round(c.shrink / grid.cell)  # cells
     labels, shrunk = shrink_objects(labels, classes, shrink)
     seen = room = None
+    insides = 0
     if inputs.observed is not None:  # outside the room's extent the plan says nothing
         seen, room, labelled = read_observed(inputs.observed, grid.shape)
         labels[~labelled] = UNKNOWN
+        if c.hidden_insides:  # after: an object's inside may lie farther from its points
+            labels, insides = hidden_insides(
+                labels, classes, grid, pts_xy, pts_label, inputs.observed
+            )
     inst = instance_raster(labels, grid, pts_xy, pts_label, read_instances(inputs.points))
     outs = BlueprintOutputs(blueprint=Path(out) / "blueprint.npz", stats=Path(out) / "train.json")
     bp = Blueprint(labels, grid, classes, inst, seen, room)
@@ -111,6 +117,7 @@ def run(cfg: BlueprintConfig, inputs: BlueprintInputs, out: Path) -> BlueprintOu
             "shrink_cells": shrink,
             "observed": bp.shares(),
             "shrunk_cells": shrunk,
+            "hidden_inside_cells": insides,
             "classes": [classes.get(int(k), str(k)) for k in class_ids],
             "grid_shape": list(grid.shape),
             "eval_seconds": round(time.perf_counter() - t1, 3),

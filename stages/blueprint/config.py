@@ -70,6 +70,9 @@ class BlunfConfig:
     # up to a cell in front of the face the other views fused (held-out pAcc 91.48, kitchen
     # 96.10); 0.5 keeps the cell the face crosses and cuts only the cells wholly in front of it
     wall_face_margin: float = 0.5
+    # the cells no view saw into and no ray crossed, closed round by one object's points (a
+    # tall cabinet's inside, its top above the cameras) become that object (hidden.py)
+    hidden_insides: bool = True
     shrink: float = 0.0  # metres: object footprints (every class but floor, wall, ceiling)
     #                      shrunk by this where they meet the floor, in whole cells, after
     #                      the field is read (blunf.shrink_objects): for depth that fattens
