@@ -14,6 +14,7 @@ from stages.blueprint import BlueprintConfig, BlueprintInputs, BlunfConfig
 from stages.blueprint.blunf import run
 from stages.blueprint.hidden import MAX_AREA, fill_pockets
 from stages.common.blueprint import Blueprint, Grid
+from stages.common.points import write_grid, write_points
 
 FLOOR, WALL, CABINET, CHAIR = 0, 1, 6, 4
 CLASSES = {FLOOR: "floor", WALL: "wall", CHAIR: "chair", CABINET: "cabinet"}
@@ -155,16 +156,12 @@ def test_a_pocket_larger_than_furniture_keeps_the_field_labels() -> None:
 
 
 def _inputs(tmp_path, xyz: np.ndarray, label: np.ndarray) -> BlueprintInputs:
-    np.savez(
-        tmp_path / "points.npz",
-        xyz=xyz.astype(np.float32),
-        label=label,
-        view=np.zeros(len(label), np.int32),
-        instance=np.zeros(len(label), np.int32),
-        classes=json.dumps({str(k): v for k, v in CLASSES.items()}),
+    n = len(label)
+    zeros = np.zeros(n, np.int32)
+    write_points(
+        tmp_path / "points.npz", xyz.astype(np.float32), np.zeros(3), label, zeros, zeros, CLASSES
     )
-    grid = {**GRID.to_json(), "bounds": [0.0, 0.0, 2.0, BACK]}
-    (tmp_path / "grid.json").write_text(json.dumps(grid))
+    write_grid(tmp_path / "grid.json", GRID, np.array([0.0, 0.0]), np.array([2.0, BACK]))
     free, inside = _layers()
     ones = np.ones(GRID.shape, np.uint8)
     np.savez(
