@@ -308,10 +308,10 @@ def main(argv: list[str] | None = None) -> int:
 def drawn_alike(config: Path, sets: list[str]) -> list[str]:
     """The photos-only run's choices of how a plan is drawn, as --set items for the
     references (before their own --ref-set): blueprint.blunf.wall_face and its margin, and
-    hidden_insides. The
-    references must draw walls as the photos-only plan does, or the way of drawing is scored
-    as depth error: with the default's wall_face against phone.yaml's plan without it, the
-    office read 61.09 (wall 29.6) where both drawn without it read 61.95 (wall 43.6)."""
+    hidden_insides. The references must draw walls as the photos-only plan does, or the way
+    of drawing is scored as depth error: with the default's wall_face against phone.yaml's
+    plan without it, the office read 61.09 (wall 29.6) where both drawn without it read
+    61.95 (wall 43.6)."""
     b = load_config(config, sets)["blueprint"].blunf
     return [
         f"blueprint.blunf.wall_face={str(b.wall_face).lower()}",

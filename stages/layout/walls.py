@@ -235,7 +235,7 @@ def kept_apart(walls: list[dict], bp: Blueprint, cfg: LayoutConfig) -> np.ndarra
         """Share of wall cells within default_thickness in front of face i (its room's side)."""
         a, d, n, length = faces[i]
         t = np.arange(0.1, 0.9, 0.02) * length
-        s = np.arange(0.5, 4.5) * cfg.default_thickness / 5
+        s = (np.arange(5) + 0.5) * cfg.default_thickness / 5
         pts = a + t[:, None, None] * d - s[None, :, None] * n
         lab = bp.sample(pts.reshape(-1, 2))
         return float(np.isin(lab, wid).mean())
