@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
+from stages.blueprint.mvr import majority_vote
 from stages.common.blueprint import Grid, observed_layer
 from stages.common.capture import UNKNOWN
 from stages.common.classes import FLOOR_NAME, STRUCTURE, WALL_NAME, ids_named
@@ -75,18 +76,9 @@ def fill_pockets(
     xy [N, 2], label [N]: the projected points; free, inside: bool [H, W], the cells rays
     crossed and the room's extent (observed.npz).
     """
-    h, w = grid.shape
-    row, col, on = grid.cell_of(np.asarray(xy)[:, :2])
-    ids = np.unique(label)
-    if len(ids) == 0 or not on.any():
-        return labels, 0
-    # the most common class of the points in each cell (UNKNOWN: none)
-    k = np.searchsorted(ids, label[on])
-    counts = np.bincount((row[on] * w + col[on]) * len(ids) + k, minlength=h * w * len(ids))
-    counts = counts.reshape(h * w, len(ids))
-    held = counts.sum(1).reshape(h, w) > 0
-    top = np.where(held.ravel(), ids[counts.argmax(1)], UNKNOWN).reshape(h, w)
-    obj_ids = np.setdiff1d(ids, ids_named(classes, *STRUCTURE))
+    top, _ = majority_vote(np.asarray(xy)[:, :2], label, grid)  # UNKNOWN: no point
+    held = top != UNKNOWN
+    obj_ids = np.setdiff1d(np.unique(top[held]), ids_named(classes, *STRUCTURE))
     floor_ids = ids_named(classes, FLOOR_NAME)
     if len(obj_ids) == 0:
         return labels, 0

@@ -45,7 +45,7 @@ def plan_openings(
     return out
 
 
-def _face(w: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+def face_line(w: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """(start, unit direction, outward normal, length) of a wall's face."""
     a, b = np.asarray(w["start"], np.float64), np.asarray(w["end"], np.float64)
     length = float(np.linalg.norm(b - a))
@@ -64,8 +64,8 @@ def _gaps(
 ) -> list[dict]:
     """The openings between face wi and face vi when they run back to back (see plan_openings):
     [] otherwise."""
-    a, d, n, length = _face(walls[wi])
-    b, e, _, _ = _face(walls[vi])
+    a, d, n, length = face_line(walls[wi])
+    b, e, _, _ = face_line(walls[vi])
     depth = float((b - a) @ n)  # how far the other face lies beyond this one
     if d @ e > -BACK_TO_BACK or not 0 < depth <= cfg.max_thickness:
         return []

@@ -36,7 +36,7 @@ from stages.layout.openings import (
     scene_of,
 )
 from stages.layout.plan import architecture, in_rooms, objects
-from stages.layout.plangaps import HELD, plan_openings
+from stages.layout.plangaps import HELD, face_line, plan_openings
 from stages.layout.rooms import join_rooms, split_seen
 
 log = logging.getLogger(__name__)
@@ -223,13 +223,8 @@ def kept_apart(walls: list[dict], bp: Blueprint, cfg: LayoutConfig) -> np.ndarra
     back to `default_thickness` in front of the other. The 3-room home from photos: room 3's
     face at the partition 13 cm past the ground truth's, then 3 cm."""
     out = np.zeros(len(walls))
-    faces = []
+    faces = [face_line(w) for w in walls]
     wid = ids_named(bp.classes, WALL_NAME)
-    for w in walls:
-        a, b = np.asarray(w["start"], np.float64), np.asarray(w["end"], np.float64)
-        length = float(np.linalg.norm(b - a))
-        d = (b - a) / max(length, 1e-12)
-        faces.append((a, d, np.array([d[1], -d[0]]), length))
 
     def band(i: int) -> float:
         """Share of wall cells within default_thickness in front of face i (its room's side)."""
