@@ -9,7 +9,7 @@ from typing import ClassVar, Literal
 
 from stages.common.errors import BlunfError
 
-MAPPERS = ("incremental", "global")
+MAPPERS = ("auto", "incremental", "global")
 MATCHINGS = ("auto", "sequential", "exhaustive", "retrieval")
 Matching = Literal["auto", "sequential", "exhaustive", "retrieval"]  # one of MATCHINGS
 SCALE_FROM = ("auto", "depth", "distance", "camera_height", "priors", "none")
@@ -91,8 +91,10 @@ class PosesConfig:
 
     impl: str = "auto"  # "given" (the capture's poses) | "sfm" (pycolmap from the photos) |
     #                     "auto" = given when the capture has poses, else sfm (the planner picks)
-    mapper: Literal["incremental", "global"] = "incremental"  # COLMAP's incremental mapper
-    #                                                            or the global one (GLOMAP)
+    mapper: Literal["auto", "incremental", "global"] = "auto"  # COLMAP's incremental mapper,
+    #   the global one (GLOMAP), or "auto": incremental, then global when the incremental
+    #   model contradicts its own verified pairs (agreement.py), the model that contradicts
+    #   fewer kept (docs/figures.md#poses-mapper)
     matching: MatchingConfig = dataclasses.field(default_factory=MatchingConfig)
     ba: BundleAdjustmentConfig = dataclasses.field(default_factory=BundleAdjustmentConfig)
     max_features: int = 8192  # SIFT features kept per image

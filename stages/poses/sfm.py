@@ -23,7 +23,7 @@ from stages.common.capture import Capture, Frame
 from stages.common.errors import BlunfError
 from stages.common.io import image_size, write_depth_npy, write_json
 from stages.common.progress import progress
-from stages.poses import calib, fullsize, matching, stated
+from stages.poses import agreement, calib, fullsize, matching, stated
 from stages.poses import models as models_detail
 from stages.poses.config import PosesConfig, PosesInputs, PosesOutputs
 from stages.poses.models import metric_scale, sparse_depth
@@ -84,11 +84,12 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
                 stated.to_self_calibration(db, checked)
                 recs = _map(cfg, db, img_dir, work / "models-refined", threads, True)
                 refine = True
+        recs, facts["agreement"] = _agreeing(cfg, recs, db, img_dir, work, threads, refine)
         clock.append((time.perf_counter(), time.process_time()))
     spans = list(zip(("extract", "match", "map"), clock[:-1], clock[1:], strict=True))
     facts["seconds"] = {k: b[0] - a[0] for k, a, b in spans}
     facts["cpu_seconds"] = {k: b[1] - a[1] for k, a, b in spans}
-    facts["mapper"] = cfg.mapper
+    facts["mapper"] = facts["agreement"].pop("mapper", cfg.mapper)
     facts["models"] = len(recs)
     facts["images"] = fullsize.facts(seen, cap.frames) | {"max_side": side}
 
@@ -97,6 +98,9 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
     index = {name: i for i, name in enumerate(names)}
     members = [sorted(index[im.name] for im in r.images.values() if im.has_pose) for r in recs]
     facts.update(models_detail.describe(members, stems))
+    if not facts["agreement"].get("agrees", True):
+        facts["warnings"].append(agreement.warning(facts["agreement"]))
+        log.warning("sfm: %s", facts["warnings"][-1])
     ids = {}  # COLMAP image name -> image id, registered images of the largest model
     if rec is not None:
         ids = {im.name: im.image_id for im in rec.images.values() if im.has_pose}
@@ -310,6 +314,46 @@ def first_octave(cfg: PosesConfig, frames: tuple[Frame, ...]) -> int:
     return -1 if longest < cfg.double_below else 0
 
 
+def _agreeing(
+    cfg: PosesConfig,
+    recs: list[pycolmap.Reconstruction],
+    db: Path,
+    img_dir: Path,
+    work: Path,
+    threads: int,
+    refine: bool,
+) -> tuple[list[pycolmap.Reconstruction], dict]:
+    """The models, and the largest one checked against the verified pairs (agreement.py).
+    With mapper "auto", an incremental model that contradicts them is mapped again by the
+    global mapper, which places every view at once from all the pairs' rotations, and the
+    largest model that contradicts fewer strong pairs is kept (a tie keeps the incremental
+    one). The facts name the mapper whose models are returned ("mapper")."""
+    if not recs:
+        return recs, {}
+    stems = {}  # COLMAP image name -> frame stem (names are <index:06d>_<stem><ext>)
+    for r in recs:
+        stems.update({im.name: Path(im.name).stem.split("_", 1)[1] for im in r.images.values()})
+    largest = max(recs, key=lambda r: r.num_reg_images())
+    with progress("sfm check"):
+        facts = agreement.check(largest, db, stems)
+    used = "incremental" if cfg.mapper == "auto" else cfg.mapper
+    if facts["agrees"] or cfg.mapper != "auto":
+        return recs, facts | {"mapper": used}
+    log.warning("sfm: %s; mapping again with the global mapper", agreement.warning(facts))
+    glob = replace(cfg, mapper="global")
+    other = _map(glob, db, img_dir, work / "models-global", threads, refine)
+    if not other:
+        return recs, facts | {"mapper": used, "global": "no model"}
+    g = max(other, key=lambda r: r.num_reg_images())
+    gfacts = agreement.check(g, db, stems)
+    key = (gfacts["strong_contradicted"], -g.num_reg_images())
+    if key < (facts["strong_contradicted"], -largest.num_reg_images()):
+        gfacts["incremental"] = {k: facts[k] for k in ("pairs_contradicted", "strong_contradicted")}
+        return other, gfacts | {"mapper": "global (incremental contradicted its pairs)"}
+    facts["global"] = {k: gfacts[k] for k in ("pairs_contradicted", "strong_contradicted")}
+    return recs, facts | {"mapper": used}
+
+
 def _map(
     cfg: PosesConfig, db: Path, img_dir: Path, models: Path, threads: int, refine: bool
 ) -> list[pycolmap.Reconstruction]:
@@ -320,7 +364,7 @@ def _map(
     fixed = not refine
     if cfg.deterministic:  # a multi-threaded bundle adjustment sums in a varying order
         threads = 1
-    if cfg.mapper == "incremental":
+    if cfg.mapper in ("auto", "incremental"):
         o = pycolmap.IncrementalPipelineOptions()
         o.num_threads = threads
         o.random_seed = cfg.seed
