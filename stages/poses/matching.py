@@ -9,7 +9,8 @@
   (Jégou et al., CVPR 2010): RootSIFT descriptors, their residuals to visual words summed per
   word, normalised per word, square-rooted and normalised. The words are a seeded k-means of
   the capture's own descriptors, so no vocabulary is downloaded. The pairs grow as
-  n (min(overlap, log2 n) + neighbours), not n^2.
+  n (min(overlap, log2 n) + neighbours), not n^2. Every dot product it takes is exact
+  (`snap`), so the words and pairs do not depend on how many threads BLAS sums with.
 
 The sequential pairs are pycolmap's own sequential pairing; the loop pairs then go to its
 `match_image_pairs` as a list. Two-view geometry is verified by pycolmap as for any pairing.
@@ -29,6 +30,7 @@ log = logging.getLogger(__name__)
 
 MIN_INLIERS = 15  # a pair with this many verified matches counts as matched (COLMAP's own)
 CHUNK = 4096  # descriptors assigned to words at a time (bounds the distance matrix)
+GRID = 2.0**-20  # retrieval's vectors are multiples of this (snap)
 
 
 def kind_for(cfg: MatchingConfig, n: int) -> str:
@@ -48,62 +50,82 @@ def sequential_pairs(n: int, overlap: int) -> set[tuple[int, int]]:
     return {(i, i + d) for i in range(n) for d in steps if i + d < n}
 
 
+def snap(x: np.ndarray) -> np.ndarray:
+    """x rounded to a multiple of GRID (2^-20), float64.
+
+    Why: a matmul's sums run in an order set by BLAS's kernel and thread count (OpenBLAS
+    takes OMP_NUM_THREADS / OPENBLAS_NUM_THREADS, else the machine's cores, when numpy
+    loads), so float32 distances differed in their last bits between one and two threads,
+    nearest words flipped and the retrieved pairs with them (70 views: words up to 3e-3
+    apart, 270 against 273 loop pairs, another model). Between rows of norm <= 1 on this grid
+    each product is a multiple of 2^-40 and every partial sum is at most 1 (Cauchy-Schwarz):
+    53 bits hold it exactly, so float64 gives the same bits in any order, FMA or not. A
+    multiple of 2^-20 in [-1, 1] is also exact in float32 (24 bits), which stores it."""
+    return np.rint(np.asarray(x, np.float64) / GRID) * GRID
+
+
 def root_sift(d: np.ndarray) -> np.ndarray:
-    """RootSIFT (Arandjelović & Zisserman 2012): L1-normalise, square-root; float32."""
-    x = d.astype(np.float32)
+    """RootSIFT (Arandjelović & Zisserman 2012): L1-normalise, square-root; rows of unit
+    length on the GRID (snap), stored as float32 (exact)."""
+    x = d.astype(np.float64)
     x /= np.maximum(x.sum(1, keepdims=True), 1e-12)
-    return np.sqrt(x)
+    return snap(np.sqrt(x)).astype(np.float32)
 
 
 def assign(x: np.ndarray, words: np.ndarray) -> np.ndarray:
-    """Index of the nearest word of each row of x, CHUNK rows at a time."""
-    ww = (words**2).sum(1)
+    """Index of the nearest word of each row of x, CHUNK rows at a time; x and words on the
+    GRID with rows of norm <= 1 (snap), so the distances are exact (ties: the first word)."""
+    w = words.astype(np.float64)
+    ww = (w**2).sum(1)
     out = np.empty(len(x), np.int64)
     for s in range(0, len(x), CHUNK):
-        c = x[s : s + CHUNK]
-        out[s : s + CHUNK] = np.argmin(ww[None] - 2.0 * c @ words.T, axis=1)
+        c = np.asarray(x[s : s + CHUNK], np.float64)
+        out[s : s + CHUNK] = np.argmin(ww[None] - 2.0 * c @ w.T, axis=1)
     return out
 
 
 def train_words(descs: list[np.ndarray], cfg: RetrievalConfig, seed: int) -> np.ndarray:
-    """Visual words [k, 128]: Lloyd's k-means of at most cfg.sample RootSIFT descriptors,
-    spread evenly over the images, from k distinct seeded rows; an emptied word keeps its
-    place."""
+    """Visual words [k, 128] on the GRID: Lloyd's k-means of at most cfg.sample RootSIFT
+    descriptors (root_sift), spread evenly over the images, from k distinct seeded rows, each
+    mean snapped; an emptied word keeps its place."""
     rng = np.random.default_rng(seed)
     per = max(1, cfg.sample // max(1, len(descs)))
     parts = [d[rng.choice(len(d), min(per, len(d)), replace=False)] for d in descs if len(d)]
-    x = np.concatenate(parts) if parts else np.zeros((0, 128), np.float32)
+    x = np.concatenate(parts).astype(np.float64) if parts else np.zeros((0, 128))
     k = min(cfg.words, len(x))
     if k == 0:
-        return np.zeros((0, 128), np.float32)
-    words = x[rng.choice(len(x), k, replace=False)].copy()
+        return np.zeros((0, 128), np.float64)
+    words = x[rng.choice(len(x), k, replace=False)]
     for _ in range(cfg.iterations):
         a = assign(x, words)
         sums = np.zeros_like(words)
-        np.add.at(sums, a, x)
+        np.add.at(sums, a, x)  # multiples of GRID: exact (float64 both: numpy's fast path)
         counts = np.bincount(a, minlength=k)
         filled = counts > 0
-        words[filled] = sums[filled] / counts[filled, None]
+        words[filled] = snap(sums[filled] / counts[filled, None])
     return words
 
 
 def vlad(d: np.ndarray, words: np.ndarray) -> np.ndarray:
-    """The image's VLAD vector [k * 128], unit length (zeros for an image with no features)."""
-    v = np.zeros_like(words)
+    """The image's VLAD vector [k * 128], unit length, on the GRID (zeros for an image with
+    no features). Norms are numpy's own sums, not BLAS's dot, whose order may follow its
+    threads."""
+    r = np.zeros((len(words), 128), np.float64)  # [k, 128] residuals summed per word
     if len(d) and len(words):
         a = assign(d, words)
-        np.add.at(v, a, d - words[a])
-        v /= np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)  # per word
-    v = v.ravel()
-    v = np.sign(v) * np.sqrt(np.abs(v))
-    return v / max(float(np.linalg.norm(v)), 1e-12)
+        np.add.at(r, a, d.astype(np.float64) - words[a])  # multiples of GRID: exact
+        r /= np.maximum(np.sqrt((r**2).sum(1, keepdims=True)), 1e-12)  # per word
+    v = np.sign(r.ravel()) * np.sqrt(np.abs(r.ravel()))
+    return snap(v / max(float(np.sqrt((v**2).sum())), 1e-12))
 
 
 def loop_pairs(vecs: np.ndarray, window: set[tuple[int, int]], neighbours: int) -> set:
-    """Each image with its `neighbours` most similar images (dot product of vecs [n, D])
-    among those it is not already paired with in `window`; (i, j), i < j."""
+    """Each image with its `neighbours` most similar images (dot product of vecs [n, D], rows
+    of norm <= 1, snapped to the GRID: exact) among those it is not already paired with in
+    `window`; (i, j), i < j."""
     n = len(vecs)
-    sim = vecs @ vecs.T
+    v = snap(vecs)
+    sim = v @ v.T
     np.fill_diagonal(sim, -np.inf)
     for i, j in window:
         sim[i, j] = sim[j, i] = -np.inf

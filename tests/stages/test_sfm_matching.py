@@ -2,15 +2,20 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from stages.common.io import read_json
 from stages.ingest import load
 from stages.poses import IMPLS, PosesConfig, PosesInputs
 from stages.poses.config import MatchingConfig, RetrievalConfig
 from stages.poses.matching import (
+    assign,
     kind_for,
     loop_pairs,
     root_sift,
@@ -19,6 +24,8 @@ from stages.poses.matching import (
     vlad,
 )
 from stages.synth.make import make_room
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_sequential_pairs_are_colmaps_quadratic_overlap() -> None:
@@ -66,6 +73,58 @@ def test_vlad_tells_a_place_from_another() -> None:
     sim = vec @ vec.T
     assert sim[0, 1] > sim[0, 2] and sim[2, 3] > sim[1, 3]
     assert np.all(np.isfinite(vlad(np.zeros((0, 128), np.float32), w)))
+
+
+def _descriptors(n: int, per: int, seed: int = 0) -> list[np.ndarray]:
+    """n images' RootSIFT of `per` uniform random SIFT descriptors: many rows lie near the
+    border between two words, where a float32 sum's last bit picks the word."""
+    rng = np.random.default_rng(seed)
+    return [root_sift(rng.integers(0, 256, (per, 128)).astype(np.uint8)) for _ in range(n)]
+
+
+def test_retrieval_distances_do_not_depend_on_the_summation_order() -> None:
+    # Permuting the 128 dimensions of descriptors and words changes only the order in which
+    # every dot product is summed. Exact distances give the same words, permuted; float32
+    # ones (before snap) gave other words for 5 of 5 permutations of this set.
+    views = _descriptors(20, 500)
+    cfg = RetrievalConfig(words=64, sample=10000, iterations=10)
+    w = train_words(views, cfg, seed=0)
+    x = np.concatenate(views)
+    perm = np.random.default_rng(1).permutation(128)
+    assert np.array_equal(train_words([v[:, perm] for v in views], cfg, seed=0), w[:, perm])
+    assert np.array_equal(assign(x[:, perm], w[:, perm]), assign(x, w))
+
+
+_CHILD = """
+import hashlib
+import numpy as np
+from stages.poses.config import RetrievalConfig
+from stages.poses.matching import loop_pairs, root_sift, sequential_pairs, train_words, vlad
+
+rng = np.random.default_rng(0)  # as _descriptors(20, 800)
+views = [root_sift(rng.integers(0, 256, (800, 128)).astype(np.uint8)) for _ in range(20)]
+w = train_words(views, RetrievalConfig(words=64, sample=16000, iterations=8), seed=0)
+v = np.stack([vlad(d, w) for d in views])
+pairs = sorted(loop_pairs(v, sequential_pairs(20, 2), 3))
+for a in (w.tobytes(), v.tobytes(), repr(pairs).encode()):
+    print(hashlib.sha1(a).hexdigest())
+"""
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="one core: BLAS runs one thread")
+def test_retrieval_is_the_same_on_one_and_two_blas_threads() -> None:
+    # OpenBLAS takes its thread count once, when numpy loads: each count is its own process.
+    # Before the distances were exact (snap), these words, VLAD vectors and loop pairs all
+    # differed between one and two threads (as the 70-view room's 270 and 273 loop pairs).
+    runs = []
+    for n in ("1", "2"):
+        env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": n}
+        env["OPENBLAS_NUM_THREADS"] = n
+        cmd = [sys.executable, "-c", _CHILD]
+        runs.append(subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, text=True))
+    (one, _), (two, _) = (p.communicate(timeout=120) for p in runs)
+    assert [p.returncode for p in runs] == [0, 0]
+    assert len(one.split()) == 3 and one == two  # words, VLAD vectors, loop pairs
 
 
 def test_retrieval_closes_the_walk_and_registers_every_view(tmp_path: Path) -> None:
