@@ -360,7 +360,7 @@ def _map(
     """Run the chosen mapper; returns every model it made (possibly none). refine: estimate
     the focal length and distortion too."""
     models.mkdir(parents=True)
-    log.info("sfm: %s mapping", cfg.mapper)
+    log.info("sfm: %s mapping", "incremental" if cfg.mapper == "auto" else cfg.mapper)
     fixed = not refine
     if cfg.deterministic:  # a multi-threaded bundle adjustment sums in a varying order
         threads = 1
