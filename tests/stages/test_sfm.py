@@ -366,6 +366,11 @@ def test_sfm_seven_scenes_100_frames(tmp_path: Path) -> None:
     assert m["registered"] >= 95
     assert m["ate_rmse_m"] <= 0.05
     assert m["align_scale"] == pytest.approx(1.0, abs=0.05)
+    # A real, blurred capture's model agrees with its own matches: the check raises no false
+    # alarm, and the incremental mapper's model is kept (the whole photos run of these 100
+    # views with configs/phone.yaml: 0 of 433 pairs contradicted).
+    assert facts["agreement"]["agrees"] and facts["mapper"] == "incremental"
+    assert facts["agreement"]["strong_contradicted"] == 0
     # The floor found among the (now metric) sparse points, with no length given: the
     # cameras' median height above it is the kitchen's, 1.39 m (Kinect depth and gravity;
     # measured: 1.42), so the hand-held prior (1.45 m) puts the scale within 10 %.
@@ -399,6 +404,10 @@ def test_sfm_replica_office_priors_find_the_floor(tmp_path: Path) -> None:
     cap = cap.with_frames(cap.frames[::2])
     got, facts = _run_sfm(cap, tmp_path)
     assert facts["scale_from"]["method"] == "depth" and facts["registered"] >= 38
+    # The office's repeated furniture makes false pairs that the model rightly leaves out
+    # (measured on all 81 views: 5 of 382 contradicted, 15-39 inliers each): none is strong
+    # enough to count against it.
+    assert facts["agreement"]["agrees"] and facts["mapper"] == "incremental"
     rec = pycolmap.Reconstruction(tmp_path / "out" / "sparse")
     ims = sorted(rec.images.values(), key=lambda im: im.name)
     rots = np.array([im.cam_from_world().rotation.matrix() for im in ims])  # [C, 3, 3]
