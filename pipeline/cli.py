@@ -263,7 +263,13 @@ def _dispatch(args: argparse.Namespace) -> int:
             ),
             flush=True,
         )
-        # the page to open, last (on stderr: stdout stays one JSON document)
+        # the stages' warnings again, where the progress lines cannot bury them, and the
+        # page to open, last (on stderr: stdout stays one JSON document)
+        from pipeline.report_html import warnings
+
+        stages = [{"name": s.name, "facts": s.facts} for s in report.stages]
+        for stage, w in warnings({"stages": stages}):
+            print(f"warning: {stage}: {w}", file=sys.stderr)
         print(
             f"report: {Path(os.path.abspath(args.out / 'report.html')).as_uri()}", file=sys.stderr
         )

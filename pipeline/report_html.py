@@ -37,6 +37,7 @@ h1{font-size:22px;margin-bottom:4px}h2{font-size:17px;margin-top:28px;border-bot
 table{border-collapse:collapse}
 td,th{padding:3px 8px;border-bottom:1px solid #e4e4e4;text-align:left}
 td.n{text-align:right;font-variant-numeric:tabular-nums}.note{color:#777}
+.warn{background:#fff3cd;border:1px solid #e0c36c;padding:6px 8px 6px 28px}
 .strip{display:flex;flex-wrap:wrap;gap:6px}.strip figure{margin:0;font-size:11px;color:#555}
 img{max-width:100%}.pics{display:flex;flex-wrap:wrap;gap:16px;align-items:flex-start}
 """
@@ -70,10 +71,26 @@ def _header(report: dict) -> str:
     plan = report.get("plan") or {}
     if plan.get("known_area_m2") is not None:
         facts.append(f"{plan['known_area_m2']:.1f} m² mapped")
+    warned = "".join(
+        f"<li>{html.escape(stage)}: {html.escape(w)}</li>" for stage, w in warnings(report)
+    )
     return (
         f"<h1>{html.escape(str(report.get('scene', 'run')))}</h1>"
         f"<p class=note>{html.escape(' · '.join(facts))}</p>"
+        + (f"<ul class=warn>{warned}</ul>" if warned else "")
     )
+
+
+def warnings(report: dict) -> list[tuple[str, str]]:
+    """(stage, line) of every warning a stage put in its facts (`facts["warnings"]`: SfM's
+    models that split, photos left out, a model that contradicts its own matches), in stage
+    order: shown first on the page, and counted on the command line."""
+    out = []
+    for s in report.get("stages", []):
+        facts = s.get("facts") if isinstance(s, dict) else None
+        ws = facts.get("warnings") if isinstance(facts, dict) else None
+        out += [(str(s.get("name", "")), str(w)) for w in ws or []]
+    return out
 
 
 # ---- pictures ------------------------------------------------------------------------------

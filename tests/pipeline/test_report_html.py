@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from pipeline.report_html import _flatten, report_html
+from pipeline.report_html import _flatten, report_html, warnings
 from stages.common import progress as P
 from tests.runs import VOXEL, run_ok, small_room
 
@@ -181,6 +181,27 @@ def test_missing_or_broken_pictures_leave_the_rest(runs, tmp_path):
     p = parse(report_html(folder, report))
     assert "No blueprint.png" in report_html(folder, report)
     decode(p.images["Cameras seen from above"][0])
+
+
+def test_stage_warnings_head_the_page(runs, tmp_path):
+    out, report, _ = runs
+    folder = tmp_path / "outputs"
+    shutil.copytree(out / ".current", folder)
+    assert "class=warn" not in report_html(folder, report)  # a clean run: no box
+    warned = json.loads(json.dumps(report))
+    poses = next(s for s in warned["stages"] if s["name"] == "poses")
+    poses.setdefault("facts", {})["warnings"] = [
+        "the model contradicts 87 of its 3592 matched view pairs <0187-0438>",
+        "12 of 480 photos are left out",
+    ]
+    assert warnings(warned) == [("poses", w) for w in poses["facts"]["warnings"]]
+    text = report_html(folder, warned)
+    box = text.index("<ul class=warn>")
+    assert box < text.index("<h2>")  # above every section
+    assert (
+        "poses: the model contradicts 87 of its 3592 matched view pairs &lt;0187-0438&gt;" in text
+    )
+    assert "poses: 12 of 480 photos are left out" in text
 
 
 def test_edits_section_shows_the_renders(runs, tmp_path):
