@@ -118,8 +118,16 @@ def warning(facts: dict) -> str:
         f"{c['views']} ({c['inliers']} inliers, {c['median_px']:.0f} px off)"
         for c in facts["contradicted"][:3]
     )
+    if "global" in facts:  # mapper auto tried the global mapper, and it did no better
+        g = facts["global"]
+        hint = (
+            f"the global mapper's model contradicts {g['strong_contradicted']}"
+            if isinstance(g, dict)
+            else "the global mapper made no model"
+        )
+    else:
+        hint = "poses.mapper=global may place it"
     return (
         f"the model contradicts {facts['strong_contradicted']} of its {facts['pairs_checked']} "
-        f"matched view pairs (e.g. {worst}): part of the walk is misplaced in it; "
-        "poses.mapper=global may place it"
+        f"matched view pairs (e.g. {worst}): part of the walk is misplaced in it; {hint}"
     )

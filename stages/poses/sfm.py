@@ -349,7 +349,7 @@ def _agreeing(
     key = (gfacts["strong_contradicted"], -g.num_reg_images())
     if key < (facts["strong_contradicted"], -largest.num_reg_images()):
         gfacts["incremental"] = {k: facts[k] for k in ("pairs_contradicted", "strong_contradicted")}
-        return other, gfacts | {"mapper": "global (incremental contradicted its pairs)"}
+        return other, gfacts | {"mapper": "global", "remapped": agreement.warning(facts)}
     facts["global"] = {k: gfacts[k] for k in ("pairs_contradicted", "strong_contradicted")}
     return recs, facts | {"mapper": used}
 

@@ -118,7 +118,11 @@ def test_a_model_agrees_with_its_pairs_until_a_stretch_is_turned(
         a, b = c["views"].split("-")
         assert (a in {"0008", "0009", "0010", "0011"}) != (b in {"0008", "0009", "0010", "0011"})
         assert c["fit"] < agreement.FIT_SHARE
-    assert "misplaced" in agreement.warning(bad)
+    assert "poses.mapper=global may place it" in agreement.warning(bad)
+    # mapper auto tried the global mapper and kept this model: the line says so instead
+    tried = bad | {"global": {"pairs_contradicted": 20, "strong_contradicted": 16}}
+    assert "the global mapper's model contradicts 16" in agreement.warning(tried)
+    assert "made no model" in agreement.warning(bad | {"global": "no model"})
 
 
 def test_auto_maps_again_with_the_global_mapper_when_the_model_contradicts_its_pairs(
@@ -137,7 +141,7 @@ def test_auto_maps_again_with_the_global_mapper_when_the_model_contradicts_its_p
     recs, facts = sfm._agreeing(
         PosesConfig(threads=1), [rec], db, img_dir, tmp_path / "w2", 1, False
     )
-    assert facts["mapper"].startswith("global")
+    assert facts["mapper"] == "global" and "misplaced" in facts["remapped"]
     assert facts["agrees"] and facts["strong_contradicted"] == 0
     assert facts["incremental"]["strong_contradicted"] >= agreement.WARN_PAIRS
     assert max(r.num_reg_images() for r in recs) == 24
