@@ -66,8 +66,8 @@ def check(rec: pycolmap.Reconstruction, db: Path, stems: dict[str, str]) -> dict
     `db` whose two images it registered. stems: COLMAP image name -> frame stem.
 
     Returns {"pairs_checked", "pairs_contradicted", "strong_contradicted",
-    "contradicted": [{"views": "a-b", "inliers", "fit", "median_px"}, ...] (the WORST
-    strongest), "agrees": bool}."""
+    "contradicted": [{"views": "a-b", "inliers", "fit", "median_px"}, ...] (at most WORST:
+    the strong ones first, the farthest off first), "agrees": bool}."""
     posed = {im.name: im for im in rec.images.values() if im.has_pose}
     d = pycolmap.Database.open(db)
     try:
@@ -98,7 +98,7 @@ def check(rec: pycolmap.Reconstruction, db: Path, stems: dict[str, str]) -> dict
                 bad.append((len(m), views, fit, float(np.median(dist))))
     finally:
         d.close()
-    bad.sort(key=lambda r: (-r[0], r[1]))
+    bad.sort(key=lambda r: (r[0] < STRONG, -r[3], r[1]))  # strong ones first, farthest off
     strong = sum(k >= STRONG for k, *_ in bad)
     return {
         "pairs_checked": checked,
