@@ -87,9 +87,14 @@ def overlap_order(
     poses: list[np.ndarray],
     stride: int = 8,
     refs: tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]] | None = None,
+    angle: float = 0.0,
 ) -> list[list[int]]:
     """Per view, the other views (or the maps of `refs`) by decreasing overlap: how many of
-    its readings (on a strided pixel grid) project inside them with a reading there."""
+    its readings (on a strided pixel grid) project inside them with a reading there. angle >
+    0 (degrees): each such reading counts by the angle its two rays meet at, as MVSNet's view
+    selection (Yao et al., ECCV 2018): exp(-(t - angle)^2 / 2 s^2), s = 1 degree below
+    `angle`, 10 above, so a neighbour that sees the same points from nearly the same place
+    (a dense walk's next photo) ranks below one a few steps on."""
     r_depths, r_Ks, r_poses = refs if refs is not None else (depths, Ks, poses)
     m = len(r_depths)
     order = []
@@ -97,10 +102,22 @@ def overlap_order(
         h, w = depths[i].shape
         s = max(1, min(stride, min(h, w) // 8))
         pts, _ = depth_to_points(depths[i], Ks[i], poses[i], s)
-        counts = np.zeros(m, np.int64)
+        counts = np.zeros(m, np.float64)
         for j in range(m):
             if (refs is not None or j != i) and len(pts):
-                counts[j] = int((depth_at(pts, r_depths[j], r_Ks[j], r_poses[j])[0] > 0).sum())
+                seen = depth_at(pts, r_depths[j], r_Ks[j], r_poses[j])[0] > 0
+                if angle <= 0:
+                    counts[j] = float(seen.sum())
+                    continue
+                p = pts[seen]
+                a = p - poses[i][:3, 3]
+                b = p - r_poses[j][:3, 3]
+                cos = (a * b).sum(1) / np.maximum(
+                    np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-12
+                )
+                t = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+                sd = np.where(t <= angle, 1.0, 10.0)
+                counts[j] = float(np.exp(-((t - angle) ** 2) / (2 * sd**2)).sum())
         if refs is None:
             counts[i] = -1
         order.append([int(j) for j in np.argsort(-counts, kind="stable") if counts[j] > 0])

@@ -61,7 +61,7 @@ def sweep_depths(
     n = len(images)
     if not n == len(Ks) == len(poses) == len(sparse):
         raise BlunfError("stereo: images, intrinsics, poses and sparse depth differ in number")
-    order = overlap_order(sparse, Ks, poses, stride=1)
+    order = overlap_order(sparse, Ks, poses, stride=1, angle=cfg.select_angle)
     everything = np.concatenate([s[s > 0] for s in sparse]) if n else np.zeros(0)
     k = stereo_scale(cfg, Ks, everything)
     grays = [
