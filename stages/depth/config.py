@@ -40,7 +40,9 @@ class StereoConfig:
     #                   (0 or 1 = no refinement): a plane step is ~10 cm at 3 m here
     views: int = 4  # views each view is matched against (those overlapping it most)
     select_angle: float = 0.0  # > 0: degrees; rank those views by the angle their rays
-    #                            meet at too (consistency.overlap_order); 0 = overlap alone
+    #   meet at too (consistency.overlap_order); 0 = overlap alone. 5: kitchen photos fwIoU
+    #   68.6 -> 70.0, office 62.2 -> 60.2, demo 84.5 -> 84.3 (docs/figures.md#depth-stereo-
+    #   select-angle)
     scale: int = 1  # depth maps at 1/scale of the photos' resolution (k x k binned); 0 = the
     #                 largest at which a pixel at the median track depth spans <= `cell`
     #                 (docs/figures.md#depth-stereo-scale)

@@ -9,7 +9,7 @@ import pytest
 from stages.common.capture import read_layout
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth
-from stages.depth.consistency import consistent_depth
+from stages.depth.consistency import consistent_depth, overlap_order
 
 ARGS = {"tol": 0.03, "min_agree": 1, "max_through": 0, "neighbours": 8}
 
@@ -93,3 +93,20 @@ def test_bad_settings_are_refused(views):
         consistent_depth(depths, ks, poses, **{**ARGS, "tol": 0.0})
     with pytest.raises(BlunfError, match=r"depth\.check\.views"):
         consistent_depth(depths, ks, poses, **{**ARGS, "neighbours": 0})
+
+
+def test_view_selection_by_angle_passes_over_a_near_duplicate_view(views):
+    """overlap_order(angle=...): a copy of view 0 moved 1 cm sees every one of its points
+    (the most overlap of all) but at a fraction of a degree; by overlap alone it ranks first
+    among view 0's neighbours, by angle (5 degrees) below every neighbour that sees the same
+    points from a few degrees away."""
+    depths, ks, poses = views
+    twin = poses[0].copy()
+    twin[:3, 3] += twin[:3, 0] * 0.01  # 1 cm along the camera's x axis
+    d, k, p = [*depths, depths[0]], [*ks, ks[0]], [*poses, twin]
+    by_overlap = overlap_order(d, k, p, stride=4)
+    by_angle = overlap_order(d, k, p, stride=4, angle=5.0)
+    twin_at = len(d) - 1
+    assert by_overlap[0][0] == twin_at
+    assert twin_at in by_angle[0] and by_angle[0].index(twin_at) > 0
+    assert set(by_angle[0]) == set(by_overlap[0])  # the same neighbours, in another order
