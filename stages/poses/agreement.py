@@ -18,15 +18,12 @@ pair's inliers in the database but offers no check of a model against them, so i
 
 from __future__ import annotations
 
-import logging
 from pathlib import Path
 
 import numpy as np  # noqa: I001  (numpy must be loaded before pycolmap, see stages/__init__.py)
 import pycolmap
 
 from stages.poses.matching import MIN_INLIERS
-
-log = logging.getLogger(__name__)
 
 FIT_PX = 4.0  # an inlier fits the model within this Sampson distance (pixels)
 FIT_SHARE = 0.5  # a pair contradicts the model when fewer of its inliers than this fit
