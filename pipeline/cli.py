@@ -267,8 +267,7 @@ def _dispatch(args: argparse.Namespace) -> int:
         # page to open, last (on stderr: stdout stays one JSON document)
         from pipeline.report_html import warnings
 
-        stages = [{"name": s.name, "facts": s.facts} for s in report.stages]
-        for stage, w in warnings({"stages": stages}):
+        for stage, w in warnings(report.to_json()):
             print(f"warning: {stage}: {w}", file=sys.stderr)
         print(
             f"report: {Path(os.path.abspath(args.out / 'report.html')).as_uri()}", file=sys.stderr

@@ -84,12 +84,14 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
                 stated.to_self_calibration(db, checked)
                 recs = _map(cfg, db, img_dir, work / "models-refined", threads, True)
                 refine = True
-        recs, facts["agreement"] = _agreeing(cfg, recs, db, img_dir, work, threads, refine)
+        named = dict(zip(names, stems, strict=True))  # COLMAP image name -> frame stem
+        recs, facts["mapper"], facts["agreement"] = _agreeing(
+            cfg, recs, named, db, img_dir, work, threads, refine
+        )
         clock.append((time.perf_counter(), time.process_time()))
     spans = list(zip(("extract", "match", "map"), clock[:-1], clock[1:], strict=True))
     facts["seconds"] = {k: b[0] - a[0] for k, a, b in spans}
     facts["cpu_seconds"] = {k: b[1] - a[1] for k, a, b in spans}
-    facts["mapper"] = facts["agreement"].pop("mapper", cfg.mapper)
     facts["models"] = len(recs)
     facts["images"] = fullsize.facts(seen, cap.frames) | {"max_side": side}
 
@@ -317,41 +319,39 @@ def first_octave(cfg: PosesConfig, frames: tuple[Frame, ...]) -> int:
 def _agreeing(
     cfg: PosesConfig,
     recs: list[pycolmap.Reconstruction],
+    stems: dict[str, str],
     db: Path,
     img_dir: Path,
     work: Path,
     threads: int,
     refine: bool,
-) -> tuple[list[pycolmap.Reconstruction], dict]:
-    """The models, and the largest one checked against the verified pairs (agreement.py).
-    With mapper "auto", an incremental model that contradicts them is mapped again by the
-    global mapper, which places every view at once from all the pairs' rotations, and the
-    largest model that contradicts fewer strong pairs is kept (a tie keeps the incremental
-    one). The facts name the mapper whose models are returned ("mapper")."""
+) -> tuple[list[pycolmap.Reconstruction], str, dict]:
+    """(the models, the mapper that made them, the largest one checked against the verified
+    pairs: agreement.py). stems: COLMAP image name -> frame stem. With mapper "auto", an
+    incremental model that contradicts the pairs is mapped again by the global mapper, which
+    places every view at once from all the pairs' rotations, and the largest model that
+    contradicts fewer strong pairs is kept (a tie keeps the incremental one)."""
+    used = "incremental" if cfg.mapper == "auto" else cfg.mapper
     if not recs:
-        return recs, {}
-    stems = {}  # COLMAP image name -> frame stem (names are <index:06d>_<stem><ext>)
-    for r in recs:
-        stems.update({im.name: Path(im.name).stem.split("_", 1)[1] for im in r.images.values()})
+        return recs, used, {}
     largest = max(recs, key=lambda r: r.num_reg_images())
     with progress("sfm check"):
         facts = agreement.check(largest, db, stems)
-    used = "incremental" if cfg.mapper == "auto" else cfg.mapper
     if facts["agrees"] or cfg.mapper != "auto":
-        return recs, facts | {"mapper": used}
+        return recs, used, facts
     log.warning("sfm: %s; mapping again with the global mapper", agreement.warning(facts))
     glob = replace(cfg, mapper="global")
     other = _map(glob, db, img_dir, work / "models-global", threads, refine)
     if not other:
-        return recs, facts | {"mapper": used, "global": "no model"}
+        return recs, used, facts | {"global": "no model"}
     g = max(other, key=lambda r: r.num_reg_images())
     gfacts = agreement.check(g, db, stems)
     key = (gfacts["strong_contradicted"], -g.num_reg_images())
     if key < (facts["strong_contradicted"], -largest.num_reg_images()):
         gfacts["incremental"] = {k: facts[k] for k in ("pairs_contradicted", "strong_contradicted")}
-        return other, gfacts | {"mapper": "global", "remapped": agreement.warning(facts)}
+        return other, "global", gfacts | {"remapped": agreement.warning(facts)}
     facts["global"] = {k: gfacts[k] for k in ("pairs_contradicted", "strong_contradicted")}
-    return recs, facts | {"mapper": used}
+    return recs, used, facts
 
 
 def _map(

@@ -134,14 +134,14 @@ def test_auto_maps_again_with_the_global_mapper_when_the_model_contradicts_its_p
     _turn(rec, block, 30.0)
     # "incremental" keeps what it is given and says how far it disagrees.
     cfg = PosesConfig(threads=1, mapper="incremental")
-    recs, facts = sfm._agreeing(cfg, [rec], db, img_dir, tmp_path / "w1", 1, False)
-    assert recs == [rec] and facts["mapper"] == "incremental" and not facts["agrees"]
+    recs, mapper, facts = sfm._agreeing(cfg, [rec], stems, db, img_dir, tmp_path / "w1", 1, False)
+    assert recs == [rec] and mapper == "incremental" and not facts["agrees"]
     # "auto" maps the same pairs again with the global mapper and keeps its model, which
     # places all 24 views where their pairs say.
-    recs, facts = sfm._agreeing(
-        PosesConfig(threads=1), [rec], db, img_dir, tmp_path / "w2", 1, False
+    recs, mapper, facts = sfm._agreeing(
+        PosesConfig(threads=1), [rec], stems, db, img_dir, tmp_path / "w2", 1, False
     )
-    assert facts["mapper"] == "global" and "misplaced" in facts["remapped"]
+    assert mapper == "global" and "misplaced" in facts["remapped"]
     assert facts["agrees"] and facts["strong_contradicted"] == 0
     assert facts["incremental"]["strong_contradicted"] >= agreement.WARN_PAIRS
     assert max(r.num_reg_images() for r in recs) == 24
