@@ -6,9 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from stages.common.camera import depth_at, depth_to_points
 from stages.common.capture import read_layout
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth
+from stages.depth import consistency
 from stages.depth.consistency import consistent_depth, overlap_order
 
 ARGS = {"tol": 0.03, "min_agree": 1, "max_through": 0, "neighbours": 8}
@@ -110,3 +112,44 @@ def test_view_selection_by_angle_passes_over_a_near_duplicate_view(views):
     assert by_overlap[0][0] == twin_at
     assert twin_at in by_angle[0] and by_angle[0].index(twin_at) > 0
     assert set(by_angle[0]) == set(by_overlap[0])  # the same neighbours, in another order
+
+
+def _overlap_by_pairs(depths, ks, poses, stride, refs=None, angle=0.0):
+    """overlap_order as its definition reads, one `depth_at` call per pair of views."""
+    r_depths, r_ks, r_poses = refs if refs is not None else (depths, ks, poses)
+    order = []
+    for i, d in enumerate(depths):
+        s = max(1, min(stride, min(d.shape) // 8))
+        pts, _ = depth_to_points(d, ks[i], poses[i], s)
+        counts = np.zeros(len(r_depths))
+        for j in range(len(r_depths)):
+            if refs is None and j == i:
+                counts[j] = -1
+                continue
+            seen = depth_at(pts, r_depths[j], r_ks[j], r_poses[j])[0] > 0
+            a, b = pts[seen] - poses[i][:3, 3], pts[seen] - r_poses[j][:3, 3]
+            cos = (a * b).sum(1) / (np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1))
+            t = np.degrees(np.arccos(np.clip(cos, -1, 1)))
+            w = np.exp(-((t - angle) ** 2) / (2 * np.where(t <= angle, 1.0, 10.0) ** 2))
+            counts[j] = seen.sum() if angle <= 0 else w.sum()
+        order.append([j for j in np.argsort(-counts, kind="stable") if counts[j] > 0])
+    return order, counts
+
+
+def test_overlap_order_projects_into_all_views_at_once_as_pair_by_pair(views, monkeypatch):
+    """The batched projection (all views at once, in blocks) ranks the neighbours as the
+    pair-by-pair definition does: with and without the angle, against other maps (`refs`),
+    with maps of other sizes among them, and with blocks of a few views."""
+    depths, ks, poses = views
+    small = [d[::2, ::2].copy() for d in depths]
+    k2 = [np.diag([0.5, 0.5, 1.0]) @ k for k in ks]
+    mixed = ([*depths[:4], *small[4:]], [*ks[:4], *k2[4:]], poses)
+    for chunk in (1 << 20, 1000):
+        monkeypatch.setattr(consistency._Maps, "CHUNK", chunk)
+        for angle in (0.0, 5.0):
+            got = overlap_order(*mixed, stride=4, angle=angle)
+            want, _ = _overlap_by_pairs(*mixed, stride=4, angle=angle)
+            assert got == want, (chunk, angle)
+        got = overlap_order(small, k2, poses, stride=2, refs=views)
+        assert got == _overlap_by_pairs(small, k2, poses, stride=2, refs=views)[0]
+    assert all(len(o) >= 3 for o in got)  # the room's views do overlap
