@@ -114,7 +114,7 @@ def test_view_selection_by_angle_passes_over_a_near_duplicate_view(views):
     assert set(by_angle[0]) == set(by_overlap[0])  # the same neighbours, in another order
 
 
-def _overlap_by_pairs(depths, ks, poses, stride, refs=None, angle=0.0):
+def _overlap_by_pairs(depths, ks, poses, stride, refs=None, angle=0.0, hidden=0.1):
     """overlap_order as its definition reads, one `depth_at` call per pair of views."""
     r_depths, r_ks, r_poses = refs if refs is not None else (depths, ks, poses)
     order = []
@@ -126,7 +126,8 @@ def _overlap_by_pairs(depths, ks, poses, stride, refs=None, angle=0.0):
             if refs is None and j == i:
                 counts[j] = -1
                 continue
-            seen = depth_at(pts, r_depths[j], r_ks[j], r_poses[j])[0] > 0
+            dj, z = depth_at(pts, r_depths[j], r_ks[j], r_poses[j])
+            seen = (dj > 0) & ((hidden <= 0) | (dj >= z * (1 - hidden)))
             a, b = pts[seen] - poses[i][:3, 3], pts[seen] - r_poses[j][:3, 3]
             cos = (a * b).sum(1) / (np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1))
             t = np.degrees(np.arccos(np.clip(cos, -1, 1)))
@@ -146,10 +147,28 @@ def test_overlap_order_projects_into_all_views_at_once_as_pair_by_pair(views, mo
     mixed = ([*depths[:4], *small[4:]], [*ks[:4], *k2[4:]], poses)
     for chunk in (1 << 20, 1000):
         monkeypatch.setattr(consistency._Maps, "CHUNK", chunk)
-        for angle in (0.0, 5.0):
-            got = overlap_order(*mixed, stride=4, angle=angle)
-            want, _ = _overlap_by_pairs(*mixed, stride=4, angle=angle)
-            assert got == want, (chunk, angle)
+        for angle, hidden in ((0.0, 0.1), (5.0, 0.1), (0.0, 0.0)):
+            got = overlap_order(*mixed, stride=4, angle=angle, hidden=hidden)
+            want, _ = _overlap_by_pairs(*mixed, stride=4, angle=angle, hidden=hidden)
+            assert got == want, (chunk, angle, hidden)
         got = overlap_order(small, k2, poses, stride=2, refs=views)
         assert got == _overlap_by_pairs(small, k2, poses, stride=2, refs=views)[0]
     assert all(len(o) >= 3 for o in got)  # the room's views do overlap
+
+
+def test_a_view_behind_a_wall_does_not_count_as_overlap():
+    """View 0 reads a wall 3 m ahead. View 1 stands 2 m behind it, looking the same way
+    through a partition 1 m ahead of itself: every one of view 0's points projects inside
+    view 1 onto a reading, but a nearer one (the partition hides them). View 2 stands 0.3 m
+    beside view 0 and reads the same wall, losing some points past its image's edge. By
+    readings alone view 1 ranks first; by what each view can see, view 2 does and view 1
+    not at all."""
+    k = np.array([[60.0, 0, 31.5], [0, 60.0, 23.5], [0, 0, 1]])
+    poses = [np.eye(4) for _ in range(3)]
+    poses[1][2, 3] = -2.0
+    poses[2][0, 3] = 0.3
+    depths = [np.full((48, 64), d, np.float32) for d in (3.0, 1.0, 3.0)]
+    assert overlap_order(depths, [k] * 3, poses, hidden=0.0)[0] == [1, 2]
+    assert overlap_order(depths, [k] * 3, poses)[0] == [2]
+    # the partition view 1 reads lies behind views 0 and 2: nobody overlaps it
+    assert overlap_order(depths, [k] * 3, poses)[1] == []
