@@ -11,7 +11,7 @@ from stages.common.capture import read_layout
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth
 from stages.depth import consistency
-from stages.depth.consistency import consistent_depth, overlap_order
+from stages.depth.consistency import HIDDEN, consistent_depth, overlap_order
 
 ARGS = {"tol": 0.03, "min_agree": 1, "max_through": 0, "neighbours": 8}
 
@@ -114,7 +114,7 @@ def test_view_selection_by_angle_passes_over_a_near_duplicate_view(views):
     assert set(by_angle[0]) == set(by_overlap[0])  # the same neighbours, in another order
 
 
-def _overlap_by_pairs(depths, ks, poses, stride, refs=None, angle=0.0, hidden=0.1):
+def _overlap_by_pairs(depths, ks, poses, stride, refs=None, angle=0.0, hidden=HIDDEN):
     """overlap_order as its definition reads, one `depth_at` call per pair of views."""
     r_depths, r_ks, r_poses = refs if refs is not None else (depths, ks, poses)
     order = []
@@ -147,7 +147,7 @@ def test_overlap_order_projects_into_all_views_at_once_as_pair_by_pair(views, mo
     mixed = ([*depths[:4], *small[4:]], [*ks[:4], *k2[4:]], poses)
     for chunk in (1 << 20, 1000):
         monkeypatch.setattr(consistency._Maps, "CHUNK", chunk)
-        for angle, hidden in ((0.0, 0.1), (5.0, 0.1), (0.0, 0.0)):
+        for angle, hidden in ((0.0, HIDDEN), (5.0, 0.1), (0.0, 0.0)):
             got = overlap_order(*mixed, stride=4, angle=angle, hidden=hidden)
             want, _ = _overlap_by_pairs(*mixed, stride=4, angle=angle, hidden=hidden)
             assert got == want, (chunk, angle, hidden)
