@@ -134,7 +134,7 @@ def _overlap_by_pairs(depths, ks, poses, stride, refs=None, angle=0.0, hidden=HI
             w = np.exp(-((t - angle) ** 2) / (2 * np.where(t <= angle, 1.0, 10.0) ** 2))
             counts[j] = seen.sum() if angle <= 0 else w.sum()
         order.append([j for j in np.argsort(-counts, kind="stable") if counts[j] > 0])
-    return order, counts
+    return order
 
 
 def test_overlap_order_projects_into_all_views_at_once_as_pair_by_pair(views, monkeypatch):
@@ -149,10 +149,10 @@ def test_overlap_order_projects_into_all_views_at_once_as_pair_by_pair(views, mo
         monkeypatch.setattr(consistency._Maps, "CHUNK", chunk)
         for angle, hidden in ((0.0, HIDDEN), (5.0, 0.1), (0.0, 0.0)):
             got = overlap_order(*mixed, stride=4, angle=angle, hidden=hidden)
-            want, _ = _overlap_by_pairs(*mixed, stride=4, angle=angle, hidden=hidden)
+            want = _overlap_by_pairs(*mixed, stride=4, angle=angle, hidden=hidden)
             assert got == want, (chunk, angle, hidden)
         got = overlap_order(small, k2, poses, stride=2, refs=views)
-        assert got == _overlap_by_pairs(small, k2, poses, stride=2, refs=views)[0]
+        assert got == _overlap_by_pairs(small, k2, poses, stride=2, refs=views)
     assert all(len(o) >= 3 for o in got)  # the room's views do overlap
 
 
