@@ -112,6 +112,8 @@ def overlap_order(
     views of 160x120, 2.1 CPU-s for 300 readings a view (3.5 s for the sweep's ~300 SfM
     track pixels at stride 1), against 17 s each with a `depth_at` call per pair."""
     r_depths, r_Ks, r_poses = refs if refs is not None else (depths, Ks, poses)
+    if not r_depths:
+        return [[] for _ in depths]
     maps = _Maps(r_depths, r_Ks, r_poses)
     order = []
     for i in range(len(depths)):
@@ -127,33 +129,23 @@ def overlap_order(
 
 class _Maps:
     """Depth maps of several views, for projecting one set of world points into all of them
-    at once: what `depth_at` does for one map, without a Python call per pair of views."""
+    at once: what `depth_at` does for one map, without a Python call per pair of views (at
+    least one map)."""
 
     CHUNK = 1 << 20  # point-view pairs a block (a few tens of MB of float64 temporaries)
 
     def __init__(self, depths: list[np.ndarray], Ks: list[np.ndarray], poses: list[np.ndarray]):
-        w2c = (
-            np.stack([np.linalg.inv(np.asarray(c, np.float64)) for c in poses])
-            if poses
-            else np.zeros((0, 4, 4))
-        )
+        c2w = np.stack([np.asarray(c, np.float64) for c in poses])
+        w2c = np.linalg.inv(c2w)
         self.R = w2c[:, :3, :3]
         self.t = w2c[:, :3, 3]
-        self.centres = (
-            np.stack([np.asarray(c, np.float64)[:3, 3] for c in poses])
-            if poses
-            else np.zeros((0, 3))
-        )
-        K = np.stack([np.asarray(k, np.float64) for k in Ks]) if Ks else np.zeros((0, 3, 3))
+        self.centres = c2w[:, :3, 3]
+        K = np.stack([np.asarray(k, np.float64) for k in Ks])
         self.fx, self.fy, self.cx, self.cy = K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2]
         self.h = np.array([d.shape[0] for d in depths], np.int64)
         self.w = np.array([d.shape[1] for d in depths], np.int64)
         self.offset = np.concatenate([[0], np.cumsum(self.h * self.w)[:-1]]).astype(np.int64)
-        self.flat = (
-            np.concatenate([np.asarray(d, np.float32).reshape(-1) for d in depths])
-            if depths
-            else np.zeros(0, np.float32)
-        )
+        self.flat = np.concatenate([np.asarray(d, np.float32).reshape(-1) for d in depths])
 
     def counts(
         self, pts: np.ndarray, centre: np.ndarray, angle: float, hidden: float = 0.0
@@ -163,19 +155,25 @@ class _Maps:
         by the angle between its rays from `centre` and from the map's camera)."""
         m = len(self.h)
         out = np.zeros(m, np.float64)
-        if not len(pts) or not m:
+        if not len(pts):
             return out
         x, y, zc = (pts[:, k][None, :] for k in range(3))
+        if angle > 0:  # this view's rays, the same for every block
+            ra = pts - centre  # [N, 3]
+            ra_len = np.linalg.norm(ra, axis=1)[None]
         step = max(1, self.CHUNK // len(pts))
         for a in range(0, m, step):
             b = min(m, a + step)
             R, t = self.R[a:b], self.t[a:b]
-            # the camera frame one axis at a time (element-wise: no BLAS, whose summation
-            # order may depend on its threads)
-            z = R[:, 2, 0:1] * x + R[:, 2, 1:2] * y + R[:, 2, 2:3] * zc + t[:, 2:3]
+
+            def axis(k: int, R=R, t=t) -> np.ndarray:
+                """The points' camera-frame coordinate k in each view of the block [c, N],
+                element-wise: no BLAS, whose summation order may depend on its threads."""
+                return R[:, k, 0:1] * x + R[:, k, 1:2] * y + R[:, k, 2:3] * zc + t[:, k : k + 1]
+
+            z = axis(2)
             safe = np.where(np.abs(z) > 1e-12, z, 1e-12)
-            pu = R[:, 0, 0:1] * x + R[:, 0, 1:2] * y + R[:, 0, 2:3] * zc + t[:, 0:1]
-            pv = R[:, 1, 0:1] * x + R[:, 1, 1:2] * y + R[:, 1, 2:3] * zc + t[:, 1:2]
+            pu, pv = axis(0), axis(1)
             u = np.rint(self.fx[a:b, None] * pu / safe + self.cx[a:b, None])
             v = np.rint(self.fy[a:b, None] * pv / safe + self.cy[a:b, None])
             w = self.w[a:b, None]
@@ -188,11 +186,8 @@ class _Maps:
             if angle <= 0:
                 out[a:b] = seen.sum(1)
                 continue
-            ra = pts - centre  # [N, 3]
             rb = pts[None, :, :] - self.centres[a:b, None, :]  # [c, N, 3]
-            cos = (ra[None] * rb).sum(2) / np.maximum(
-                np.linalg.norm(ra, axis=1)[None] * np.linalg.norm(rb, axis=2), 1e-12
-            )
+            cos = (ra[None] * rb).sum(2) / np.maximum(ra_len * np.linalg.norm(rb, axis=2), 1e-12)
             deg = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
             sd = np.where(deg <= angle, 1.0, 10.0)
             out[a:b] = np.where(seen, np.exp(-((deg - angle) ** 2) / (2 * sd**2)), 0.0).sum(1)

@@ -109,6 +109,11 @@ def check(rec: pycolmap.Reconstruction, db: Path, stems: dict[str, str]) -> dict
     }
 
 
+def counts(facts: dict) -> dict:
+    """The two counts of a `check` (what the other mapper's model is summed up by)."""
+    return {k: facts[k] for k in ("pairs_contradicted", "strong_contradicted")}
+
+
 def warning(facts: dict) -> str:
     """One line for the report when the model contradicts its own matches."""
     worst = ", ".join(

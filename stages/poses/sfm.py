@@ -348,9 +348,9 @@ def _agreeing(
     gfacts = agreement.check(g, db, stems)
     key = (gfacts["strong_contradicted"], -g.num_reg_images())
     if key < (facts["strong_contradicted"], -largest.num_reg_images()):
-        gfacts["incremental"] = {k: facts[k] for k in ("pairs_contradicted", "strong_contradicted")}
+        gfacts["incremental"] = agreement.counts(facts)
         return other, "global", gfacts | {"remapped": agreement.warning(facts)}
-    facts["global"] = {k: gfacts[k] for k in ("pairs_contradicted", "strong_contradicted")}
+    facts["global"] = agreement.counts(gfacts)
     return recs, used, facts
 
 
