@@ -13,7 +13,7 @@ import os
 import sys
 from pathlib import Path
 
-from pipeline.runtime import setup_runtime
+from pipeline.runtime import Terminated, request_stop, setup_runtime, stop_if_requested
 from stages.common.errors import BlunfError
 from stages.common.io import finite_json
 from stages.common.progress import configure as configure_progress
@@ -180,7 +180,9 @@ def main(argv: list[str] | None = None) -> int:
     if argv is None and args.cmd in ("run", "batch", "import", "bench"):
         _terminate_quietly()
     try:
-        return _dispatch(args)
+        code = _dispatch(args)
+        stop_if_requested()  # a SIGTERM whose raise a finaliser swallowed in the last stage
+        return code
     except BlunfError as e:
         print(f"blunf: error: {e}", file=sys.stderr)
         return 2
@@ -212,10 +214,6 @@ def _stopped(line: str, code: int, leave: bool) -> int:
     os._exit(code)
 
 
-class Terminated(KeyboardInterrupt):
-    """SIGTERM, ending blunf as Ctrl-C does (temp folders removed, one line)."""
-
-
 def _terminate_quietly() -> None:
     """pycolmap installs glog's failure handler when imported, which prints ~30 lines of
     native stack on SIGTERM: import it first, then take SIGTERM back."""
@@ -227,7 +225,7 @@ def _terminate_quietly() -> None:
         pass
 
     def terminated(signum: int, frame: object) -> None:
-        raise Terminated
+        request_stop()
 
     signal.signal(signal.SIGTERM, terminated)
 

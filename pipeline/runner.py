@@ -25,7 +25,7 @@ from pipeline.config import Config, stage_view
 from pipeline.planner import Step
 from pipeline.publish import writing
 from pipeline.report import Report, StageRecord, peak_rss_mb, peak_rss_reset
-from pipeline.runtime import stage_threads
+from pipeline.runtime import stage_threads, stop_if_requested
 from stages.common.errors import BlunfError
 from stages.common.heap import heap_returned
 from stages.common.io import read_json
@@ -95,6 +95,7 @@ class Runner:
     def stage(self, stage: str, impl: str, inputs: Any, reason: str = "", cfg: Any = None) -> Any:
         """Run (or reuse) `stages.<stage>.IMPLS[impl](cfg, inputs, out)`; returns its outputs."""
         check_impl(stage, impl)
+        stop_if_requested()  # a SIGTERM whose raise was lost in the stage before
         scfg = cfg if cfg is not None else self.cfg[stage]
         view = stage_view(scfg, impl)
         input_keys = self.cache.input_keys(inputs)  # hashes outside files (the capture) once

@@ -13,6 +13,27 @@ import os
 import time
 
 _decided: int | None = None  # the process's thread count, once setup_runtime decided it
+_stop_requested = False  # a SIGTERM arrived (pipeline/cli.py's handler)
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, ending blunf as Ctrl-C does (temp folders removed, one line)."""
+
+
+def request_stop() -> None:
+    """Record a SIGTERM and raise Terminated. The raise can be lost: a signal handler runs
+    wherever the main thread is, and an exception raised inside a finaliser (`__del__`, a
+    weakref or GC callback of torch's or Open3D's objects) is printed and dropped; the
+    record stays, and `stop_if_requested` raises it again at the next stage."""
+    global _stop_requested
+    _stop_requested = True
+    raise Terminated
+
+
+def stop_if_requested() -> None:
+    """Raise Terminated if a SIGTERM arrived whose own raise was lost."""
+    if _stop_requested:
+        raise Terminated
 
 
 def setup_runtime(threads: int = 0) -> int:
