@@ -139,8 +139,15 @@ def floor_through(
         steep = -d[..., 2] >= np.sin(np.radians(reach.min_drop_deg)) * length
         near = t * np.linalg.norm(d[..., :2], axis=-1) <= reach.max_dist
         ok &= steep & near
-    for wall in walls:
-        ok &= ~_through(wall, o, d, t, margin)
+    if walls:  # the walls only for the rays still in (the per-view cost is walls x rays)
+        at = np.flatnonzero(ok.reshape(-1))
+        oo, dd, tt = o.reshape(-1, 3)[at], d.reshape(-1, 3)[at], t.reshape(-1)[at]
+        past = np.zeros(len(at), bool)
+        for wall in walls:
+            past |= _through(wall, oo, dd, tt, margin)
+        keep = ok.reshape(-1).copy()
+        keep[at[past]] = False
+        ok = keep.reshape(ok.shape)
     return np.where(ok, t, 0.0).astype(np.float32)
 
 

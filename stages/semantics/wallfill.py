@@ -46,10 +46,13 @@ def wall_through(
     Returns:
         (float32 [...] ray parameter of the crossing or 0, int32 [...] index of the wall or -1)
     """
-    o, d = rays[..., :3].astype(np.float64), rays[..., 3:].astype(np.float64)
+    # only rays that hit no surface can see a wall through it: the rest are not computed
+    # (a photos-only view's unhit rays are a fraction of it, and this runs per wall per view)
+    free = ~np.isfinite(t_hit)
+    o, d = rays[free][:, :3].astype(np.float64), rays[free][:, 3:].astype(np.float64)
     unit = d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-12)
-    best = np.full(t_hit.shape, np.inf)
-    which = np.full(t_hit.shape, -1, np.int32)
+    best = np.full(len(o), np.inf)
+    which = np.full(len(o), -1, np.int32)
     for i, wall in enumerate(walls):
         normal = np.asarray(wall["normal"], np.float64)
         den = d @ normal
@@ -57,9 +60,13 @@ def wall_through(
         t = np.where(ok, -(o @ normal + wall["d"]) / np.where(ok, den, 1.0), -1.0)
         x = o + t[..., None] * d  # [..., 3]
         box = {**wall, "box": [wall["box"][0], min(wall["box"][1], floor_z), *wall["box"][2:]]}
-        ok &= (t > 0) & ~np.isfinite(t_hit) & in_extent(box, x, margin) & (t < best)
+        ok &= (t > 0) & in_extent(box, x, margin) & (t < best)
         if room is not None:  # the crossing, one footprint cell back towards the camera
             ok &= room.contains(x[..., :2] - room.cell * unit[..., :2])
         best = np.where(ok, t, best)
         which = np.where(ok, i, which)
-    return np.where(which >= 0, best, 0.0).astype(np.float32), which
+    depth = np.zeros(t_hit.shape, np.float32)
+    index = np.full(t_hit.shape, -1, np.int32)
+    depth[free] = np.where(which >= 0, best, 0.0)
+    index[free] = which
+    return depth, index

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stages.semantics.floorfill import Footprint
+from stages.semantics.floorfill import Footprint, floor_through
 from stages.semantics.wallfill import wall_through
 
 # the north wall y = 3 (facing -y; along it s = x) seen in x 0.5-3.5 m, z 0.8-2 m, and the
@@ -50,3 +50,25 @@ def test_wall_fill_stays_inside_the_room_footprint():
     rays = np.array([[1.0, 1.0, 1.5, 0.0, 1.0, 0.0]], np.float32)  # x = 1: inside
     t, _ = wall_through(rays, np.array([np.inf]), (NORTH,), 0.0, room, 0.03)
     np.testing.assert_allclose(t, [2.0], atol=1e-5)
+
+
+def test_a_view_of_rays_gives_each_ray_what_it_gives_alone():
+    """wall_through and floor_through compute only the rays still in play (unhit, or bound for
+    the floor) and scatter them back: over an [H, W] view with hits and holes mixed, every
+    pixel reads as that ray passed alone."""
+    rng = np.random.default_rng(3)
+    h, w = 9, 11
+    d = rng.normal(size=(h, w, 3)) * [1.0, 1.0, 0.6] + [0.3, 0.8, -0.4]
+    rays = np.concatenate([np.broadcast_to(EYE, d.shape), d], axis=-1).astype(np.float32)
+    t_hit = np.where(rng.random((h, w)) < 0.4, rng.uniform(0.5, 4.0, (h, w)), np.inf)
+    xy = np.stack(np.meshgrid(np.arange(0.0, 4.0, 0.04), np.arange(0.0, 3.0, 0.04)), -1)
+    room = Footprint.of(xy.reshape(-1, 2), 0.05)
+    t, which = wall_through(rays, t_hit, (NORTH, EAST), 0.0, room, 0.03)
+    floor = floor_through(rays, t_hit, 0.0, room, 0.03, (NORTH, EAST))
+    assert t.shape == which.shape == floor.shape == (h, w)
+    assert (t > 0).sum() > 5 and (floor > 0).sum() > 5 and (t[np.isfinite(t_hit)] == 0).all()
+    for i, j in np.ndindex(h, w):
+        one = rays[i, j][None], t_hit[i, j][None]
+        t1, w1 = wall_through(*one, (NORTH, EAST), 0.0, room, 0.03)
+        assert (t1[0], w1[0]) == (t[i, j], which[i, j])
+        assert floor_through(*one, 0.0, room, 0.03, (NORTH, EAST))[0] == floor[i, j]
