@@ -12,6 +12,7 @@ import logging
 import os
 import shutil
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -22,7 +23,7 @@ from stages.common.camera import Intrinsics
 from stages.common.capture import Capture, Frame
 from stages.common.errors import BlunfError
 from stages.common.io import image_size, write_depth_npy, write_json
-from stages.common.progress import progress
+from stages.common.progress import Progress, progress
 from stages.poses import agreement, calib, fullsize, matching, stated
 from stages.poses import models as models_detail
 from stages.poses.config import PosesConfig, PosesInputs, PosesOutputs
@@ -75,14 +76,16 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
             facts["matching"], facts["matching_detail"] = m.pop("kind"), m.pop("detail")
             facts["match_pairs"] = m
         clock.append((time.perf_counter(), time.process_time()))
-        recs = _map(cfg, db, img_dir, work / "models", threads, refine)
+        recs, facts["keyframes"] = _map(cfg, db, img_dir, work / "models", threads, refine)
         if cfg.self_calibrate == "auto" and not guessed and recs:
             biggest = max(recs, key=lambda r: r.num_reg_images())
             checked = stated.check(biggest, cfg.stated_focal_tolerance)
             if checked["adopt"]:
                 log.warning("sfm: the stated focal does not fit the photos: estimating it")
                 stated.to_self_calibration(db, checked)
-                recs = _map(cfg, db, img_dir, work / "models-refined", threads, True)
+                recs, facts["keyframes"] = _map(
+                    cfg, db, img_dir, work / "models-refined", threads, True
+                )
                 refine = True
         named = dict(zip(names, stems, strict=True))  # COLMAP image name -> frame stem
         recs, facts["mapper"], facts["agreement"] = _agreeing(
@@ -341,7 +344,7 @@ def _agreeing(
         return recs, used, facts
     log.warning("sfm: %s; mapping again with the global mapper", agreement.warning(facts))
     glob = replace(cfg, mapper="global")
-    other = _map(glob, db, img_dir, work / "models-global", threads, refine)
+    other, _ = _map(glob, db, img_dir, work / "models-global", threads, refine)
     if not other:
         return recs, used, facts | {"global": "no model"}
     g = max(other, key=lambda r: r.num_reg_images())
@@ -356,34 +359,21 @@ def _agreeing(
 
 def _map(
     cfg: PosesConfig, db: Path, img_dir: Path, models: Path, threads: int, refine: bool
-) -> list[pycolmap.Reconstruction]:
-    """Run the chosen mapper; returns every model it made (possibly none). refine: estimate
-    the focal length and distortion too."""
+) -> tuple[list[pycolmap.Reconstruction], dict]:
+    """Run the chosen mapper; returns every model it made (possibly none) and the keyframes'
+    facts (_incremental; {} for the global mapper). refine: estimate the focal length and
+    distortion too."""
     models.mkdir(parents=True)
-    log.info("sfm: %s mapping", "incremental" if cfg.mapper == "auto" else cfg.mapper)
     fixed = not refine
     if cfg.deterministic:  # a multi-threaded bundle adjustment sums in a varying order
         threads = 1
     if cfg.mapper in ("auto", "incremental"):
-        o = pycolmap.IncrementalPipelineOptions()
-        o.num_threads = threads
-        o.random_seed = cfg.seed
-        o.mapper.random_seed = o.triangulation.random_seed = cfg.seed
-        o.min_model_size = MIN_REGISTERED
-        o.ba_global_max_refinements = cfg.ba.global_max_refinements
-        o.ba_local_max_refinements = cfg.ba.local_max_refinements
-        o.ba_global_frames_ratio = cfg.ba.global_growth
-        o.ba_global_points_ratio = cfg.ba.global_growth
-        if fixed:
-            o.ba_refine_focal_length = False
-            o.ba_refine_principal_point = False
-            o.ba_refine_extra_params = False
-            o.mapper.abs_pose_refine_focal_length = False
-            o.mapper.abs_pose_refine_extra_params = False
-        with progress("sfm map", len(os.listdir(img_dir)), "image") as bar:  # registered
-            first, then = (lambda: bar.update(2)), (lambda: bar.update(1))
-            recs = pycolmap.incremental_mapping(db, img_dir, models, o, "", first, then)
+        names = sorted(os.listdir(img_dir))
+        with progress("sfm map", len(names), "image") as bar:  # registered
+            recs, facts = _incremental(cfg, db, img_dir, models, threads, fixed, names, bar)
+        return recs, facts
     else:
+        log.info("sfm: global mapping")
         g = pycolmap.GlobalPipelineOptions()
         g.num_threads = threads
         g.random_seed = cfg.seed
@@ -396,5 +386,108 @@ def _map(
             ba.refine_principal_point = False
             ba.refine_extra_params = False
         with progress("sfm map"):
-            recs = pycolmap.global_mapping(db, img_dir, models, g)
-    return list(recs.values())
+            made = pycolmap.global_mapping(db, img_dir, models, g)
+    return list(made.values()), {}
+
+
+def _incremental_options(
+    cfg: PosesConfig, threads: int, fixed: bool
+) -> pycolmap.IncrementalPipelineOptions:
+    o = pycolmap.IncrementalPipelineOptions()
+    o.num_threads = threads
+    o.random_seed = cfg.seed
+    o.mapper.random_seed = o.triangulation.random_seed = cfg.seed
+    o.min_model_size = MIN_REGISTERED
+    o.ba_global_max_refinements = cfg.ba.global_max_refinements
+    o.ba_local_max_refinements = cfg.ba.local_max_refinements
+    o.ba_global_frames_ratio = cfg.ba.global_growth
+    o.ba_global_points_ratio = cfg.ba.global_growth
+    if fixed:
+        o.ba_refine_focal_length = False
+        o.ba_refine_principal_point = False
+        o.ba_refine_extra_params = False
+        o.mapper.abs_pose_refine_focal_length = False
+        o.mapper.abs_pose_refine_extra_params = False
+    return o
+
+
+def keyframe_stride(n: int, at_least: int) -> int:
+    """The largest power of two k with at least `at_least` of n views in every k-th (1: map
+    every view; also when at_least is 0)."""
+    k = 1
+    while at_least > 0 and n // (2 * k) + (n % (2 * k) > 0) >= at_least:
+        k *= 2
+    return k
+
+
+def _incremental(
+    cfg: PosesConfig,
+    db: Path,
+    img_dir: Path,
+    models: Path,
+    threads: int,
+    fixed: bool,
+    names: list[str],
+    bar: Progress,
+) -> tuple[list[pycolmap.Reconstruction], dict]:
+    """The incremental mapper's models of the images `names` (capture order), and the facts of
+    the keyframes (KeyframesConfig): every k-th view mapped first, the rest registered to
+    that model with its poses held; every view at once when k is 1 or the subsets fail."""
+    count = [0]
+
+    def registered(n: int) -> Callable[[], None]:
+        def tick() -> None:
+            count[0] += n
+            bar.moveto(count[0])
+
+        return tick
+
+    facts: dict = {}
+    k = keyframe_stride(len(names), cfg.keyframes.at_least)
+    while k > 1:
+        sub = names[::k]
+        o = _incremental_options(cfg, threads, fixed)
+        o.image_names = sub
+        part = models / f"every-{k}"
+        part.mkdir()
+        log.info("sfm: incremental mapping of every %d%s view (%d)", k, _ordinal(k), len(sub))
+        recs = pycolmap.incremental_mapping(db, img_dir, part, o, "", registered(2), registered(1))
+        best = max(recs, key=lambda i: recs[i].num_reg_images(), default=None)
+        held = recs[best].num_reg_images() if best is not None else 0
+        facts.setdefault("tried", []).append({"every": k, "views": len(sub), "held": held})
+        if held >= cfg.keyframes.hold * len(sub):
+            o = _incremental_options(cfg, threads, fixed)
+            o.fix_existing_frames = True  # the subset's poses held: registering is local
+            o.ba_global_frames_ratio = o.ba_global_points_ratio = NO_GROWTH
+            o.ba_global_frames_freq = o.ba_global_points_freq = NO_FREQ
+            rest = models / "rest"
+            rest.mkdir()
+            log.info("sfm: registering the other %d views to it", len(names) - len(sub))
+            recs = pycolmap.incremental_mapping(
+                db, img_dir, rest, o, str(part / str(best)), registered(0), registered(1)
+            )
+            facts.update(every=k, mapped=len(sub), held=held)
+            return list(recs.values()), facts
+        log.warning(
+            "sfm: every %d%s view: its model holds %d of %d (keyframes.hold %.2f): fewer skipped",
+            k,
+            _ordinal(k),
+            held,
+            len(sub),
+            cfg.keyframes.hold,
+        )
+        count[0] = 0
+        bar.moveto(0)
+        k //= 2
+    log.info("sfm: incremental mapping")
+    o = _incremental_options(cfg, threads, fixed)
+    recs = pycolmap.incremental_mapping(db, img_dir, models, o, "", registered(2), registered(1))
+    return list(recs.values()), facts
+
+
+def _ordinal(k: int) -> str:
+    return {1: "st", 2: "nd", 3: "rd"}.get(k, "th")
+
+
+NO_GROWTH = 1e6  # a global bundle adjustment when the model grows this many times: never
+NO_FREQ = 1 << 30  # ...or after this many images or points

@@ -16,7 +16,12 @@ from stages.common.errors import BlunfError
 from stages.common.io import read_json
 from stages.evaluate.poses import pose_metrics
 from stages.poses import IMPLS, PosesConfig, PosesInputs, PosesOutputs
-from stages.poses.config import BundleAdjustmentConfig, MatchingConfig, RetrievalConfig
+from stages.poses.config import (
+    BundleAdjustmentConfig,
+    KeyframesConfig,
+    MatchingConfig,
+    RetrievalConfig,
+)
 from stages.poses.models import metric_scale
 from stages.poses.scale import (
     depth_ratios,
@@ -118,6 +123,8 @@ def test_bad_config_names_the_field(bad: dict, field: str) -> None:
         (BundleAdjustmentConfig, {"global_max_refinements": 0}, "ba.global_max_refinements"),
         (BundleAdjustmentConfig, {"global_growth": 1.0}, "ba.global_growth"),
         (BundleAdjustmentConfig, {"global_growth": float("nan")}, "ba.global_growth"),
+        (KeyframesConfig, {"at_least": 5}, "keyframes.at_least"),
+        (KeyframesConfig, {"hold": 0.0}, "keyframes.hold"),
     ],
 )
 def test_bad_nested_config_names_the_field(cls: type, bad: dict, field: str) -> None:
@@ -440,3 +447,43 @@ def test_same_photos_same_poses_on_two_threads(tmp_path: Path) -> None:
             assert np.array_equal(np.asarray(fa.pose), np.asarray(fb.pose)), fa.stem
         if fa.depth is not None:
             assert np.array_equal(np.load(fa.depth), np.load(fb.depth)), fa.stem
+
+
+def test_sfm_keyframes_map_every_other_view_and_register_the_rest(room: Path, tmp_path: Path):
+    """keyframes.at_least 10 on 24 views (+ 2 blank ones): every 2nd view is mapped first,
+    the others registered to that model with its poses held; as accurate as mapping all."""
+    cap = read_layout(room)
+    blank = _write_png(tmp_path / "blank.png", np.full((144, 192, 3), 90, np.uint8))
+    f0 = cap.frames[0]
+    blanks = [Frame(f"blank{i}", blank, f0.intrinsics, depth=f0.depth) for i in range(2)]
+    cap = cap.with_frames([*cap.frames[:12], *blanks, *cap.frames[12:]])
+    keyframes = KeyframesConfig(at_least=10, hold=0.9)
+    got, facts = _run_sfm(cap, tmp_path, threads=1, max_features=2048, keyframes=keyframes)
+    m = pose_metrics({f.stem: f.pose for f in got.frames}, _gt_poses(room))
+    # 26 views: every 2nd is 13, blank0 among them; its model holds 12 >= 0.9 x 13
+    assert facts["keyframes"] == {
+        "tried": [{"every": 2, "views": 13, "held": 12}],
+        "every": 2,
+        "mapped": 13,
+        "held": 12,
+    }
+    assert (facts["registered"], facts["unregistered"]) == (24, ["blank0", "blank1"])
+    assert m["ate_rmse_m"] < 0.03 and m["rot_err_deg_median"] < 0.6
+    assert facts["agreement"]["agrees"]
+
+
+def test_sfm_keyframes_that_do_not_hold_map_every_view(room: Path, tmp_path: Path) -> None:
+    """A subset whose model holds fewer than keyframes.hold of it (blank0 is in it) gives way
+    to mapping every view, as without keyframes."""
+    cap = read_layout(room)
+    blank = _write_png(tmp_path / "blank.png", np.full((144, 192, 3), 90, np.uint8))
+    f0 = cap.frames[0]
+    cap = cap.with_frames(
+        [*cap.frames[:12], Frame("blank0", blank, f0.intrinsics, depth=f0.depth), *cap.frames[12:]]
+    )
+    keyframes = KeyframesConfig(at_least=10, hold=1.0)
+    got, facts = _run_sfm(cap, tmp_path, threads=1, max_features=2048, keyframes=keyframes)
+    (tried,) = facts["keyframes"].pop("tried")  # measured: the subset's model held 10
+    assert (tried["every"], tried["views"]) == (2, 13) and tried["held"] < 13
+    assert facts["keyframes"] == {}  # no subset kept: every view mapped together
+    assert facts["registered"] == 24
