@@ -95,7 +95,7 @@ class KeyframesConfig:
     The incremental mapper's cost grows faster than its views (each global bundle adjustment
     takes in every view so far, and they come each time the model grows by a ratio), while
     registering a view to a model whose poses are held costs about the same whatever the
-    model's size. So a capture of at least twice `at_least` views maps every k-th view first
+    model's size. So a capture of at least twice `at_least` views maps one view in k first
     (k the largest power of two leaving at least `at_least` views: the sequential pairs'
     steps 1, 2, 4 ... still join them), then registers the others to that model with its
     poses held, and no global adjustment grows with them. When the subset's model holds fewer

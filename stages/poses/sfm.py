@@ -412,10 +412,10 @@ def _incremental_options(
 
 
 def keyframe_stride(n: int, at_least: int) -> int:
-    """The largest power of two k with at least `at_least` of n views in every k-th (1: map
-    every view; also when at_least is 0)."""
+    """The largest power of two k with n >= k * at_least: one view in k leaves at least
+    `at_least` of n (1: map every view; also when at_least is 0)."""
     k = 1
-    while at_least > 0 and n // (2 * k) + (n % (2 * k) > 0) >= at_least:
+    while at_least > 0 and n >= 2 * k * at_least:
         k *= 2
     return k
 
@@ -450,7 +450,7 @@ def _incremental(
         o.image_names = sub
         part = models / f"every-{k}"
         part.mkdir()
-        log.info("sfm: incremental mapping of every %d%s view (%d)", k, _ordinal(k), len(sub))
+        log.info("sfm: incremental mapping of one view in %d (%d views)", k, len(sub))
         recs = pycolmap.incremental_mapping(db, img_dir, part, o, "", registered(2), registered(1))
         best = max(recs, key=lambda i: recs[i].num_reg_images(), default=None)
         held = recs[best].num_reg_images() if best is not None else 0
@@ -469,9 +469,8 @@ def _incremental(
             facts.update(every=k, mapped=len(sub), held=held)
             return list(recs.values()), facts
         log.warning(
-            "sfm: every %d%s view: its model holds %d of %d (keyframes.hold %.2f): fewer skipped",
+            "sfm: one view in %d: its model holds %d of %d (keyframes.hold %.2f): fewer skipped",
             k,
-            _ordinal(k),
             held,
             len(sub),
             cfg.keyframes.hold,
@@ -483,10 +482,6 @@ def _incremental(
     o = _incremental_options(cfg, threads, fixed)
     recs = pycolmap.incremental_mapping(db, img_dir, models, o, "", registered(2), registered(1))
     return list(recs.values()), facts
-
-
-def _ordinal(k: int) -> str:
-    return {1: "st", 2: "nd", 3: "rd"}.get(k, "th")
 
 
 NO_GROWTH = 1e6  # a global bundle adjustment when the model grows this many times: never

@@ -30,7 +30,7 @@ from stages.poses.scale import (
     scale_from_distance,
     scale_from_priors,
 )
-from stages.poses.sfm import _colmap_camera, first_octave
+from stages.poses.sfm import _colmap_camera, first_octave, keyframe_stride
 
 SHARED_DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 
@@ -487,3 +487,8 @@ def test_sfm_keyframes_that_do_not_hold_map_every_view(room: Path, tmp_path: Pat
     assert (tried["every"], tried["views"]) == (2, 13) and tried["held"] < 13
     assert facts["keyframes"] == {}  # no subset kept: every view mapped together
     assert facts["registered"] == 24
+
+
+def test_keyframe_stride_leaves_at_least_so_many_views() -> None:
+    assert [keyframe_stride(n, 200) for n in (100, 399, 400, 799, 800, 1600)] == [1, 1, 2, 2, 4, 8]
+    assert keyframe_stride(5000, 0) == 1  # 0: always every view
