@@ -79,7 +79,7 @@ def mapped(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, dict[s
 def _model(mapped: tuple[Path, Path, dict[str, str]], tmp_path: Path, mapper: str):
     db, img_dir, _ = mapped
     cfg = PosesConfig(threads=1, mapper=mapper)  # type: ignore[arg-type]
-    recs = sfm._map(cfg, db, img_dir, tmp_path / mapper, 1, False)
+    recs, _ = sfm._map(cfg, db, img_dir, tmp_path / mapper, 1, False)
     return max(recs, key=lambda r: r.num_reg_images())
 
 
