@@ -49,7 +49,8 @@ def wall_through(
     # only rays that hit no surface can see a wall through it: the rest are not computed
     # (a photos-only view's unhit rays are a fraction of it, and this runs per wall per view)
     free = ~np.isfinite(t_hit)
-    o, d = rays[free][:, :3].astype(np.float64), rays[free][:, 3:].astype(np.float64)
+    r = rays[free].astype(np.float64)  # [N, 6]
+    o, d = r[:, :3], r[:, 3:]
     unit = d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-12)
     best = np.full(len(o), np.inf)
     which = np.full(len(o), -1, np.int32)
