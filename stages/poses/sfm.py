@@ -12,7 +12,6 @@ import logging
 import os
 import shutil
 import time
-from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -433,15 +432,7 @@ def _incremental(
     """The incremental mapper's models of the images `names` (capture order), and the facts of
     the keyframes (KeyframesConfig): every k-th view mapped first, the rest registered to
     that model with its poses held; every view at once when k is 1 or the subsets fail."""
-    count = [0]
-
-    def registered(n: int) -> Callable[[], None]:
-        def tick() -> None:
-            count[0] += n
-            bar.moveto(count[0])
-
-        return tick
-
+    first, then = (lambda: bar.update(2)), (lambda: bar.update(1))  # views registered
     facts: dict = {}
     k = keyframe_stride(len(names), cfg.keyframes.at_least)
     while k > 1:
@@ -451,7 +442,7 @@ def _incremental(
         part = models / f"every-{k}"
         part.mkdir()
         log.info("sfm: incremental mapping of one view in %d (%d views)", k, len(sub))
-        recs = pycolmap.incremental_mapping(db, img_dir, part, o, "", registered(2), registered(1))
+        recs = pycolmap.incremental_mapping(db, img_dir, part, o, "", first, then)
         best = max(recs, key=lambda i: recs[i].num_reg_images(), default=None)
         held = recs[best].num_reg_images() if best is not None else 0
         facts.setdefault("tried", []).append({"every": k, "views": len(sub), "held": held})
@@ -464,7 +455,7 @@ def _incremental(
             rest.mkdir()
             log.info("sfm: registering the other %d views to it", len(names) - len(sub))
             recs = pycolmap.incremental_mapping(
-                db, img_dir, rest, o, str(part / str(best)), registered(0), registered(1)
+                db, img_dir, rest, o, str(part / str(best)), lambda: None, then
             )
             facts.update(every=k, mapped=len(sub), held=held)
             return list(recs.values()), facts
@@ -475,12 +466,11 @@ def _incremental(
             len(sub),
             cfg.keyframes.hold,
         )
-        count[0] = 0
         bar.moveto(0)
         k //= 2
     log.info("sfm: incremental mapping")
     o = _incremental_options(cfg, threads, fixed)
-    recs = pycolmap.incremental_mapping(db, img_dir, models, o, "", registered(2), registered(1))
+    recs = pycolmap.incremental_mapping(db, img_dir, models, o, "", first, then)
     return list(recs.values()), facts
 
 

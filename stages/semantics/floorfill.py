@@ -140,14 +140,12 @@ def floor_through(
         near = t * np.linalg.norm(d[..., :2], axis=-1) <= reach.max_dist
         ok &= steep & near
     if walls:  # the walls only for the rays still in (the per-view cost is walls x rays)
-        at = np.flatnonzero(ok.reshape(-1))
+        at = np.flatnonzero(ok)
         oo, dd, tt = o.reshape(-1, 3)[at], d.reshape(-1, 3)[at], t.reshape(-1)[at]
         past = np.zeros(len(at), bool)
         for wall in walls:
             past |= _through(wall, oo, dd, tt, margin)
-        keep = ok.reshape(-1).copy()
-        keep[at[past]] = False
-        ok = keep.reshape(ok.shape)
+        ok.flat[at[past]] = False
     return np.where(ok, t, 0.0).astype(np.float32)
 
 

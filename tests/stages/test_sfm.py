@@ -264,6 +264,15 @@ def room(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return make_room(tmp_path_factory.mktemp("sfm") / "room", views=24, seed=0, size=(192, 144))
 
 
+def _with_blanks(cap: Capture, n: int, tmp_path: Path) -> Capture:
+    """`cap` with n blank photos blank0.. (with the first frame's depth) after its 12th view:
+    no features, so they cannot register."""
+    blank = _write_png(tmp_path / "blank.png", np.full((144, 192, 3), 90, np.uint8))
+    f0 = cap.frames[0]
+    blanks = [Frame(f"blank{i}", blank, f0.intrinsics, depth=f0.depth) for i in range(n)]
+    return cap.with_frames([*cap.frames[:12], *blanks, *cap.frames[12:]])
+
+
 def _gt_poses(root: Path) -> dict[str, np.ndarray]:
     return {s: np.asarray(p) for s, p in read_json(root / "gt" / "poses.json").items()}
 
@@ -274,10 +283,7 @@ def test_sfm_incremental_on_a_synthetic_room(room: Path, tmp_path: Path) -> None
     cap = read_layout(room)
     # Two blank photos (with blank depth) slipped into the middle cannot register: they must
     # be named in sfm.json and dropped from frames.json.
-    blank = _write_png(tmp_path / "blank.png", np.full((144, 192, 3), 90, np.uint8))
-    f0 = cap.frames[0]
-    blanks = [Frame(f"blank{i}", blank, f0.intrinsics, depth=f0.depth) for i in range(2)]
-    cap = cap.with_frames([*cap.frames[:12], *blanks, *cap.frames[12:]])
+    cap = _with_blanks(cap, 2, tmp_path)
     got, facts = _run_sfm(cap, tmp_path, threads=1, max_features=2048)
     est = {f.stem: f.pose for f in got.frames}
     m = pose_metrics(est, gt)
@@ -452,11 +458,7 @@ def test_same_photos_same_poses_on_two_threads(tmp_path: Path) -> None:
 def test_sfm_keyframes_map_every_other_view_and_register_the_rest(room: Path, tmp_path: Path):
     """keyframes.at_least 10 on 24 views (+ 2 blank ones): every 2nd view is mapped first,
     the others registered to that model with its poses held; as accurate as mapping all."""
-    cap = read_layout(room)
-    blank = _write_png(tmp_path / "blank.png", np.full((144, 192, 3), 90, np.uint8))
-    f0 = cap.frames[0]
-    blanks = [Frame(f"blank{i}", blank, f0.intrinsics, depth=f0.depth) for i in range(2)]
-    cap = cap.with_frames([*cap.frames[:12], *blanks, *cap.frames[12:]])
+    cap = _with_blanks(read_layout(room), 2, tmp_path)
     keyframes = KeyframesConfig(at_least=10, hold=0.9)
     got, facts = _run_sfm(cap, tmp_path, threads=1, max_features=2048, keyframes=keyframes)
     m = pose_metrics({f.stem: f.pose for f in got.frames}, _gt_poses(room))
@@ -475,12 +477,7 @@ def test_sfm_keyframes_map_every_other_view_and_register_the_rest(room: Path, tm
 def test_sfm_keyframes_that_do_not_hold_map_every_view(room: Path, tmp_path: Path) -> None:
     """A subset whose model holds fewer than keyframes.hold of it (blank0 is in it) gives way
     to mapping every view, as without keyframes."""
-    cap = read_layout(room)
-    blank = _write_png(tmp_path / "blank.png", np.full((144, 192, 3), 90, np.uint8))
-    f0 = cap.frames[0]
-    cap = cap.with_frames(
-        [*cap.frames[:12], Frame("blank0", blank, f0.intrinsics, depth=f0.depth), *cap.frames[12:]]
-    )
+    cap = _with_blanks(read_layout(room), 1, tmp_path)
     keyframes = KeyframesConfig(at_least=10, hold=1.0)
     got, facts = _run_sfm(cap, tmp_path, threads=1, max_features=2048, keyframes=keyframes)
     (tried,) = facts["keyframes"].pop("tried")  # measured: the subset's model held 10
