@@ -90,12 +90,15 @@ def _run(cfg: DepthConfig, inputs: DepthInputs, out: Path, sweep: bool) -> Depth
             # go under "plane_fill" ("planes" is the sweep's plane count)
             c0 = time.process_time()
             need = cfg.planes.enabled and facts["kept"] < cfg.planes.below
+            reason = _planes_reason(cfg.planes, facts["kept"])
             if need:
-                depths, sources, facts["plane_fill"] = planes.fill(
+                depths, sources, pf = planes.fill(
                     images, Ks, poses, sparse, depths, cfg.planes, cfg.threads
                 )
-            facts["plane_fill_reason"] = _planes_reason(cfg.planes, facts["kept"])
-            log.info("depth: %s", facts["plane_fill_reason"])
+                facts["plane_fill"] = pf
+                need, reason = pf["ran"], pf.get("reason", reason)  # max_dropped may undo it
+            facts["plane_fill_reason"] = reason
+            log.info("depth: %s", reason)
             parts["planes"] = _part(sources, time.process_time() - c0, ran=need)
 
         fill = _fill_needed(cfg.field, parts, sweep)

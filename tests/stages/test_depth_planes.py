@@ -172,6 +172,41 @@ def test_fill_reads_blank_walls_from_the_planes(plain_room):
         np.testing.assert_array_equal(s, t)
 
 
+def test_a_fill_the_views_disagree_on_is_undone_and_says_why(plain_room):
+    # the same room, its readings shifted 8 % in every other view (as a mirror in a glossy
+    # front or a drifting scale gives): the views' plane fills disagree, the multi-view check
+    # drops many of them, and over max_dropped the maps pass through untouched
+    images, Ks, poses, sparse, depths = [], [], [], [], []
+    for i, f in enumerate(plain_room.frames[:8]):
+        img = read_image(f.image).astype(np.float32) / 255.0
+        d = read_depth(f.depth, plain_room.depth_scale, plain_room.depth_invalid)
+        d = d * (1.08 if i % 2 else 1.0)
+        images.append(img)
+        Ks.append(f.intrinsics.K)
+        poses.append(np.asarray(f.pose))
+        sp = np.zeros_like(d)
+        sp[::7, ::7] = d[::7, ::7]
+        sparse.append(sp)
+        gray = img.mean(2)
+        std = np.sqrt(np.maximum(uniform_filter(gray**2, 7) - uniform_filter(gray, 7) ** 2, 0))
+        depths.append(np.where(std > 0.03, d, 0)[::2, ::2].astype(np.float32))
+    _, src, ran = fill(images, Ks, poses, sparse, depths, PlanesConfig(max_dropped=1.0))
+    dropped = ran["fills_dropped_by_check"]
+    assert ran["ran"] and any((s == 2).any() for s in src) and dropped > 0.05, ran
+    out, src, facts = fill(images, Ks, poses, sparse, depths, PlanesConfig(max_dropped=dropped / 2))
+    assert not facts["ran"] and facts["fills_dropped_by_check"] == dropped
+    assert facts["reason"] == (
+        f"no plane fill: the multi-view check dropped {100 * dropped:.0f} % of its fills, over "
+        f"depth.planes.max_dropped {50 * dropped:.0f} % (the views disagree on the room's planes)"
+    )
+    assert facts["coverage_after"] == facts["coverage_before"] and facts["coverage_planes"] == 0
+    for o, s, d in zip(out, src, depths, strict=True):
+        np.testing.assert_array_equal(o, d)
+        np.testing.assert_array_equal(s, (d > 0).astype(np.uint8))
+    with pytest.raises(BlunfError, match="max_dropped"):
+        PlanesConfig(max_dropped=1.5)
+
+
 def test_fill_rejects_mismatched_inputs():
     with pytest.raises(BlunfError, match="differ"):
         fill([np.zeros((8, 8, 3), np.float32)], [], [], [], [], PlanesConfig(enabled=True))

@@ -264,23 +264,26 @@ def test_stereo_stage_runs_the_plane_fill_where_stereo_covers_too_little(tiny_ro
     _, _, _, tracks, gt = room
     _tracks_frames(tiny_room, tracks, tmp_path)
     facts = {}
-    for below in (1.0, 0.0):
-        out = tmp_path / f"out{below}"
+    for below, most in ((1.0, 1.0), (0.0, 1.0), (1.0, 0.0)):
+        out = tmp_path / f"out{below}-{most}"
         out.mkdir()
-        cfg = DepthConfig(
-            field=FieldFillConfig(fill=False),
-            planes=PlanesConfig(enabled=True, below=below, width=96, superpixels=150),
-        )
+        pc = PlanesConfig(below=below, max_dropped=most, width=96, superpixels=150)
+        cfg = DepthConfig(field=FieldFillConfig(fill=False), planes=pc)
         outs = run_stereo(cfg, DepthInputs(tmp_path / "frames.json"), out)
-        facts[below] = read_json(outs.stats)
+        facts[below, most] = read_json(outs.stats)
         srcs = [
             read_label(outs.sources / f"{f.stem}.png") for f in Capture.load(outs.frames).frames
         ]
-        if below == 1.0:
+        if (below, most) == (1.0, 1.0):
             assert any((s == 2).any() for s in srcs)
         else:
             assert all(set(np.unique(s)) <= {0, 1} for s in srcs)
-    ran, skipped = facts[1.0], facts[0.0]
+    ran, skipped, undone = facts[1.0, 1.0], facts[0.0, 1.0], facts[1.0, 0.0]
+    # some fills fail the check, so with max_dropped 0 the fill is undone, and says why
+    assert ran["plane_fill"]["fills_dropped_by_check"] > 0
+    assert not undone["parts"]["planes"]["ran"] and not undone["plane_fill"]["ran"]
+    assert undone["coverage"]["planes"] == undone["coverage"]["sweep"]
+    assert undone["plane_fill_reason"].startswith("no plane fill: the multi-view check dropped")
     assert ran["parts"]["planes"]["ran"] and not skipped["parts"]["planes"]["ran"]
     assert ran["coverage"]["planes"] > ran["coverage"]["sweep"]
     assert skipped["coverage"]["planes"] == skipped["coverage"]["sweep"]

@@ -104,6 +104,19 @@ def fill(
         100 * facts["fills_dropped_by_check"],
         facts["cpu_seconds"],
     )
+    dropped = facts["fills_dropped_by_check"]
+    if dropped > cfg.max_dropped:
+        # the views disagree on which plane their blank regions lie on: the fills that pass
+        # the check are not to be trusted either, and the maps go on as the sweep left them
+        facts["ran"] = False
+        facts["reason"] = (
+            f"no plane fill: the multi-view check dropped {100 * dropped:.0f} % of its fills, "
+            f"over depth.planes.max_dropped {100 * cfg.max_dropped:.0f} % (the views disagree "
+            "on the room's planes)"
+        )
+        facts["coverage_after"], facts["coverage_planes"] = facts["coverage_before"], 0.0
+        log.info("depth/planes: %s", facts["reason"])
+        return depths, [(d > 0).astype(np.uint8) for d in depths], facts
     return out, src, facts
 
 
@@ -167,6 +180,7 @@ def _facts(
     readings = max(1, sum(int((d > 0).sum()) for d in depths))
     return {
         "enabled": True,
+        "ran": True,  # False: the fill was undone (max_dropped), the maps are the sweep's
         "coverage_before": round(before, 4),
         "coverage_after": round(_coverage(out), 4),
         "coverage_planes": round(sum(int((s == 2).sum()) for s in src) / total, 4),

@@ -17,11 +17,19 @@ from stages.common.errors import BlunfError
 class PlanesConfig:
     """Plane fill: depth from the room's own planes where stereo reads nothing."""
 
-    enabled: bool = False  # fill stereo's holes with plane depth (false: the maps pass through).
-    #                       Off by default: see docs/depth.md for what it measured
+    enabled: bool = True  # fill stereo's holes with plane depth (false: the maps pass
+    #                      through); it runs under `below`, and stays under `max_dropped`
     below: float = 0.6  # runs only when stereo covers fewer than this share of the pixels:
-    #                     the real kitchen (37 %) and office (32 %) gain from it (docs/depth.md);
+    #                     the real kitchen (37 %) and office (32 %) run it (docs/depth.md);
     #                     the textured demo room (81 %) plans 84.6 with it and skips its CPU-s
+    max_dropped: float = 0.35  # the fill is undone (the maps go on as the sweep left
+    #                 them) when the multi-view check drops more than this share of its fills:
+    #                 the views disagree on the room's planes. Photos-only, against the sensor
+    #                 at SfM poses: office drops 14 %, plan fwIoU 59.6 -> 64.5 with the fill;
+    #                 honest procedural room (60 views) 21 %, 52.8 -> 62.4; kitchen 46 %
+    #                 (glossy cabinet fronts, counters): 67.8 with the field fill against
+    #                 57.6 with the planes; demo room: stereo covers 81 %, no fill either way
+    #                 (docs/depth.md#when-the-fill-runs)
     # hypotheses (hypotheses.py)
     voxel: float = 0.02  # metres: points are thinned to one per voxel before voting
     bin: float = 0.01  # metres: offset histogram bin along each room axis
@@ -91,8 +99,9 @@ class PlanesConfig:
     check_views: int = 6  # views each fill is checked against (those overlapping it most)
 
     def __post_init__(self) -> None:
-        if not 0.0 <= self.below <= 1.0:
-            raise BlunfError(f"depth.planes.below must be in [0, 1], got {self.below}")
+        for k in ("below", "max_dropped"):
+            if not 0.0 <= getattr(self, k) <= 1.0:
+                raise BlunfError(f"depth.planes.{k} must be in [0, 1], got {getattr(self, k)}")
         pos = ("voxel", "bin", "band", "tol", "tex_std", "check_tol")
         for k in pos:
             if not getattr(self, k) > 0:
