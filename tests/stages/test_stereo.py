@@ -222,13 +222,15 @@ def test_stereo_stage_writes_depth_for_fusion_without_a_field(tiny_room, tmp_pat
     from stages.common.io import read_json
     from stages.depth import DepthConfig, DepthInputs
     from stages.depth.config import FieldFillConfig
+    from stages.depth.planes import PlanesConfig
     from stages.depth.stage import run_stereo
 
     _, _, _, tracks, gt = room
     _tracks_frames(tiny_room, tracks, tmp_path)
     (tmp_path / "out").mkdir()
-    # fill off: at 96x72 stereo covers ~15-20 %, and the default (auto) would train a field
-    cfg = DepthConfig(field=FieldFillConfig(fill=False))
+    # fill off: at 96x72 stereo covers ~15-20 %, and the default (auto) would train a field;
+    # the plane fill off too (it is tested below)
+    cfg = DepthConfig(field=FieldFillConfig(fill=False), planes=PlanesConfig(enabled=False))
     outs = run_stereo(cfg, DepthInputs(tmp_path / "frames.json"), tmp_path / "out")
     assert not outs.field.exists()
     got = Capture.load(outs.frames)
@@ -242,7 +244,7 @@ def test_stereo_stage_writes_depth_for_fusion_without_a_field(tiny_room, tmp_pat
         src = read_label(outs.sources / f"{f.stem}.png")
         assert src.shape == d.shape and set(np.unique(src)) <= {0, 1}
         assert np.array_equal(src == 1, d > 0)
-    # the report's facts: coverage after each part (the plane fill leaves it as it is)
+    # the report's facts: coverage after each part (the plane fill off leaves it as it is)
     cov = facts["coverage"]
     assert cov["sweep"] == cov["planes"] == facts["by_source"]["stereo"]
     assert abs(cov["sweep"] - facts["kept"]) < 0.02 and "field" not in cov
