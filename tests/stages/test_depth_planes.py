@@ -13,6 +13,7 @@ from scipy.ndimage import uniform_filter
 from stages.common.capture import read_layout
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth, read_image, read_label
+from stages.depth import planes as planes_fill
 from stages.depth.planes import PlanesConfig, fill
 from stages.depth.planes.geometry import plane_depth, plane_valid
 from stages.depth.planes.hypotheses import Plane, find_planes
@@ -172,7 +173,7 @@ def test_fill_reads_blank_walls_from_the_planes(plain_room):
         np.testing.assert_array_equal(s, t)
 
 
-def test_a_fill_the_views_disagree_on_is_undone_and_says_why(plain_room):
+def test_a_fill_the_views_disagree_on_is_undone_and_says_why(plain_room, monkeypatch):
     # the same room, its readings shifted 8 % in every other view (as a mirror in a glossy
     # front or a drifting scale gives): the views' plane fills disagree, the multi-view check
     # drops many of them, and over max_dropped the maps pass through untouched
@@ -190,19 +191,36 @@ def test_a_fill_the_views_disagree_on_is_undone_and_says_why(plain_room):
         gray = img.mean(2)
         std = np.sqrt(np.maximum(uniform_filter(gray**2, 7) - uniform_filter(gray, 7) ** 2, 0))
         depths.append(np.where(std > 0.03, d, 0)[::2, ::2].astype(np.float32))
-    _, src, ran = fill(images, Ks, poses, sparse, depths, PlanesConfig(max_dropped=1.0))
+    every = PlanesConfig(max_dropped=1.0, sample_every=0)  # all views, then the one check
+    _, src, ran = fill(images, Ks, poses, sparse, depths, every)
     dropped = ran["fills_dropped_by_check"]
     assert ran["ran"] and any((s == 2).any() for s in src) and dropped > 0.05, ran
-    out, src, facts = fill(images, Ks, poses, sparse, depths, PlanesConfig(max_dropped=dropped / 2))
-    assert not facts["ran"] and facts["fills_dropped_by_check"] == dropped
-    assert facts["reason"] == (
-        f"no plane fill: the multi-view check dropped {100 * dropped:.0f} % of its fills, over "
-        f"depth.planes.max_dropped {50 * dropped:.0f} % (the views disagree on the room's planes)"
-    )
+    # eight views are too few to sample (SAMPLE_VIEWS): the whole check decides
+    for k in (0, 3):
+        cfg = PlanesConfig(max_dropped=dropped / 2, sample_every=k)
+        out, src, facts = fill(images, Ks, poses, sparse, depths, cfg)
+        assert not facts["ran"] and facts["fills_dropped_by_check"] == dropped
+        assert "sample" not in facts
+        assert facts["reason"] == (
+            f"no plane fill: the multi-view check dropped {100 * dropped:.0f} % of its fills, "
+            f"over depth.planes.max_dropped {50 * dropped:.0f} % (the views disagree on the "
+            "room's planes)"
+        )
+    # allowed a sample of three, one view in 3 (0, 3, 6) holds a shifted one: the sample
+    # disagrees, and the fill stops before labelling the other five
+    monkeypatch.setattr(planes_fill, "SAMPLE_VIEWS", 3)
+    cfg = PlanesConfig(max_dropped=dropped / 2, sample_every=3)
+    out, src, facts = fill(images, Ks, poses, sparse, depths, cfg)
+    assert not facts["ran"] and facts["sample"] == {"every": 3, "views": 3}
+    assert facts["reason"].startswith("no plane fill: the multi-view check dropped")
+    assert "of the fills of one view in 3 (3 views)" in facts["reason"]
     assert facts["coverage_after"] == facts["coverage_before"] and facts["coverage_planes"] == 0
+    assert facts["cpu_seconds"] < ran["cpu_seconds"]
     for o, s, d in zip(out, src, depths, strict=True):
         np.testing.assert_array_equal(o, d)
         np.testing.assert_array_equal(s, (d > 0).astype(np.uint8))
+    with pytest.raises(BlunfError, match="sample_every"):
+        PlanesConfig(sample_every=-1)
     with pytest.raises(BlunfError, match="max_dropped"):
         PlanesConfig(max_dropped=1.5)
 
