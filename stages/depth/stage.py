@@ -97,6 +97,12 @@ def _run(cfg: DepthConfig, inputs: DepthInputs, out: Path, sweep: bool) -> Depth
                 )
                 facts["plane_fill"] = pf
                 need, reason = pf["ran"], pf.get("reason", reason)  # max_dropped may undo it
+                if need:
+                    reason += (
+                        f"; the multi-view check dropped {100 * pf['fills_dropped_by_check']:.0f}"
+                        f" % of its fills (depth.planes.max_dropped "
+                        f"{100 * cfg.planes.max_dropped:.0f} %)"
+                    )
             facts["plane_fill_reason"] = reason
             log.info("depth: %s", reason)
             parts["planes"] = _part(sources, time.process_time() - c0, ran=need)
