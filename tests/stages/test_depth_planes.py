@@ -16,7 +16,7 @@ from stages.common.io import read_depth, read_image, read_label
 from stages.depth import planes as planes_fill
 from stages.depth.planes import PlanesConfig, fill
 from stages.depth.planes.geometry import plane_depth, plane_valid
-from stages.depth.planes.hypotheses import Plane, find_planes
+from stages.depth.planes.hypotheses import Plane, find_planes, room_axes
 from stages.depth.planes.solve import energy, expand
 from stages.depth.planes.view import ViewData, data_costs
 
@@ -86,6 +86,32 @@ def test_hypotheses_on_a_floor_two_walls_and_a_table():
     assert len(planes) == 4
     for p in planes:
         assert np.degrees(np.arccos(np.max(np.abs(p.normal)))) < 0.5
+
+
+def _horizontal_normals(rng, n, yaw_deg, noise_deg):
+    """n wall normals about the four directions of a room turned yaw_deg from x, each off by
+    Gaussian noise_deg, and as many floor normals."""
+    a = np.radians(yaw_deg + 90 * rng.integers(0, 4, n) + rng.normal(0, noise_deg, n))
+    walls = np.stack([np.cos(a), np.sin(a), np.zeros(n)], 1)
+    return np.concatenate([walls, np.tile([0.0, 0.0, 1.0], (n, 1))])
+
+
+def test_room_axes_take_the_walls_near_the_aligned_axes_and_only_those():
+    rng = np.random.default_rng(4)
+    yaw = lambda axes: np.degrees(np.arctan2(axes[1][1], axes[1][0]))  # noqa: E731
+    # a room turned 4° from the align stage's axes (its walls a few degrees off): found
+    assert yaw(room_axes(_horizontal_normals(rng, 4000, 4.0, 2.0))) == pytest.approx(4.0, abs=0.5)
+    # normals spread over every direction (stereo's on the 7-Scenes kitchen): no peak stands
+    # out, the align stage's axes stay (not a noise peak, up to 45° away)
+    a = rng.uniform(0, 2 * np.pi, 4000)
+    flat = np.concatenate([np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], 1), [[0, 0, 1]] * 99])
+    assert yaw(room_axes(flat)) == 0.0
+    # a clear peak 40° away is not the room's walls (the align stage put them on x and y)
+    assert yaw(room_axes(_horizontal_normals(rng, 4000, 40.0, 2.0))) == 0.0
+    # ... unless asked to look that far
+    assert yaw(room_axes(_horizontal_normals(rng, 4000, 40.0, 2.0), 45.0)) == pytest.approx(
+        40.0, abs=0.5
+    )
 
 
 def test_a_table_top_is_not_extended_across_the_room():
