@@ -22,21 +22,19 @@ class PlanesConfig:
     below: float = 0.6  # runs only when stereo covers fewer than this share of the pixels:
     #                     the real kitchen (37 %) and office (32 %) run it (docs/depth.md);
     #                     the textured demo room (81 %) plans 84.6 with it and skips its CPU-s
-    max_dropped: float = 0.35  # the fill is undone (the maps go on as the sweep left
+    max_dropped: float = 0.3  # the fill is undone (the maps go on as the sweep left
     #                 them) when the multi-view check drops more than this share of its fills:
     #                 the views disagree on the room's planes. Photos-only, against the sensor
-    #                 at SfM poses: office drops 14 %, plan fwIoU 59.6 -> 64.5 with the fill;
-    #                 honest procedural room (60 views) 21 %, 52.8 -> 62.4; kitchen 46 %
-    #                 (glossy cabinet fronts, counters): 67.8 with the field fill against
-    #                 57.6 with the planes; demo room: stereo covers 81 %, no fill either way
-    #                 (docs/depth.md#when-the-fill-runs)
+    #                 at SfM poses, the share dropped of all views (of one view in 3): office
+    #                 14 % (18 %), plan fwIoU 59.6 -> 64.5 with the fill; honest procedural room
+    #                 (60 views) 21 % (26 %), 52.8 -> 62.4; kitchen 34 % (41 %; glossy cabinet
+    #                 fronts, counters), 67.8 with the field fill against 59.9 with the planes;
+    #                 demo room: stereo covers 81 %, no fill (docs/depth.md#when-the-fill-runs)
     sample_every: int = 3  # one view in this many is labelled and checked first (among
     #                 themselves), and over max_dropped the fill is undone before the rest is
     #                 labelled; 0 or 1: all views, then the one decision. A sample checks
-    #                 each fill against fewer views and drops more: one in 2 / 3 / 4 / 8 views
-    #                 against all of them, kitchen 51 / 50 / 56 / 63 % (46 % all), office 17 /
-    #                 18 / 20 / 28 % (13 %), honest procedural room 25 / 26 / 28 / 45 % (21 %).
-    #                 At 3 the kitchen's fill stops after a third of its CPU-s
+    #                 each fill against fewer views and drops more (figures above and in
+    #                 docs/depth.md). At 3 the kitchen's fill stops after a third of its CPU-s
     # hypotheses (hypotheses.py)
     voxel: float = 0.02  # metres: points are thinned to one per voxel before voting
     bin: float = 0.01  # metres: offset histogram bin along each room axis
