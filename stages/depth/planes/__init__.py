@@ -57,7 +57,9 @@ def fill(
     Returns (depths, sources, facts): the depth maps at the same h x w with plane depth filled
     where a plane wins and wrong stereo dropped, sources uint8 h x w (0 none, 1 stereo, 2 planes),
     and facts for report.json (CPU-s, coverage before/after by plane kind, share of fills the
-    multi-view check dropped, the planes found with kind/normal/offset/support).
+    multi-view check dropped, the planes found with kind/normal/offset/support). Where the
+    check drops more than cfg.max_dropped of the fills (on a sample of the views first:
+    cfg.sample_every), the maps come back as they came, facts "ran" false with the "reason".
     threads: views labelled side by side, one per torch thread (0: the caller's count, the
     stage's); the labels do not depend on it."""
     n = len(images)
