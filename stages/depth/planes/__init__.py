@@ -112,15 +112,10 @@ def fill(
         part = [got[i] for i in sample]
         s_out, s_src, s_chk = _check(part, [views[i] for i in sample], cfg)
         facts = _facts([depths[i] for i in sample], s_out, s_src, part, s_chk, planes, before)
-        dropped = facts["fills_dropped_by_check"]
-        if dropped > cfg.max_dropped:
-            reason = (
-                f"no plane fill: the multi-view check dropped {100 * dropped:.0f} % of the fills "
-                f"of one view in {k} ({len(sample)} views), over depth.planes.max_dropped "
-                f"{100 * cfg.max_dropped:.0f} % (the views disagree on the room's planes)"
-            )
+        if facts["fills_dropped_by_check"] > cfg.max_dropped:
             facts["sample"] = {"every": k, "views": len(sample)}
-            return _undone(depths, facts, reason, cpu0, t0)
+            of = f"the fills of one view in {k} ({len(sample)} views)"
+            return _undone(depths, facts, cfg, of, cpu0, t0)
     label([i for i in range(n) if i not in got], "plane fill")
     merged = [got[i] for i in range(n)]
     out, src, checked_fill = _check(merged, views, cfg)
@@ -136,23 +131,22 @@ def fill(
         100 * facts["fills_dropped_by_check"],
         facts["cpu_seconds"],
     )
-    dropped = facts["fills_dropped_by_check"]
-    if dropped > cfg.max_dropped:
-        reason = (
-            f"no plane fill: the multi-view check dropped {100 * dropped:.0f} % of its fills, "
-            f"over depth.planes.max_dropped {100 * cfg.max_dropped:.0f} % (the views disagree "
-            "on the room's planes)"
-        )
-        return _undone(depths, facts, reason, cpu0, t0)
+    if facts["fills_dropped_by_check"] > cfg.max_dropped:
+        return _undone(depths, facts, cfg, "its fills", cpu0, t0)
     return out, src, facts
 
 
 def _undone(
-    depths: list[np.ndarray], facts: dict, reason: str, cpu0: float, t0: float
+    depths: list[np.ndarray], facts: dict, cfg: PlanesConfig, of: str, cpu0: float, t0: float
 ) -> tuple[list[np.ndarray], list[np.ndarray], dict]:
-    """The maps as the sweep left them, and the fill's facts saying why: the views disagree
-    on which plane their blank regions lie on, so the fills that pass the check are not to
-    be trusted either."""
+    """The maps as the sweep left them, and the fill's facts saying why (`of`: what the
+    share dropped is of): the views disagree on which plane their blank regions lie on, so
+    the fills that pass the check are not to be trusted either."""
+    reason = (
+        f"no plane fill: the multi-view check dropped {100 * facts['fills_dropped_by_check']:.0f}"
+        f" % of {of}, over depth.planes.max_dropped {100 * cfg.max_dropped:.0f} % (the views "
+        "disagree on the room's planes)"
+    )
     facts.update(ran=False, reason=reason, coverage_planes=0.0)
     facts["coverage_after"] = facts["coverage_before"]
     facts["cpu_seconds"] = round(time.process_time() - cpu0, 2)
