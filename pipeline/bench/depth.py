@@ -6,13 +6,15 @@ the photos-only run's metric scale, which the SfM-pose similarity to the sensor-
 corrects):
   coverage     percent of the view's pixels with a reading,
   within_5cm   percent of the readings with a sensor reading that lie within 5 cm of it,
+  within_3cm   the same within 3 cm,
   absrel       mean |depth - sensor| / sensor over those readings,
   median_ratio median of depth / sensor over them: 1 when the run's scale is right; a
                ratio that drifts with depth is the geometry's (wrong intrinsics), not noise,
 pooled over all views, and again per source (`sources/<stem>.png` beside the depth maps:
 1 stereo, 2 planes, 3 field; without it every reading counts as stereo; a source's coverage
 is its share of all pixels) and per class of the reference run's labels (the sensor-depth
-run's semantics: floor, wall, object; coverage: share of that class's pixels), and per
+run's semantics: floor, wall, object; coverage: share of that class's pixels), per source
+on each class (`source_classes`: where the plane fill is wrong, on furniture or walls), and per
 sensor depth band (`bands`, metres: where the errors lie). `tracks`: the SfM track depths
 the depth stage started from (the align stage's frames.json), scored the same way: the
 agreement of the run's own geometry with the sensor, which no depth method on those poses
@@ -48,6 +50,7 @@ from stages.common.io import read_depth, read_json, read_label
 SOURCES = {1: "stereo", 2: "planes", 3: "field"}  # sources/<stem>.png codes (0: none)
 CLASSES = (FLOOR_NAME, WALL_NAME, OBJECT_NAME)
 NEAR_M = 0.05  # within_5cm
+TIGHT_M = 0.03  # within_3cm
 BANDS = (0.0, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0, float("inf"))  # metres of sensor depth
 DEPTH_STAGES = ("depth", "nerf")  # the stage that writes a photos-only run's depth maps
 
@@ -120,7 +123,7 @@ class _Tally:
     """Pixel counts and sums for one group (all, a source, a class)."""
 
     def __init__(self) -> None:
-        self.pixels = self.read = self.compared = self.near = 0
+        self.pixels = self.read = self.compared = self.near = self.tight = 0
         self.rel = 0.0
         self.ratios: list[np.ndarray] = []
 
@@ -133,6 +136,7 @@ class _Tally:
         self.read += int(has.sum())
         self.compared += int(both.sum())
         self.near += int((err < NEAR_M).sum())
+        self.tight += int((err < TIGHT_M).sum())
         self.rel += float((err / ref[both]).sum())
         self.ratios.append((got[both] / ref[both]).astype(np.float32))
 
@@ -143,6 +147,7 @@ class _Tally:
         return {
             "coverage": pct(self.read, self.pixels),
             "within_5cm": pct(self.near, self.compared),
+            "within_3cm": pct(self.tight, self.compared),
             "absrel": round(self.rel / self.compared, 4) if self.compared else None,
             "median_ratio": (
                 round(float(np.median(np.concatenate(self.ratios))), 4) if self.compared else None
@@ -245,6 +250,7 @@ def depth_metrics(
         raise BlunfError(f"{folder / 'depth'}: no depth map of a view of {cap.root}")
     total, by_source = _Tally(), {n: _Tally() for n in SOURCES.values()}
     by_class = {n: _Tally() for n in CLASSES}
+    cross = {s: {n: _Tally() for n in CLASSES} for s in SOURCES.values()}
     bands: dict[str, _Tally] = {}
     tracks = _Tally()
     by_track_band: dict[str, _Tally] = {}
@@ -274,9 +280,15 @@ def depth_metrics(
             for cid, name in classes.items():
                 if name in by_class:
                     by_class[name].add(lab == cid, got, ref)
+                    for c, src in SOURCES.items():
+                        cross[src][name].add(lab == cid, np.where(code == c, got, 0.0), ref)
     out = total.result()
     out["sources"] = {n: t.result() for n, t in by_source.items()}
     out["classes"] = {n: t.result() for n, t in by_class.items()}
+    # each source on each class: coverage is the source's share of the class's pixels
+    out["source_classes"] = {
+        src: {n: t.result() for n, t in by.items()} for src, by in cross.items()
+    }
     out["bands"] = {n: t.result() for n, t in bands.items() if t.compared}
     out["tracks"] = None
     if tracks.compared:  # coverage is not a track map's point: left out

@@ -62,7 +62,14 @@ def _runs(tmp: Path, with_sources: bool) -> tuple[Path, Path, dict]:
     dep = _stage(photos, "depth")
     (dep / "depth").mkdir()
     (dep / "sources").mkdir()
-    want = {"pixels": 0, "read": 0, "near": 0, "rel": [], "by": {1: [0, 0], 2: [0, 0], 3: [0, 0]}}
+    want = {
+        "pixels": 0,
+        "read": 0,
+        "near": 0,
+        "tight": 0,
+        "rel": [],
+        "by": {1: [0, 0], 2: [0, 0], 3: [0, 0]},
+    }
     for f in cap.frames:
         exact = sensor_depth(cap, f.stem)[1::2, 1::2]  # [24, 32] at the half-size centres
         got = exact.copy()
@@ -80,6 +87,7 @@ def _runs(tmp: Path, with_sources: bool) -> tuple[Path, Path, dict]:
         want["pixels"] += got.size
         want["read"] += int((got > 0).sum())
         want["near"] += int((err < 0.05).sum())
+        want["tight"] += int((err < 0.03).sum())
         want["rel"].append(err / exact[ok])
         for c in (1, 2, 3):
             sel = ok & (code == c)
@@ -99,6 +107,7 @@ def test_depth_metrics_against_exact_depth(tmp_path, with_sources):
     assert m["coverage"] == pytest.approx(100.0 * want["read"] / want["pixels"], abs=0.01)
     assert m["coverage"] < 76.0  # the left quarter is a hole
     assert m["within_5cm"] == pytest.approx(100.0 * want["near"] / m["compared"], abs=0.01)
+    assert m["within_3cm"] == pytest.approx(100.0 * want["tight"] / m["compared"], abs=0.01)
     rel = np.concatenate(want["rel"])
     assert m["absrel"] == pytest.approx(rel.mean(), abs=1e-4)
     if with_sources:
@@ -117,6 +126,16 @@ def test_depth_metrics_against_exact_depth(tmp_path, with_sources):
     assert m["classes"]["wall"]["within_5cm"] == 100.0  # the errors lie in rows 12-
     # floor rows: columns 8-15 of the 24 read are 10 cm off, 16-19 2 cm (within)
     assert m["classes"]["floor"]["within_5cm"] == pytest.approx(100.0 * 16 / 24, abs=0.01)
+    cross = m["source_classes"]
+    if with_sources:  # the floor's 10 cm error is all stereo's; the planes' 2 cm within 3
+        assert cross["stereo"]["floor"]["within_5cm"] == 0.0
+        assert cross["planes"]["floor"]["within_3cm"] == 100.0
+        assert cross["stereo"]["wall"]["within_5cm"] == 100.0
+        # a source's share of a class's pixels: 8 of the 32 columns each
+        assert cross["planes"]["floor"]["coverage"] == pytest.approx(25.0, abs=3.0)
+    else:
+        assert cross["stereo"]["floor"] == m["classes"]["floor"]
+        assert cross["planes"]["floor"]["compared"] == 0
 
 
 def test_depth_metrics_ratio_bands_and_tracks(tmp_path):
@@ -149,3 +168,4 @@ def test_sensor_depth_is_read_as_the_reference_plan_read_it(tmp_path):
     ing.with_frames(tuple(far)).save(ref / "ingest" / "k" / "frames.json")
     m = depth_metrics(photos, ref)
     assert m["within_5cm"] == pytest.approx(100.0 * want["near"] / m["compared"], abs=0.01)
+    assert m["within_3cm"] == pytest.approx(100.0 * want["tight"] / m["compared"], abs=0.01)
