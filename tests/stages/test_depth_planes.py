@@ -16,7 +16,7 @@ from stages.common.io import read_depth, read_image, read_label
 from stages.depth import planes as planes_fill
 from stages.depth.planes import PlanesConfig, fill
 from stages.depth.planes.geometry import plane_depth, plane_valid
-from stages.depth.planes.hypotheses import Plane, find_planes, room_axes
+from stages.depth.planes.hypotheses import Plane, find_planes, floor_axes, room_axes
 from stages.depth.planes.solve import energy, expand
 from stages.depth.planes.view import ViewData, data_costs
 
@@ -86,6 +86,80 @@ def test_hypotheses_on_a_floor_two_walls_and_a_table():
     assert len(planes) == 4
     for p in planes:
         assert np.degrees(np.arccos(np.max(np.abs(p.normal)))) < 0.5
+
+
+def test_a_leaning_board_gets_a_plane_of_its_own():
+    """A board leaning 13 degrees back (a whiteboard on its stand, a sofa's back) has no peak
+    along the room's axes; free_planes finds it among the points they leave, with its
+    normal and offset, and only it: the floor, walls and table keep theirs."""
+    rng = np.random.default_rng(2)
+    parts = [
+        _patch(rng, 20000, 2, 0.0, (0, 0, 0), (3, 3, 0), (0, 0, 1)),  # floor
+        _patch(rng, 15000, 0, 0.0, (0, 0, 0), (0, 3, 2.5), (1, 0, 0)),  # wall x = 0
+        _patch(rng, 15000, 1, 3.0, (0, 3, 0), (3, 3, 2.5), (0, -1, 0)),  # wall y = 3
+        _patch(rng, 4000, 2, 0.75, (1, 1, 0), (2, 1.8, 0), (0, 0, 1)),  # table top
+    ]
+    lean = np.radians(13.0)
+    n = np.array([0.0, -np.cos(lean), np.sin(lean)])  # faces the room (-y) and up
+    u = rng.uniform(0.5, 2.5, 3000)  # along x
+    v = rng.uniform(0.0, 1.2, 3000)  # up the board
+    up = np.array([0.0, np.sin(lean), np.cos(lean)])  # in the board, leaning back (+y)
+    board = np.array([0.0, 2.5, 0.0]) + u[:, None] * [1.0, 0, 0] + v[:, None] * up
+    board += rng.normal(0, 0.003, (3000, 1)) * n
+    parts.append((board, np.tile(n, (3000, 1))))
+    pts = np.concatenate([p for p, _ in parts])
+    nrm = np.concatenate([q for _, q in parts]).astype(np.float64)
+    planes = find_planes(pts, nrm, PlanesConfig())
+    on_axis = [np.degrees(np.arccos(np.max(np.abs(p.normal)))) < 0.5 for p in planes]
+    axis = [p for p, a in zip(planes, on_axis, strict=True) if a]
+    free = [p for p, a in zip(planes, on_axis, strict=True) if not a]
+    assert len(free) == 1
+    (b,) = free
+    assert b.kind == "front" and np.degrees(np.arccos(abs(b.normal @ n))) < 1.0
+    assert abs(b.offset * np.sign(b.normal @ n) - n @ [0.0, 2.5, 0.0]) < 0.01
+    np.testing.assert_allclose(b.lo[2], 0.0, atol=0.05)  # its box is the board's
+    np.testing.assert_allclose(b.hi[2], 1.2 * np.cos(lean), atol=0.05)
+    assert {p.kind for p in axis} >= {"floor", "wall", "top"}
+    none = find_planes(pts[:-3000], nrm[:-3000], PlanesConfig())  # a Manhattan room alone
+    assert all(np.degrees(np.arccos(np.max(np.abs(p.normal)))) < 0.5 for p in none)
+    off = find_planes(pts, nrm, PlanesConfig(free_planes=0))
+    assert [(p.kind, p.offset) for p in off] == [(p.kind, p.offset) for p in axis]
+
+
+def test_a_floor_tilted_past_the_refit_turns_the_room_axes_with_it(monkeypatch):
+    """The align stage's z can lie degrees off the floor (the honest procedural room: 4.7).
+    The mean of scattered normals about z leans towards z (here 4 of the 6 degrees are
+    found), and a plane refitted within 2 cm and 2 degrees of its axis keeps the axis's
+    tilt: the floor comes out 4 degrees off with a strip of its points. The floor's own
+    normal taken as up gives the floor, and the table top with it, their true planes."""
+    rng = np.random.default_rng(3)
+    parts = [
+        _patch(rng, 20000, 2, 0.0, (-2, -2, 0), (2, 2, 0), (0, 0, 1)),  # floor
+        _patch(rng, 15000, 0, -2.0, (-2, -2, 0), (-2, 2, 2.5), (1, 0, 0)),  # wall x = -2
+        _patch(rng, 4000, 2, 0.75, (0, 0, 0), (1, 0.8, 0), (0, 0, 1)),  # table top
+    ]
+    tilt = np.radians(6.0)
+    turn = np.array(  # about x: the room sits tilted in the aligned world
+        [[1, 0, 0], [0, np.cos(tilt), -np.sin(tilt)], [0, np.sin(tilt), np.cos(tilt)]]
+    )
+    pts = np.concatenate([p for p, _ in parts]) @ turn.T
+    nrm = np.concatenate([q for _, q in parts]).astype(np.float64)
+    nrm += rng.normal(0, 0.4, nrm.shape)  # stereo's normals scatter
+    nrm = (nrm / np.linalg.norm(nrm, axis=1, keepdims=True)) @ turn.T
+    up = turn[:, 2]
+    deg = lambda p: np.degrees(np.arccos(min(1.0, abs(p.normal @ up))))  # noqa: E731
+    planes = find_planes(pts, nrm, PlanesConfig())
+    floor, top = planes[0], next(p for p in planes if p.kind == "top")
+    assert floor.kind == "floor" and deg(floor) < 0.3 and abs(floor.offset) < 0.01
+    assert deg(top) < 0.3 and abs(top.offset - 0.75) < 0.01
+    # the axes as the normals give them: the floor 4 degrees off, a quarter of its inliers
+    monkeypatch.setattr("stages.depth.planes.hypotheses.floor_axes", lambda p, n, axes, c: axes)
+    before = find_planes(pts, nrm, PlanesConfig())[0]
+    assert deg(before) > 3.0 and before.support < floor.support / 4
+    # a level floor leaves the axes as they came
+    axes = [np.eye(3)[2], np.eye(3)[0], np.eye(3)[1]]
+    level = floor_axes(pts[:20000] @ turn, nrm[:20000] @ turn, axes, PlanesConfig())
+    assert np.degrees(np.arccos(level[0][2])) < 0.3
 
 
 def _horizontal_normals(rng, n, yaw_deg, noise_deg):
