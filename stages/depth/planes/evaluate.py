@@ -10,7 +10,7 @@ run's world is metric only up to SfM's scale: one factor (median of sensor / ste
 all stereo readings) maps it to the sensor's, and is printed. Sensor pixels near a depth
 edge or a hole (`--erode` px at full size) are left out: colour and depth are not
 registered on real captures. Prints coverage before and after, and per source and plane
-kind the share within 5 cm and AbsRel.
+kind the share within 5 cm and AbsRel, then each plane with what its fills measured.
 """
 
 from __future__ import annotations
@@ -91,18 +91,26 @@ def sensor_path(root: Path, stem: str) -> Path:
     raise BlunfError(f"{root}: no sensor depth for frame {stem}")
 
 
+def planes_of(
+    out: np.ndarray, src: np.ndarray, K: np.ndarray, pose: np.ndarray, planes: list[Plane]
+) -> np.ndarray:
+    """Plane index per plane-filled pixel (-1 elsewhere): the plane whose depth it holds."""
+    h, w = out.shape
+    which = np.full(h * w, -1, np.int64)
+    idx = np.flatnonzero(src.reshape(-1) == 2)
+    if len(idx) and planes:
+        t = plane_depth(rays(pixel_grid(w, h).reshape(-1, 2)[idx], K, pose), pose[:3, 3], planes)
+        which[idx] = np.argmin(np.abs(t - out.reshape(-1)[idx][None]), axis=0)
+    return which.reshape(h, w)
+
+
 def kinds_of(
     out: np.ndarray, src: np.ndarray, K: np.ndarray, pose: np.ndarray, planes: list[Plane]
 ) -> np.ndarray:
     """Kind index per plane-filled pixel (-1 elsewhere): the plane whose depth it holds."""
-    h, w = out.shape
-    kind = np.full(h * w, -1, np.int64)
-    idx = np.flatnonzero(src.reshape(-1) == 2)
-    if len(idx) and planes:
-        t = plane_depth(rays(pixel_grid(w, h).reshape(-1, 2)[idx], K, pose), pose[:3, 3], planes)
-        best = np.argmin(np.abs(t - out.reshape(-1)[idx][None]), axis=0)
-        kind[idx] = [KINDS.index(planes[b].kind) for b in best]
-    return kind.reshape(h, w)
+    which = planes_of(out, src, K, pose, planes)
+    lut = np.array([KINDS.index(p.kind) for p in planes] + [-1], np.int64)
+    return lut[which]
 
 
 def stats(pred: np.ndarray, ref: np.ndarray) -> dict:
@@ -133,10 +141,12 @@ def evaluate(run: Path, sensor: Path, cfg: PlanesConfig, every: int, erode: int)
         Plane(np.array(p["normal"]), p["offset"], p["kind"], np.zeros(3), np.zeros(3), 0)
         for p in facts["planes"]
     ]
-    kinds = []
+    which = []
     for o, s, K, pose, d in zip(out, src, Ks, poses, depths, strict=True):
         kd = scale_K(K, d.shape[1] / images[0].shape[1], d.shape[0] / images[0].shape[0])
-        kinds.append(kinds_of(o, s, kd, pose, planes))
+        which.append(planes_of(o, s, kd, pose, planes))
+    lut = np.array([KINDS.index(p.kind) for p in planes] + [-1], np.int64)
+    kinds = [lut[w] for w in which]
     # diagnostic: each view scaled by its own median ratio (what pose and scale drift cost)
     per_view = []
     for d, r in zip(depths, refs, strict=True):
@@ -144,6 +154,7 @@ def evaluate(run: Path, sensor: Path, cfg: PlanesConfig, every: int, erode: int)
         per_view.append(float(np.median(r[m] / d[m])) if m.sum() > 20 else scale)
     cat = lambda xs: np.concatenate([x.reshape(-1) for x in xs])  # noqa: E731
     o, s, r, k, d0 = cat(out) * scale, cat(src), cat(refs), cat(kinds), cat(depths) * scale
+    pl = cat(which)
     res = {
         "views": len(images),
         "scale": round(scale, 4),
@@ -166,6 +177,15 @@ def evaluate(run: Path, sensor: Path, cfg: PlanesConfig, every: int, erode: int)
             for i, kn in enumerate(KINDS)
         },
         "plane_list": facts["planes"],
+        # each plane's fills (where a plane fills wrong: a front pasted over a leaning surface)
+        "per_plane": [
+            {
+                **p,
+                "coverage": round(float((pl == i).mean()), 4),
+                **stats(np.where(pl == i, o, 0), r),
+            }
+            for i, p in enumerate(facts["planes"])
+        ],
     }
     return res
 
@@ -192,10 +212,17 @@ def main(argv: list[str] | None = None) -> int:
     except BlunfError as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
-    short = {k: v for k, v in res.items() if k != "plane_list"}
+    short = {k: v for k, v in res.items() if k not in ("plane_list", "per_plane")}
     print(json.dumps(short, indent=1))
-    for p in res["plane_list"]:
-        print(f"  {p['kind']:8s} n={p['normal']} d={p['offset']:+.3f} support={p['support']}")
+    for p in res["per_plane"]:
+        fills = (
+            f" fills {p['pixels']} px, within 5 cm {p['within_5cm']:.3f}, bias {p['bias']:+.3f}"
+            if p["pixels"]
+            else ""
+        )
+        print(
+            f"  {p['kind']:8s} n={p['normal']} d={p['offset']:+.3f} support={p['support']}" + fills
+        )
     if a.json:
         a.json.write_text(json.dumps(res, indent=1))
     return 0
