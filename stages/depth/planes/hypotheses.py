@@ -4,14 +4,15 @@ The aligned world has z up, the floor at z = 0 and walls roughly along x and y. 
 (checked stereo readings with their normals, SfM track points without) are thinned to one
 per voxel; each of the three room axes (up, along the floor's own normal where a floor is
 found, and the two wall directions, re-estimated from the points' normals: the align
-stage's may be a few degrees off) gets a histogram of the points' offsets along it, whose smoothed peaks are planes (Furukawa et
-al., "Manhattan-world stereo", 2009). Each peak is refitted on its inliers within ±`band`
-and ±`max_tilt_deg`, and spans the box of its inliers; with `support_cell` a top also
-keeps the cells of its plane its inliers fill (`Cells`): a table top's inliers and a
-cushion's across the room share a height, and their box spans the room between them. The
-floor (the lowest horizontal plane within FLOOR_SEARCH of z = 0, else z = 0 itself) is
-always a hypothesis. Surfaces off the axes (a sofa's leaning back) get planes of their own
-by RANSAC among the points the axes' planes leave (`free_planes`).
+stage's may be a few degrees off) gets a histogram of the points' offsets along it, whose
+smoothed peaks are planes (Furukawa et al., "Manhattan-world stereo", 2009). Each peak is
+refitted on its inliers within ±`band` and ±`max_tilt_deg`, and spans the box of its
+inliers; with `support_cell` a top also keeps the cells of its plane its inliers fill
+(`Cells`): a table top's inliers and a cushion's across the room share a height, and their
+box spans the room between them. The floor (the lowest horizontal plane within
+FLOOR_SEARCH of z = 0, else z = 0 itself) is always a hypothesis. Surfaces off the axes (a
+sofa's leaning back) get planes of their own by RANSAC among the points the axes' planes
+leave (`free_planes`).
 """
 
 from __future__ import annotations
