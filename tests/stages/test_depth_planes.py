@@ -63,14 +63,18 @@ def _patch(rng, n, fixed_axis, value, lo, hi, normal):
     return p, np.tile(normal, (n, 1))
 
 
-def test_hypotheses_on_a_floor_two_walls_and_a_table():
-    rng = np.random.default_rng(1)
-    parts = [
+def _floor_two_walls_and_a_table(rng) -> list:
+    return [
         _patch(rng, 20000, 2, 0.0, (0, 0, 0), (3, 3, 0), (0, 0, 1)),  # floor
         _patch(rng, 15000, 0, 0.0, (0, 0, 0), (0, 3, 2.5), (1, 0, 0)),  # wall x = 0
         _patch(rng, 15000, 1, 3.0, (0, 3, 0), (3, 3, 2.5), (0, -1, 0)),  # wall y = 3
         _patch(rng, 4000, 2, 0.75, (1, 1, 0), (2, 1.8, 0), (0, 0, 1)),  # table top
     ]
+
+
+def test_hypotheses_on_a_floor_two_walls_and_a_table():
+    rng = np.random.default_rng(1)
+    parts = _floor_two_walls_and_a_table(rng)
     pts = np.concatenate([p for p, _ in parts])
     nrm = np.concatenate([q for _, q in parts]).astype(np.float64)
     planes = find_planes(pts, nrm, PlanesConfig())
@@ -89,16 +93,11 @@ def test_hypotheses_on_a_floor_two_walls_and_a_table():
 
 
 def test_a_leaning_board_gets_a_plane_of_its_own():
-    """A board leaning 13 degrees back (a whiteboard on its stand, a sofa's back) has no peak
+    """A board leaning 13 degrees back (a sofa's back, a whiteboard on its stand) has no peak
     along the room's axes; free_planes finds it among the points they leave, with its
     normal and offset, and only it: the floor, walls and table keep theirs."""
     rng = np.random.default_rng(2)
-    parts = [
-        _patch(rng, 20000, 2, 0.0, (0, 0, 0), (3, 3, 0), (0, 0, 1)),  # floor
-        _patch(rng, 15000, 0, 0.0, (0, 0, 0), (0, 3, 2.5), (1, 0, 0)),  # wall x = 0
-        _patch(rng, 15000, 1, 3.0, (0, 3, 0), (3, 3, 2.5), (0, -1, 0)),  # wall y = 3
-        _patch(rng, 4000, 2, 0.75, (1, 1, 0), (2, 1.8, 0), (0, 0, 1)),  # table top
-    ]
+    parts = _floor_two_walls_and_a_table(rng)
     lean = np.radians(13.0)
     n = np.array([0.0, -np.cos(lean), np.sin(lean)])  # faces the room (-y) and up
     u = rng.uniform(0.5, 2.5, 3000)  # along x
