@@ -104,15 +104,6 @@ def planes_of(
     return which.reshape(h, w)
 
 
-def kinds_of(
-    out: np.ndarray, src: np.ndarray, K: np.ndarray, pose: np.ndarray, planes: list[Plane]
-) -> np.ndarray:
-    """Kind index per plane-filled pixel (-1 elsewhere): the plane whose depth it holds."""
-    which = planes_of(out, src, K, pose, planes)
-    lut = np.array([KINDS.index(p.kind) for p in planes] + [-1], np.int64)
-    return lut[which]
-
-
 def stats(pred: np.ndarray, ref: np.ndarray) -> dict:
     ok = (pred > 0) & (ref > 0)
     if not ok.any():

@@ -199,9 +199,8 @@ def find_planes(points: np.ndarray, normals: np.ndarray, cfg: PlanesConfig) -> l
         at most cfg.max_planes planes, the floor first, then by decreasing support.
     """
     pts, nrm = thin(np.asarray(points, np.float64), np.asarray(normals, np.float64), cfg.voxel)
-    axes = room_axes(nrm)
+    axes = floor_axes(pts, nrm, room_axes(nrm), cfg)
     known = np.linalg.norm(nrm, axis=1) > 0.5
-    axes = floor_axes(pts, nrm, axes, cfg)
     found: list[Found] = []
     for a in axes:
         votes = ~known | (np.abs(nrm @ a) >= cfg.normal_cos)
