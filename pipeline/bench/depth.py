@@ -273,15 +273,17 @@ def depth_metrics(
         view = _Tally()
         view.add(everything, got, ref)
         per_view[stem] = view.result()
-        for c, name in SOURCES.items():
-            by_source[name].add(everything, np.where(code == c, got, 0.0), ref)
+        of = {name: np.where(code == c, got, 0.0) for c, name in SOURCES.items()}  # by source
+        for name, g in of.items():
+            by_source[name].add(everything, g, ref)
         if stem in labels:
             lab = at_centres(read_label(labels[stem]), got.shape)
             for cid, name in classes.items():
                 if name in by_class:
-                    by_class[name].add(lab == cid, got, ref)
-                    for c, src in SOURCES.items():
-                        cross[src][name].add(lab == cid, np.where(code == c, got, 0.0), ref)
+                    sel = lab == cid
+                    by_class[name].add(sel, got, ref)
+                    for src, g in of.items():
+                        cross[src][name].add(sel, g, ref)
     out = total.result()
     out["sources"] = {n: t.result() for n, t in by_source.items()}
     out["classes"] = {n: t.result() for n, t in by_class.items()}

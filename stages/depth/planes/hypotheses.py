@@ -297,21 +297,19 @@ def floor_axes(pts: np.ndarray, nrm: np.ndarray, axes: list, cfg: PlanesConfig) 
     """
     up = axes[0]
     known = np.linalg.norm(nrm, axis=1) > 0.5
-    low = np.flatnonzero(
-        (np.abs(pts @ up) <= FLOOR_SEARCH) & (~known | (nrm @ up >= cfg.normal_cos))
-    )
-    if len(low) < cfg.min_support:
+    near = pts[(np.abs(pts @ up) <= FLOOR_SEARCH) & (~known | (nrm @ up >= cfg.normal_cos))]
+    if len(near) < cfg.min_support:
         return axes
-    plane, inl = plane_ransac(pts[low], cfg.band, FREE_ITERS, np.random.default_rng(0))
+    plane, inl = plane_ransac(near, cfg.band, FREE_ITERS, np.random.default_rng(0))
     n = plane[:3] / max(float(np.linalg.norm(plane[:3])), 1e-12)
     if len(inl) < cfg.min_support or abs(n @ up) < np.cos(np.radians(FLOOR_TILT_DEG)):
         return axes
-    q = pts[low[inl]]
+    q = near[inl]
     for _ in range(3):  # least squares on the inliers, then on the points within band of it
         mu = q.mean(0)
         n = np.linalg.svd(q - mu, full_matrices=False)[2][-1]
         n = n * np.sign(n @ up)
-        q = pts[low][np.abs((pts[low] - mu) @ n) <= cfg.band]
+        q = near[np.abs((near - mu) @ n) <= cfg.band]
         if len(q) < cfg.min_support:
             return axes
     return [n, axes[1], axes[2]]
