@@ -25,6 +25,7 @@ from stages.common.progress import track
 from stages.common.threads import side_by_side, torch_threads
 from stages.depth.consistency import consistent_depth
 from stages.depth.planes.appearance import plane_colours
+from stages.depth.planes.bases import feet_finder
 from stages.depth.planes.config import PlanesConfig
 from stages.depth.planes.hypotheses import KINDS, Plane, find_planes, view_points
 from stages.depth.planes.label import label_view
@@ -84,9 +85,10 @@ def fill(
         pts += [p]
         nrm += [np.zeros_like(p)]
         col += [np.asarray(img, np.float64)[s > 0]]
-    allp = np.concatenate(pts)
-    planes = find_planes(allp, np.concatenate(nrm), cfg)
-    hists = plane_colours(planes, allp, np.concatenate(col), cfg.band)
+    allp, allc = np.concatenate(pts), np.concatenate(col)
+    feet = feet_finder(views, cfg) if cfg.wall_feet else None
+    planes = find_planes(allp, np.concatenate(nrm), cfg, feet)
+    hists = plane_colours(planes, allp, allc, cfg.band)
     ceil = [p.offset for p in planes if p.kind == CEILING_NAME]
     ceiling = ceil[0] if ceil else None
     order = neighbours(views, cfg.neighbours)

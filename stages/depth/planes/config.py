@@ -53,6 +53,12 @@ class PlanesConfig:
     #                 wall axis where no peak shows one (plain walls); on, all views: honest
     #                 procedural room 42.5 % of fills within 5 cm (41.9 off), AbsRel 0.059
     #                 (0.072); office 58.3 % (69.1 off): its outermost points lie beyond walls
+    wall_feet: bool = True  # walls at the line where they meet the floor, seen in the
+    #                photos' edges over the views (bases.py), where no plane the points show
+    #                lies there: plain walls stereo reads nothing on
+    feet_views: float = 0.1  # ... that line holds edges of at least this share of the views
+    walls_span: bool = True  # a wall spans the room (the box of all points, grown to the
+    #                walls' feet) and reaches WALL_TOP above the floor, not its inliers' box
     tracks: bool = False  # SfM track depths count as readings in the data term where stereo
     #                      has none (the merge keeps stereo's only); on: honest room the same
     support_cell: float = 0.1  # metres, > 0: a top's support is the cells of this side
@@ -129,6 +135,8 @@ class PlanesConfig:
             )
         if self.sample_every < 0:
             raise BlunfError(f"depth.planes.sample_every must be >= 0, got {self.sample_every}")
+        if not 0.0 <= self.feet_views <= 1.0:
+            raise BlunfError(f"depth.planes.feet_views must be in [0, 1], got {self.feet_views}")
         if self.free_planes < 0:
             raise BlunfError(f"depth.planes.free_planes must be >= 0, got {self.free_planes}")
         if self.neighbours < 1 or self.cycles < 1 or self.check_views < 1:
