@@ -272,15 +272,16 @@ def test_plain_walls_are_found_by_their_feet_on_the_floor(plain_room):
     assert wall_feet(rgbs, none, Ks, poses, up, 0.0, axes, len(rgbs) + 1) == []
 
 
-def test_a_wall_spans_the_room_upright_and_its_foot_stands_where_stereo_read_little():
+def test_a_read_wall_spans_the_room_upright_and_a_foot_stands_where_stereo_read_little():
     rng = np.random.default_rng(4)
     lean = np.radians(1.5)  # within max_tilt_deg: the refit keeps the wall leaning
-    wz = rng.uniform(0, 1.0, 6000)  # a wall read up to 1 m only (a sofa hides the rest)
-    wall = np.stack([0.2 + wz * np.tan(lean), rng.uniform(0, 3, 6000), wz], -1)
+    wz = rng.uniform(0, 2.5, 15000)  # a wall read over 1.5 m of its length, up to 2.5 m
+    wall_y = np.stack([rng.uniform(1.0, 2.5, 15000), 3.0 + wz * np.tan(lean), wz], -1)
+    low = _patch(rng, 6000, 0, 0.2, (0.2, 0, 0), (0.2, 3, 1.0), (1, 0, 0))  # read to 1 m
     parts = [
         _patch(rng, 20000, 2, 0.0, (0, 0, 0), (3.5, 3, 0), (0, 0, 1)),  # floor
-        (wall, np.tile((1.0, 0.0, 0.0), (6000, 1))),
-        _patch(rng, 15000, 1, 3.0, (0, 3, 0), (3.5, 3, 2.5), (0, -1, 0)),  # wall y = 3, read
+        low,
+        (wall_y, np.tile((0.0, -1.0, 0.0), (15000, 1))),
         _patch(rng, 1500, 0, 3.45, (3.45, 1, 0), (3.45, 1.5, 0.5), (-1, 0, 0)),  # behind x = 3.4
     ]
     pts = np.concatenate([p for p, _ in parts])
@@ -297,30 +298,31 @@ def test_a_wall_spans_the_room_upright_and_its_foot_stands_where_stereo_read_lit
     def xy(p):  # a vertical plane's offset along +x or +y
         return round(float(p.offset * max(p.normal[:2], key=abs)), 2)
 
+    def on(planes, axis):
+        return [p for p in planes if abs(p.normal[axis]) > 0.9]
+
     alone = find_planes(pts, nrm, PlanesConfig(walls_span=False))
-    low = next(p for p in alone if p.kind == "wall" and abs(xy(p) - 0.2) < 0.05)
-    assert low.hi[2] < 1.1 and abs(low.normal[2]) > 0.02  # its inliers' box, leaning
+    (wy,) = on(alone, 1)
+    assert wy.lo[0] > 0.95 and wy.hi[0] < 2.55 and abs(wy.normal[2]) > 0.02  # leaning
     assert any(abs(xy(p) - 3.45) < 0.01 for p in alone)
-    # a wall spans the room: upright, through its inliers at their middle height, up to
-    # WALL_TOP and across
+    # the read wall spans the room: upright, through its inliers at their middle height,
+    # across; the wall read to 1 m only may be furniture and keeps its box
     spans = find_planes(pts, nrm, PlanesConfig())
-    near = next(p for p in spans if p.kind == "wall" and abs(xy(p) - 0.2) < 0.05)
-    assert abs(near.normal @ spans[0].normal) < 1e-9
-    assert abs(xy(near) - (0.2 + 0.5 * np.tan(lean))) < 0.01
-    assert near.hi[2] >= 2.4 and near.lo[1] < 0.1 and near.hi[1] > 2.9
-    # with the feet: the low wall and the plane behind x = 3.4 give way to them; the foot
-    # beyond the read wall is not a wall
+    (wy,) = on(spans, 1)
+    assert abs(wy.normal @ spans[0].normal) < 1e-9
+    assert abs(xy(wy) - (3.0 + 1.25 * np.tan(lean))) < 0.01
+    assert wy.lo[0] < 0.15 and wy.hi[0] > 3.3 and wy.hi[2] >= 2.4
+    x02 = next(p for p in on(spans, 0) if abs(xy(p) - 0.2) < 0.01)
+    assert x02.hi[2] < 1.1
+    # with the feet: the low wall and the plane behind x = 3.4 give way to them, and they
+    # span the room; the foot beyond the read wall is not a wall
     planes = find_planes(pts, nrm, PlanesConfig(), feet)
     assert len(calls) == 1 and abs(calls[0][1]) < 0.01
-    vert = sorted((p for p in planes if abs(p.normal[2]) < 0.5), key=xy)
-    assert [(xy(p), p.kind, p.support) for p in vert if abs(p.normal[0]) > 0.9] == [
-        (0.25, "wall", 0),
-        (3.4, "wall", 0),
-    ]
-    ys = [p for p in vert if abs(p.normal[1]) > 0.9]
-    assert len(ys) == 1 and abs(xy(ys[0]) - 3.0) < 0.01 and ys[0].support > 0
-    far = vert[1]
-    assert far.lo[1] < 0.15 and far.hi[1] > 2.85 and far.hi[2] >= 2.4
+    xs = sorted(on(planes, 0), key=xy)
+    assert [(xy(p), p.kind, p.support) for p in xs] == [(0.25, "wall", 0), (3.4, "wall", 0)]
+    assert xs[1].lo[1] < 0.15 and xs[1].hi[1] > 2.85 and xs[1].hi[2] >= 2.4
+    (wy,) = on(planes, 1)
+    assert abs(xy(wy) - 3.0) < 0.05 and wy.support > 0
     assert planes[0].kind == "floor" and planes[0].hi[0] >= 3.4
 
 
