@@ -12,7 +12,9 @@ inliers; with `support_cell` a top also keeps the cells of its plane its inliers
 box spans the room between them. The floor (the lowest horizontal plane within
 FLOOR_SEARCH of z = 0, else z = 0 itself) is always a hypothesis. Surfaces off the axes (a
 sofa's leaning back) get planes of their own by RANSAC among the points the axes' planes
-leave (`free_planes`).
+leave (`free_planes`). Plain walls, which no point shows, come from their feet on the floor
+in the photos (`bases`, through `find_planes`'s `feet`); the outermost walls a foot or
+stereo's reading shows span the room, upright on the floor.
 """
 
 from __future__ import annotations
@@ -211,8 +213,8 @@ def find_planes(
             every axis.
         feet: walls seen by their foot on the floor (`bases.wall_feet` over the views):
             called with the floor's normal and offset and the two wall axes, it gives
-            (normal, offset, views) per wall; each one that is the room's outermost on its
-            side (`_foot_walls`) becomes a wall spanning the room.
+            (normal, offset, views) per wall; each one on whose side of the room no wall
+            stereo read stands becomes a wall spanning the room (`_foot_walls`).
     Returns:
         at most cfg.max_planes planes, the floor first, then by decreasing support.
     """
