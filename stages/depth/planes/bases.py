@@ -195,7 +195,7 @@ def _line(x: np.ndarray, a: np.ndarray, up: np.ndarray, d0: float) -> tuple[np.n
 
 
 def _foot_points(
-    edges: tuple[np.ndarray, ...],
+    view_edges: tuple[np.ndarray, ...],
     depth: np.ndarray,
     K: np.ndarray,
     pose: np.ndarray,
@@ -207,8 +207,8 @@ def _foot_points(
 ) -> np.ndarray:
     """The floor points [N, 3] under this view's edge pixels whose edge runs along the floor
     line through them in direction `along` (a wall's foot across axis `a`) and whose wall
-    side is plain."""
-    edges, gx, gy, spread = edges
+    side is plain. view_edges: `_edges` of the view."""
+    edges, gx, gy, spread = view_edges
     h, w = edges.shape
     if not edges.any():
         return np.zeros((0, 3))
