@@ -15,7 +15,10 @@ pooled over all views, and again per source (`sources/<stem>.png` beside the dep
 is its share of all pixels) and per class of the reference run's labels (the sensor-depth
 run's semantics: floor, wall, object; coverage: share of that class's pixels), per source
 on each class (`source_classes`: where the plane fill is wrong, on furniture or walls), and per
-sensor depth band (`bands`, metres: where the errors lie). `tracks`: the SfM track depths
+sensor depth band (`bands`, metres: where the errors lie), and per plane of the plane fill
+(`planes`: each plane the depth stage's report.json lists, scored on the plane-filled pixels
+whose depth is that plane's along the pixel's ray, from the stage's own maps; the pixels
+no plane's depth matches are counted in `planes_unmatched`). `tracks`: the SfM track depths
 the depth stage started from (the align stage's frames.json), scored the same way: the
 agreement of the run's own geometry with the sensor, which no depth method on those poses
 and intrinsics can beat (the 7-Scenes kitchen's colour camera at its stated focal: its
@@ -52,6 +55,7 @@ CLASSES = (FLOOR_NAME, WALL_NAME, OBJECT_NAME)
 NEAR_M = 0.05  # within_5cm
 TIGHT_M = 0.03  # within_3cm
 BANDS = (0.0, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0, float("inf"))  # metres of sensor depth
+MATCH_REL = 1e-3  # a fill is a plane's where their depths agree this closely (float32 maps)
 DEPTH_STAGES = ("depth", "nerf")  # the stage that writes a photos-only run's depth maps
 
 
@@ -225,6 +229,60 @@ def _bands(tally: dict, sel: np.ndarray, got: np.ndarray, ref: np.ndarray) -> No
         tally.setdefault(f"{a:g}-{b:g}", _Tally()).add(sel & (ref >= a) & (ref < b), got, ref)
 
 
+def fill_planes(run: Path) -> list[dict]:
+    """The planes of the photos-only run's plane fill as its report.json lists them (the
+    depth stage's facts: kind, normal, offset, support, box), [] when none."""
+    report = Path(run) / "report.json"
+    if not report.is_file():
+        return []
+    found: list[dict] = []
+
+    def walk(o: object) -> None:
+        if found:
+            return
+        if isinstance(o, dict):
+            ps = o.get("planes")
+            if isinstance(ps, list) and ps and isinstance(ps[0], dict) and "offset" in ps[0]:
+                found.extend(ps)
+                return
+            for v in o.values():
+                walk(v)
+        elif isinstance(o, list):
+            for v in o:
+                walk(v)
+
+    walk([st for st in read_json(report).get("stages", []) if st.get("name") in DEPTH_STAGES])
+    return found
+
+
+def _plane_of(
+    planes: list[dict], fill: np.ndarray, K: np.ndarray, pose: np.ndarray, shape: tuple
+) -> np.ndarray:
+    """[h, w] index of the plane whose depth along each pixel's ray is `fill`'s there
+    (relative MATCH_REL; run units, z-depth), -1 where none is or `fill` is 0."""
+    h, w = shape
+    out = np.full(shape, -1, np.int64)
+    m = fill > 0
+    if not m.any() or not planes:
+        return out
+    v, u = np.nonzero(m)
+    x = (u - K[0, 2]) / K[0, 0]
+    y = (v - K[1, 2]) / K[1, 1]
+    r = np.stack([x, y, np.ones_like(x)], -1) @ np.asarray(pose, np.float64)[:3, :3].T
+    c = np.asarray(pose, np.float64)[:3, 3]
+    n = np.array([p["normal"] for p in planes], np.float64)
+    d = np.array([p["offset"] for p in planes], np.float64)
+    den = n @ r.T  # [P, M]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (d - n @ c)[:, None] / den
+        miss = np.abs(t - fill[m][None]) / fill[m][None]
+    miss = np.where(np.isfinite(miss), miss, np.inf)
+    k = np.argmin(miss, 0)
+    hit = miss[k, np.arange(len(k))] <= MATCH_REL
+    out[v[hit], u[hit]] = k[hit]
+    return out
+
+
 def depth_metrics(
     photos_run: Path, ref_run: Path, erode_px: int = 0, scale: float | None = None
 ) -> dict:
@@ -255,6 +313,10 @@ def depth_metrics(
     tracks = _Tally()
     by_track_band: dict[str, _Tally] = {}
     sfm = track_maps(photos_run)
+    planes = fill_planes(photos_run)
+    by_plane = [_Tally() for _ in planes]
+    unmatched = 0
+    views_at = {f.stem: f for f in sfm[0].frames if f.pose is not None} if sfm else {}
     per_view = {}
     has_sources = (folder / "sources").is_dir()
     for stem, path in maps:
@@ -274,6 +336,13 @@ def depth_metrics(
         view.add(everything, got, ref)
         per_view[stem] = view.result()
         of = {name: np.where(code == c, got, 0.0) for c, name in SOURCES.items()}  # by source
+        if planes and stem in views_at and (code == 2).any():
+            f = views_at[stem]
+            K = f.intrinsics.scaled(got.shape[1], got.shape[0]).K
+            k = _plane_of(planes, of["planes"] / s, K, np.asarray(f.pose), got.shape)
+            unmatched += int(((code == 2) & (got > 0) & (k < 0)).sum())
+            for i in np.unique(k[k >= 0]):
+                by_plane[i].add(k == i, got, ref)
         for name, g in of.items():
             by_source[name].add(everything, g, ref)
         if stem in labels:
@@ -292,6 +361,17 @@ def depth_metrics(
         src: {n: t.result() for n, t in by.items()} for src, by in cross.items()
     }
     out["bands"] = {n: t.result() for n, t in bands.items() if t.compared}
+    # fills: the plane-filled pixels whose depth is the plane's
+    out["planes"] = [
+        {
+            **{k: p.get(k) for k in ("kind", "normal", "offset", "support")},
+            **{k: v for k, v in t.result().items() if k != "coverage"},
+            "fills": t.read,
+        }
+        for p, t in zip(planes, by_plane, strict=True)
+        if t.read
+    ]
+    out["planes_unmatched"] = unmatched
     out["tracks"] = None
     if tracks.compared:  # coverage is not a track map's point: left out
         out["tracks"] = {k: v for k, v in tracks.result().items() if k != "coverage"}

@@ -76,6 +76,17 @@ def _runs(tmp: Path, with_sources: bool) -> tuple[Path, Path, dict]:
         got[:, :8] = 0  # a hole: the left quarter
         got[12:, 8:16] += 0.10  # off by 10 cm
         got[12:, 16:20] += 0.02  # off by 2 cm
+        # a wrong plane pasted on the object rows 8-11 of the plane columns 20-23: the depth of
+        # z = 0.3 m (a decoy table top) along those pixels' rays, where it lies before the
+        # camera and more than 10 cm before what the view sees (17 pixels of the 8 views)
+        K = f.intrinsics.scaled(32, 24).K
+        v, u = np.mgrid[8:12, 20:24]
+        r = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones(u.shape)], -1)
+        rz = r @ np.asarray(f.pose)[2, :3]
+        t = (0.3 - np.asarray(f.pose)[2, 3]) / np.where(np.abs(rz) > 1e-6, rz, np.nan)
+        seen = got[8:12, 20:24]
+        paste = np.isfinite(t) & (t > 0) & (seen > 0) & (t < seen - 0.1)
+        got[8:12, 20:24] = np.where(paste, t, seen)
         code = np.where(got > 0, 1, 0).astype(np.uint8)
         code[:, 16:24] = np.where(got[:, 16:24] > 0, 2, 0)  # planes
         code[:, 24:] = np.where(got[:, 24:] > 0, 3, 0)  # field
@@ -93,7 +104,18 @@ def _runs(tmp: Path, with_sources: bool) -> tuple[Path, Path, dict]:
             sel = ok & (code == c)
             want["by"][c][0] += int((np.abs(got - exact)[sel] < 0.05).sum())
             want["by"][c][1] += int(sel.sum())
-    report = {"stages": [{"name": "depth", "key": "k"}]}
+    # the plane fill's planes in the photos-only run's world (half-metres): the room's floor
+    # and walls, and a table top nothing lies on
+    planes = [
+        {"kind": "floor", "normal": [0, 0, 1], "offset": 0.0, "support": 9},
+        {"kind": "wall", "normal": [1, 0, 0], "offset": 0.0, "support": 9},
+        {"kind": "wall", "normal": [1, 0, 0], "offset": 4.0 / S, "support": 9},
+        {"kind": "wall", "normal": [0, 1, 0], "offset": 0.0, "support": 9},
+        {"kind": "wall", "normal": [0, 1, 0], "offset": 3.0 / S, "support": 9},
+        {"kind": "top", "normal": [0, 0, 1], "offset": 0.3 / S, "support": 9},
+    ]
+    facts = {"plane_fill": {"planes": planes}}
+    report = {"stages": [{"name": "depth", "key": "k", "facts": facts}]}
     (photos / "report.json").write_text(json.dumps(report))
     return photos, ref, want
 
@@ -136,6 +158,23 @@ def test_depth_metrics_against_exact_depth(tmp_path, with_sources):
     else:
         assert cross["stereo"]["floor"] == m["classes"]["floor"]
         assert cross["planes"]["floor"]["compared"] == 0
+    # per plane: the plane-filled pixels whose depth is a plane's along their rays. The maps
+    # here are the render read at every second pixel, half a pixel off the half-size rays,
+    # so the room's own surfaces match their planes only where depth changes slowly; the
+    # decoy was pasted along those rays exactly, and the 2 cm block, the counter and the
+    # box are no plane's
+    if with_sources:
+        per = {(p["kind"], tuple(p["normal"]), p["offset"]): p for p in m["planes"]}
+        wrong = per.pop(("top", (0, 0, 1), 0.3 / S))  # pasted where nothing lies on it
+        assert wrong["fills"] > 0 and wrong["within_5cm"] == 0.0
+        assert per[("floor", (0, 0, 1), 0.0)]["fills"] > 0
+        assert per and all(p["within_3cm"] == 100.0 for p in per.values())
+        n_planes = round(m["sources"]["planes"]["coverage"] * m["pixels"] / 100)
+        fills = sum(p["fills"] for p in per.values()) + wrong["fills"]
+        assert fills + m["planes_unmatched"] == n_planes
+        assert m["planes_unmatched"] > 0
+    else:
+        assert m["planes"] == [] and m["planes_unmatched"] == 0
 
 
 def test_depth_metrics_ratio_bands_and_tracks(tmp_path):
