@@ -49,6 +49,8 @@ from stages.common.classes import FLOOR_NAME, OBJECT_NAME, WALL_NAME
 from stages.common.errors import BlunfError
 from stages.common.gt_frame import pose_similarity
 from stages.common.io import read_depth, read_json, read_label
+from stages.depth.planes.geometry import plane_depth, rays
+from stages.depth.planes.hypotheses import Plane
 
 SOURCES = {1: "stereo", 2: "planes", 3: "field"}  # sources/<stem>.png codes (0: none)
 CLASSES = (FLOOR_NAME, WALL_NAME, OBJECT_NAME)
@@ -229,54 +231,39 @@ def _bands(tally: dict, sel: np.ndarray, got: np.ndarray, ref: np.ndarray) -> No
         tally.setdefault(f"{a:g}-{b:g}", _Tally()).add(sel & (ref >= a) & (ref < b), got, ref)
 
 
-def fill_planes(run: Path) -> list[dict]:
+def fill_planes(run: Path) -> list[Plane]:
     """The planes of the photos-only run's plane fill as its report.json lists them (the
-    depth stage's facts: kind, normal, offset, support, box), [] when none."""
+    depth stage's facts.plane_fill.planes), [] when none."""
     report = Path(run) / "report.json"
-    if not report.is_file():
-        return []
-    found: list[dict] = []
-
-    def walk(o: object) -> None:
-        if found:
-            return
-        if isinstance(o, dict):
-            ps = o.get("planes")
-            if isinstance(ps, list) and ps and isinstance(ps[0], dict) and "offset" in ps[0]:
-                found.extend(ps)
-                return
-            for v in o.values():
-                walk(v)
-        elif isinstance(o, list):
-            for v in o:
-                walk(v)
-
-    walk([st for st in read_json(report).get("stages", []) if st.get("name") in DEPTH_STAGES])
-    return found
+    stages = read_json(report).get("stages", []) if report.is_file() else []
+    for st in stages:
+        if st.get("name") in DEPTH_STAGES:
+            listed = (st.get("facts") or {}).get("plane_fill", {}).get("planes") or []
+            return [
+                Plane(
+                    np.asarray(p["normal"], np.float64),
+                    float(p["offset"]),
+                    p["kind"],
+                    np.zeros(3),
+                    np.zeros(3),
+                    int(p.get("support", 0)),
+                )
+                for p in listed
+            ]
+    return []
 
 
-def _plane_of(
-    planes: list[dict], fill: np.ndarray, K: np.ndarray, pose: np.ndarray, shape: tuple
-) -> np.ndarray:
+def _plane_of(planes: list[Plane], fill: np.ndarray, K: np.ndarray, pose: np.ndarray) -> np.ndarray:
     """[h, w] index of the plane whose depth along each pixel's ray is `fill`'s there
     (relative MATCH_REL; run units, z-depth), -1 where none is or `fill` is 0."""
-    h, w = shape
-    out = np.full(shape, -1, np.int64)
-    m = fill > 0
-    if not m.any() or not planes:
+    out = np.full(fill.shape, -1, np.int64)
+    v, u = np.nonzero(fill > 0)
+    if not len(v) or not planes:
         return out
-    v, u = np.nonzero(m)
-    x = (u - K[0, 2]) / K[0, 0]
-    y = (v - K[1, 2]) / K[1, 1]
-    r = np.stack([x, y, np.ones_like(x)], -1) @ np.asarray(pose, np.float64)[:3, :3].T
-    c = np.asarray(pose, np.float64)[:3, 3]
-    n = np.array([p["normal"] for p in planes], np.float64)
-    d = np.array([p["offset"] for p in planes], np.float64)
-    den = n @ r.T  # [P, M]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = (d - n @ c)[:, None] / den
-        miss = np.abs(t - fill[m][None]) / fill[m][None]
-    miss = np.where(np.isfinite(miss), miss, np.inf)
+    pose = np.asarray(pose, np.float64)
+    t = plane_depth(rays(np.stack([u, v], -1).astype(np.float64), K, pose), pose[:3, 3], planes)
+    f = fill[v, u][None]
+    miss = np.where(t > 0, np.abs(t - f) / f, np.inf)  # [P, M]
     k = np.argmin(miss, 0)
     hit = miss[k, np.arange(len(k))] <= MATCH_REL
     out[v[hit], u[hit]] = k[hit]
@@ -339,7 +326,7 @@ def depth_metrics(
         if planes and stem in views_at and (code == 2).any():
             f = views_at[stem]
             K = f.intrinsics.scaled(got.shape[1], got.shape[0]).K
-            k = _plane_of(planes, of["planes"] / s, K, np.asarray(f.pose), got.shape)
+            k = _plane_of(planes, of["planes"] / s, K, np.asarray(f.pose))
             unmatched += int(((code == 2) & (got > 0) & (k < 0)).sum())
             for i in np.unique(k[k >= 0]):
                 by_plane[i].add(k == i, got, ref)
@@ -364,7 +351,10 @@ def depth_metrics(
     # fills: the plane-filled pixels whose depth is the plane's
     out["planes"] = [
         {
-            **{k: p.get(k) for k in ("kind", "normal", "offset", "support")},
+            "kind": p.kind,
+            "normal": [float(x) for x in p.normal],
+            "offset": p.offset,
+            "support": p.support,
             **{k: v for k, v in t.result().items() if k != "coverage"},
             "fills": t.read,
         }

@@ -30,9 +30,11 @@ from scipy.ndimage import gaussian_filter, map_coordinates, sobel, uniform_filte
 from skimage.color import rgb2lab
 from skimage.feature import canny
 
-from stages.common.camera import pixel_grid
+from stages.common.camera import pixel_grid, project
+from stages.common.classes import FLOOR_NAME
 from stages.depth.planes.config import PlanesConfig
-from stages.depth.planes.geometry import rays
+from stages.depth.planes.geometry import plane_depth, rays
+from stages.depth.planes.hypotheses import Plane
 
 BIN = 0.02  # metres: offset histogram bin
 SIGMA = 1.5  # pixels: Canny's smoothing at the working size
@@ -88,13 +90,18 @@ def wall_feet(
         side of each axis, the outermost peak beyond every camera holding min_views and
         SHARE of its side's strongest.
     """
-    up = np.asarray(up, np.float64)
-    centres = np.stack([np.asarray(p, np.float64)[:3, 3] for p in poses]) if poses else None
-    if centres is None:
+    if not poses:
         return []
-    edges = [_edges(np.clip(np.asarray(c, np.float64), 0, 1)) for c in rgbs]
+    up = np.asarray(up, np.float64)
     Ks = [np.asarray(K, np.float64) for K in Ks]
     poses = [np.asarray(p, np.float64) for p in poses]
+    centres = np.stack([p[:3, 3] for p in poses])
+    # each view's edge pixels that may be a foot, whatever the axis; then per axis those
+    # running along it
+    cands = [
+        _candidates(_edges(np.clip(np.asarray(c, np.float64), 0, 1)), z, K, pose, up, floor)
+        for c, z, K, pose in zip(rgbs, depths, Ks, poses, strict=True)
+    ]
     out = []
     sin_max = np.sin(np.radians(ALIGN_DEG))
     for a in axes:
@@ -104,8 +111,8 @@ def wall_feet(
         along = np.cross(up, a)
         along /= max(float(np.linalg.norm(along)), 1e-12)
         votes = [
-            _foot_points(e, z, K, pose, up, floor, along, a, sin_max)
-            for e, z, K, pose in zip(edges, depths, Ks, poses, strict=True)
+            _along(x, g, K, pose, along, sin_max)
+            for (x, g), K, pose in zip(cands, Ks, poses, strict=True)
         ]
         votes = [v for v in votes if len(v)]
         if not votes:
@@ -194,54 +201,38 @@ def _line(x: np.ndarray, a: np.ndarray, up: np.ndarray, d0: float) -> tuple[np.n
     return n, d
 
 
-def _foot_points(
+def _candidates(
     view_edges: tuple[np.ndarray, ...],
     depth: np.ndarray,
     K: np.ndarray,
     pose: np.ndarray,
     up: np.ndarray,
     floor: float,
-    along: np.ndarray,
-    a: np.ndarray,
-    sin_max: float,
-) -> np.ndarray:
-    """The floor points [N, 3] under this view's edge pixels whose edge runs along the floor
-    line through them in direction `along` (a wall's foot across axis `a`) and whose wall
-    side is plain. view_edges: `_edges` of the view."""
+) -> tuple[np.ndarray, np.ndarray]:
+    """(floor points [N, 3], image gradients [N, 2]) of this view's edge pixels that may be
+    a wall's foot, whatever the wall's axis: cast onto the floor within REACH, the wall's
+    side of the edge (up the image) plain, and a reading on its other side, if any, on the
+    floor. view_edges: `_edges` of the view."""
     edges, gx, gy, spread = view_edges
     h, w = edges.shape
+    none = (np.zeros((0, 3)), np.zeros((0, 2)))
     if not edges.any():
-        return np.zeros((0, 3))
-    mag = np.hypot(gx, gy)
+        return none
     uv = pixel_grid(w, h).reshape(h, w, 2)[edges].astype(np.float64)
-    gx, gy = gx[edges], gy[edges]
-    uv = _subpixel(uv, gx, gy, mag)
-    r = rays(uv, K, pose)
+    g = np.stack([gx[edges], gy[edges]], -1)
+    uv = _subpixel(uv, g, np.hypot(gx, gy))
+    ground = [Plane(up, floor, FLOOR_NAME, up, up, 0)]  # plane_depth reads normal and offset
     c = pose[:3, 3]
-    den = r @ up
-    height = float(c @ up - floor)
-    t = np.where(np.abs(den) > 1e-9, -height / np.where(np.abs(den) > 1e-9, den, 1.0), -1.0)
+    r = rays(uv, K, pose)
+    t = plane_depth(r, c, ground)[0]
     x = c + t[:, None] * r
-    ok = (t > 0) & (np.linalg.norm(x - c, axis=1) <= REACH)
-    if not ok.any():
-        return np.zeros((0, 3))
-    x, uv, gx, gy = x[ok], uv[ok], gx[ok], gy[ok]
-    # image directions at each pixel of the floor line (along) and of the wall above it (up)
-    f = np.array([K[0, 0], K[1, 1]])
-    R, cw = pose[:3, :3], pose[:3, 3]
-    p0 = (x - cw) @ R
-    p1 = (x + 0.05 * along - cw) @ R
-    p2 = (x + 0.1 * up - cw) @ R
-    good = (p0[:, 2] > 1e-6) & (p1[:, 2] > 1e-6) & (p2[:, 2] > 1e-6)
-    q0, q1, q2 = (p[:, :2] / np.where(good, p[:, 2], 1.0)[:, None] for p in (p0, p1, p2))
-    du = (q1 - q0) * f
-    dv = (q2 - q0) * f
-    dn = np.linalg.norm(du, axis=1)
-    gn = np.hypot(gx, gy)
-    # the gradient runs across an edge: along the line, its share is the angle's sine
-    across = np.abs(gx * du[:, 0] + gy * du[:, 1]) <= sin_max * gn * dn
+    ok = (t > 0) & (np.linalg.norm(x - c, axis=1) <= REACH) & (np.linalg.norm(g, axis=1) > 1e-9)
+    x, uv, g = x[ok], uv[ok], g[ok]
     # the wall's side of its foot (up the wall in the image) is plain: a line in the floor's
     # texture or along a textured object's base has texture on both sides
+    q0, z0 = project(x, K, pose)
+    q2, z2 = project(x + 0.1 * up, K, pose)
+    dv = q2 - q0
     dv /= np.maximum(np.linalg.norm(dv, axis=1), 1e-9)[:, None]
     step = (PATCH // 2 + 2) * dv
     s = np.round(uv + step).astype(np.int64)
@@ -251,22 +242,34 @@ def _foot_points(
     # and a reading on its other side (down the image) lies on the floor
     f_ = np.clip(np.round(uv - step).astype(np.int64), 0, [w - 1, h - 1])
     z = depth[f_[:, 1], f_[:, 0]]
-    rf = rays(f_.astype(np.float64), K, pose)
-    den = rf @ up
-    tf = -height / np.where(np.abs(den) > 1e-9, den, -1e-9)
+    tf = plane_depth(rays(f_.astype(np.float64), K, pose), c, ground)[0]
     plain &= (z <= 0) | (np.abs(z - tf) <= ON_FLOOR * np.maximum(tf, 1e-6))
-    keep = good & (dn > 1e-9) & (gn > 1e-9) & across & plain
-    return x[keep]
+    keep = (z0 > 1e-6) & (z2 > 1e-6) & plain
+    return x[keep], g[keep]
 
 
-def _subpixel(uv: np.ndarray, gx: np.ndarray, gy: np.ndarray, mag: np.ndarray) -> np.ndarray:
-    """Edge pixels uv [N, 2] moved to the peak of the gradient magnitude across the edge (a
-    parabola through the magnitude a pixel either side along the gradient). Canny keeps one
+def _along(
+    x: np.ndarray, g: np.ndarray, K: np.ndarray, pose: np.ndarray, along: np.ndarray, sin_max: float
+) -> np.ndarray:
+    """The floor points x whose edge (gradient g) runs within asin(sin_max) of the image
+    direction of the floor line through them in direction `along`."""
+    q0, z0 = project(x, K, pose)
+    q1, z1 = project(x + 0.05 * along, K, pose)
+    du = q1 - q0
+    dn = np.linalg.norm(du, axis=1)
+    gn = np.linalg.norm(g, axis=1)
+    # the gradient runs across an edge: along the line, its share is the angle's sine
+    across = np.abs(np.sum(g * du, axis=1)) <= sin_max * gn * dn
+    return x[(z0 > 1e-6) & (z1 > 1e-6) & (dn > 1e-9) & across]
+
+
+def _subpixel(uv: np.ndarray, g: np.ndarray, mag: np.ndarray) -> np.ndarray:
+    """Edge pixels uv [N, 2] moved to the peak of the gradient magnitude `mag` across the edge
+    (a parabola through it a pixel either side along their gradients g [N, 2]). Canny keeps one
     of the two pixels a step lies between, the same one along a whole line, and half a
     pixel on a far floor is several cm: on procedural rooms at 160 px the feet lay 3-7 cm
     beyond the walls without it."""
-    g = np.stack([gx, gy], -1)
-    g /= np.maximum(np.linalg.norm(g, axis=1), 1e-12)[:, None]
+    g = g / np.maximum(np.linalg.norm(g, axis=1), 1e-12)[:, None]
     at = [
         map_coordinates(mag, [q[:, 1], q[:, 0]], order=1, mode="nearest")
         for q in (uv - g, uv, uv + g)
@@ -280,8 +283,7 @@ def _subpixel(uv: np.ndarray, gx: np.ndarray, gy: np.ndarray, mag: np.ndarray) -
 def _edges(rgb: np.ndarray) -> tuple[np.ndarray, ...]:
     """Canny edges of any of the CIELAB channels (a wall and a floor of one brightness still
     differ in hue), the gradient of the channel changing most at each pixel, the local
-    spread (the largest channel's standard deviation over PATCH pixels) and the local mean
-    colour (RGB over PATCH pixels)."""
+    spread (the largest channel's standard deviation over PATCH pixels)."""
     lab = rgb2lab(rgb)
     edges = np.zeros(lab.shape[:2], bool)
     gx = np.zeros(lab.shape[:2])

@@ -274,27 +274,23 @@ def find_planes(
         # be furniture: spanning those without the feet, the honest procedural room's plane
         # fills fell from 68.0 to 60.3 % within 5 cm)
         up, base = best[0], best[1]
-        shown = {k for k in _outermost(planes) if chosen[k][2] == 0 or _read(chosen[k], base)}
+        shown = {k for k in _outer(chosen) if chosen[k][2] == 0 or _read(chosen[k], base)}
         planes = [_spanning(p, room, up, base) if k in shown else p for k, p in enumerate(planes)]
     return planes + free_planes(pts, nrm, planes, axes, cfg)
 
 
-def _outermost(planes: list[Plane]) -> set[int]:
-    """Indices of the walls no parallel vertical plane lies beyond (on the side the wall's
-    normal points to, from the others)."""
-    vert = [k for k, p in enumerate(planes) if abs(p.normal[2]) <= 0.9]
+def _outer(found: list) -> set[int]:
+    """Indices of the vertical hypotheses (Found or Plane fields) no parallel one lies beyond:
+    the outermost on each side of each wall axis."""
+    vert = [i for i, f in enumerate(found) if abs(f[0][2]) <= 0.9]
     out = set()
-    for k in vert:
-        p = planes[k]
-        if p.kind != WALL_NAME:
-            continue
-        par = [planes[j] for j in vert if j != k and abs(planes[j].normal @ p.normal) > 0.99]
-        # offsets along p's normal (a parallel plane's normal may point either way)
-        offs = [q.offset * float(np.sign(q.normal @ p.normal)) for q in par]
-        centre = np.mean(offs) if offs else p.offset
-        side = 1.0 if p.offset >= centre else -1.0
-        if all(side * (o - p.offset) <= 0 for o in offs):
-            out.add(k)
+    for i in vert:
+        ni, di = found[i][0], found[i][1]
+        offs = [
+            found[j][1] * np.sign(found[j][0] @ ni) for j in vert if abs(found[j][0] @ ni) > 0.99
+        ]
+        if di >= max(offs) or di <= min(offs):
+            out.add(i)
     return out
 
 
@@ -416,10 +412,8 @@ def _foot_walls(feet: list, found: list, box: tuple, floor: float) -> tuple[list
         n = np.asarray(n, np.float64)
         # the parallel planes on the foot's side of the room's middle
         mid = float(n @ (0.5 * (box[0] + box[1])))
-        side = []
-        for f in found:
-            if abs(f[0] @ n) > 0.99 and float(f[1] * np.sign(f[0] @ n)) > mid:
-                side.append((f, float(f[1] * np.sign(f[0] @ n))))
+        par = [(f, float(f[1] * np.sign(f[0] @ n))) for f in found if abs(f[0] @ n) > 0.99]
+        side = [(f, o) for f, o in par if o > mid]
         read = [t for t in side if _read(t[0], floor)]
         if read:
             f, o = max(read, key=lambda t: t[1])
@@ -534,13 +528,7 @@ def _kinds(found: list) -> list[Plane]:
     high = [i for i in horiz[1:] if found[i][1] > 1.9]
     ceiling = max(high, key=lambda i: found[i][1]) if high else -1
     vert = [i for i, f in enumerate(found) if abs(f[0][2]) <= 0.9]
-    walls = set()
-    for i in vert:
-        ni, di = found[i][0], found[i][1]
-        par = [j for j in vert if abs(found[j][0] @ ni) > 0.99]
-        offs = [found[j][1] * np.sign(found[j][0] @ ni) for j in par]
-        if di >= max(offs) or di <= min(offs) or found[i][4][2] > 1.8:
-            walls.add(i)
+    walls = _outer(found) | {i for i in vert if found[i][4][2] > 1.8}
     planes = []
     for i, (n, d, sup, lo, hi, cells) in enumerate(found):
         if i == 0:
