@@ -127,6 +127,42 @@ def test_a_leaning_board_gets_a_plane_of_its_own():
     assert [(p.kind, p.offset) for p in off] == [(p.kind, p.offset) for p in axis]
 
 
+def test_a_board_turned_a_few_degrees_gets_one_plane_not_strips_of_it():
+    """A board turned 3.5 degrees about the vertical (the office's whiteboard on its stand)
+    spreads over 15 cm of offsets along its axis, and the refit within max_tilt_deg keeps
+    the strip of it a peak crosses. The turn search gives it one plane through all of it,
+    and the strip, all of whose inliers lie on it, gives way; the floor, walls and table
+    keep theirs."""
+    rng = np.random.default_rng(4)
+    parts = _floor_two_walls_and_a_table(rng)
+    yaw = np.radians(3.5)
+    n = np.array([np.sin(yaw), -np.cos(yaw), 0.0])  # faces the room (-y), turned
+    along = np.array([np.cos(yaw), np.sin(yaw), 0.0])
+    u = rng.uniform(0.0, 2.5, 6000)
+    v = rng.uniform(0.3, 1.5, 6000)
+    board = np.array([0.2, 2.3, 0.0]) + u[:, None] * along + v[:, None] * [0, 0, 1.0]
+    board += rng.normal(0, 0.003, (6000, 1)) * n
+    parts.append((board, np.tile(n, (6000, 1))))
+    pts = np.concatenate([p for p, _ in parts])
+    nrm = np.concatenate([q for _, q in parts]).astype(np.float64)
+    planes = find_planes(pts, nrm, PlanesConfig())
+    on_board = [p for p in planes if np.mean(np.abs(board @ p.normal - p.offset) < 0.02) > 0.2]
+    assert len(on_board) == 1
+    (b,) = on_board
+    assert np.degrees(np.arccos(min(1.0, abs(b.normal @ n)))) < 0.5
+    assert np.mean(np.abs(board @ b.normal - b.offset) <= 0.01) > 0.95
+    assert {p.kind for p in planes} >= {"floor", "wall", "top"}
+    assert b.support >= 0.9 * 6000 / 8  # all of it (thinned to 2 cm voxels)
+    assert [p.offset for p in find_planes(pts, nrm, PlanesConfig(free_planes=0))] == [
+        p.offset for p in planes
+    ]  # the turn found it, not the free planes
+    # not turned, an axis peak takes a strip of it: under a third of the board
+    strips = find_planes(pts, nrm, PlanesConfig(turned_deg=0))
+    got = [np.mean(np.abs(board @ p.normal - p.offset) < 0.02) for p in strips]
+    assert 0.2 < max(got) < 0.35
+    assert len(strips) == len(planes)  # the strip gave way to the board's plane
+
+
 def test_a_floor_tilted_past_the_refit_turns_the_room_axes_with_it(monkeypatch):
     """The align stage's z can lie degrees off the floor (the honest procedural room: 4.7).
     The mean of scattered normals about z leans towards z (here 4 of the 6 degrees are

@@ -9,7 +9,9 @@ smoothed peaks are planes (Furukawa et al., "Manhattan-world stereo", 2009). Eac
 refitted on its inliers within ±`band` and ±`max_tilt_deg`, and spans the box of its
 inliers; with `support_cell` a top also keeps the cells of its plane its inliers fill
 (`Cells`): a table top's inliers and a cushion's across the room share a height, and their
-box spans the room between them. The floor (the lowest horizontal plane within
+box spans the room between them. A surface turned a few degrees about up off a wall axis
+(a whiteboard on its stand) gets its own plane by a Hough vote over the turns near each
+peak (`_turned`). The floor (the lowest horizontal plane within
 FLOOR_SEARCH of z = 0, else z = 0 itself) is always a hypothesis. Surfaces off the axes (a
 sofa's leaning back) get planes of their own by RANSAC among the points the axes' planes
 leave (`free_planes`). Plain walls, which no point shows, come from their feet on the floor
@@ -24,7 +26,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import binary_dilation, gaussian_filter1d
+from scipy.ndimage import binary_dilation, gaussian_filter1d, uniform_filter1d
 from scipy.signal import find_peaks
 
 from stages.common.camera import pixel_grid, unproject
@@ -50,6 +52,13 @@ WALL_TOP = 2.4  # metres above the floor a wall reaches at least (walls_span)
 READ_WALL = 1.5  # m²: a vertical plane whose inliers fill this much of it (in support
 #                   cells) and reach READ_TOP above the floor is a wall stereo read: a wall's
 #                   foot seen beyond or before it is a mark or a piece of furniture
+# a surface turned off a wall axis (_turned): its points are sought this far (metres) either
+# side of a peak, its direction in steps of TURN_STEP degrees, and it must hold TURN_GAIN
+# times the points the axis's direction holds within band of one offset (the office's
+# whiteboard 1.20; its walls' best turns within max_tilt_deg held 1.05-1.22)
+TURN_REACH = 0.12
+TURN_STEP = 0.5
+TURN_GAIN = 1.15
 READ_TOP = 1.2  # metres (the office's walls are read up to 1.4-2.2 m, behind its sofa too)
 
 
@@ -222,9 +231,12 @@ def find_planes(
     axes = floor_axes(pts, nrm, room_axes(nrm), cfg)
     known = np.linalg.norm(nrm, axis=1) > 0.5
     found: list[Found] = []
-    for a in axes:
+    for k, a in enumerate(axes):
         votes = ~known | (np.abs(nrm @ a) >= cfg.normal_cos)
-        for n, d, idx in _axis_planes(pts, votes, a, cfg):
+        peaks = _axis_planes(pts, votes, a, cfg)
+        if k and cfg.turned_deg > cfg.max_tilt_deg:
+            peaks = _turned(pts, votes, peaks, a, axes[0], cfg)
+        for n, d, idx in peaks:
             inl = pts[idx]
             box = (np.percentile(inl, 2, 0), np.percentile(inl, 98, 0))
             cells = None
@@ -328,11 +340,14 @@ def free_planes(
         return []
     known = np.linalg.norm(nrm, axis=1) > 0.5
     left = known & (np.abs(nrm @ axes[0]) < 0.9)
-    for p in planes:
-        left &= np.abs(pts @ p.normal - p.offset) > cfg.band
+    off_axis = np.cos(np.radians(2 * cfg.max_tilt_deg))
+    on_axis = np.cos(np.radians(cfg.max_tilt_deg + 0.5))
+    for p in planes:  # a turned plane (_turned) leaves them: the office's sofa back, leaning
+        #               before its turned whiteboard, crosses its band and lost its plane
+        if max(abs(p.normal @ a) for a in axes) >= on_axis:
+            left &= np.abs(pts @ p.normal - p.offset) > cfg.band
     idx = np.flatnonzero(left)
     rng = np.random.default_rng(0)
-    off_axis = np.cos(np.radians(2 * cfg.max_tilt_deg))
     out: list[Plane] = []
     for _ in range(4 * cfg.free_planes):  # tries: a rejected plane's points are set aside too
         if len(out) == cfg.free_planes or len(idx) < cfg.min_support:
@@ -495,6 +510,84 @@ def _axis_planes(
             continue  # the same plane from two neighbouring peaks
         out.append((n, d, sel[idx]))
     return out
+
+
+def _turned(
+    pts: np.ndarray,
+    votes: np.ndarray,
+    peaks: list,
+    axis: np.ndarray,
+    up: np.ndarray,
+    cfg: PlanesConfig,
+) -> list[tuple[np.ndarray, float, np.ndarray]]:
+    """The peaks along a wall axis, and the surfaces turned about the vertical between
+    max_tilt_deg and turned_deg off it that the points show near them; a peak most of whose
+    inliers lie on such a surface is a strip of it, and gives way.
+
+    A turned surface spreads over several offset bins, and a peak's refit within `band` and
+    max_tilt_deg keeps the strip of it the peak crosses, at the axis's direction (the
+    office's whiteboard, turned 3.1 degrees across 2.6 m: fronts 7 cm apart took strips of
+    it, and their fills were 10 cm off at the board's far end). Around each peak (strongest
+    first), the voting points within TURN_REACH of it vote again along the directions turned
+    up to turned_deg about up, in steps of TURN_STEP degrees: the direction with the most
+    points within `band` of one offset, when it lies beyond max_tilt_deg and holds TURN_GAIN
+    times the axis's most, is refitted (`_refit` about it). A Hough vote rather than RANSAC:
+    deterministic, and a plain board's few, noisy readings decide by their count alone."""
+    if not peaks:
+        return peaks
+    side = np.cross(up, axis)
+    side /= max(float(np.linalg.norm(side)), 1e-12)
+    yaw = np.radians(np.arange(-cfg.turned_deg, cfg.turned_deg + 1e-9, TURN_STEP))
+    dirs = np.cos(yaw)[:, None] * axis + np.sin(yaw)[:, None] * side
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    at_axis = int(np.argmin(np.abs(yaw)))
+    width = 2 * int(round(cfg.band / cfg.bin)) + 1  # bins within band of an offset
+    sel = np.flatnonzero(votes)
+    added: list[tuple[np.ndarray, float, np.ndarray]] = []
+    gone: set[int] = set()
+    for i, (_, d0, _) in enumerate(peaks):
+        if i in gone:
+            continue
+        near = sel[np.abs(pts[sel] @ axis - d0) <= TURN_REACH]
+        if len(near) < cfg.min_support:
+            continue
+        off = pts[near] @ dirs.T  # [M, D]
+        lo = np.floor(off.min(0) / cfg.bin)
+        b = np.floor(off / cfg.bin) - lo
+        nb = int(b.max()) + 1
+        flat = (b.astype(np.int64) + nb * np.arange(len(dirs))).reshape(-1)
+        hist = np.bincount(flat, minlength=nb * len(dirs)).reshape(len(dirs), nb).astype(float)
+        within = uniform_filter1d(hist, width, axis=1, mode="constant")  # within band
+        best = within.max(1)
+        k = int(np.argmax(best))
+        if (
+            np.degrees(np.arccos(min(1.0, float(dirs[k] @ axis)))) <= cfg.max_tilt_deg
+            or best[k] < TURN_GAIN * best[at_axis]
+        ):
+            continue
+        dk = (lo[k] + np.argmax(within[k]) + 0.5) * cfg.bin
+        fit = _refit(pts[sel], dirs[k], dk, cfg)
+        if fit is None:
+            continue
+        n, d, idx = fit
+        if any(n @ m > 0.9995 and abs(d - e) < cfg.band for m, e, _ in added):
+            continue  # found already, from another strip of it
+        strips = [
+            j
+            for j, (_, _, ij) in enumerate(peaks)
+            if j not in gone and np.mean(np.abs(pts[ij] @ n - d) <= cfg.band) > 0.5
+        ]
+        log.info(
+            "depth/planes: a surface turned %.1f degrees off the axis at %+.2f (%d voxels); "
+            "%d peaks were strips of it",
+            np.degrees(np.arccos(min(1.0, float(n @ axis)))),
+            d,
+            len(idx),
+            len(strips),
+        )
+        gone.update(strips)
+        added.append((n, d, sel[idx]))
+    return [p for j, p in enumerate(peaks) if j not in gone] + added
 
 
 def _refit(
