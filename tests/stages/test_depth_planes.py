@@ -133,18 +133,7 @@ def test_a_board_turned_a_few_degrees_gets_one_plane_not_strips_of_it():
     the strip of it a peak crosses. The turn search gives it one plane through all of it,
     and the strip, all of whose inliers lie on it, gives way; the floor, walls and table
     keep theirs."""
-    rng = np.random.default_rng(4)
-    parts = _floor_two_walls_and_a_table(rng)
-    yaw = np.radians(3.5)
-    n = np.array([np.sin(yaw), -np.cos(yaw), 0.0])  # faces the room (-y), turned
-    along = np.array([np.cos(yaw), np.sin(yaw), 0.0])
-    u = rng.uniform(0.0, 2.5, 6000)
-    v = rng.uniform(0.3, 1.5, 6000)
-    board = np.array([0.2, 2.3, 0.0]) + u[:, None] * along + v[:, None] * [0, 0, 1.0]
-    board += rng.normal(0, 0.003, (6000, 1)) * n
-    parts.append((board, np.tile(n, (6000, 1))))
-    pts = np.concatenate([p for p, _ in parts])
-    nrm = np.concatenate([q for _, q in parts]).astype(np.float64)
+    pts, nrm, board, n = _turned_board(3.5)
     planes = find_planes(pts, nrm, PlanesConfig())
     on_board = [p for p in planes if np.mean(np.abs(board @ p.normal - p.offset) < 0.02) > 0.2]
     assert len(on_board) == 1
@@ -161,6 +150,33 @@ def test_a_board_turned_a_few_degrees_gets_one_plane_not_strips_of_it():
     got = [np.mean(np.abs(board @ p.normal - p.offset) < 0.02) for p in strips]
     assert 0.2 < max(got) < 0.35
     assert len(strips) == len(planes)  # the strip gave way to the board's plane
+    # turned past the search (8 degrees), its best turn lies at the search's end: the free
+    # planes take it, and the turn search adds nothing
+    pts, nrm, board, n = _turned_board(12.0)
+    planes = find_planes(pts, nrm, PlanesConfig())
+    assert [(p.kind, p.offset) for p in planes] == [
+        (p.kind, p.offset) for p in find_planes(pts, nrm, PlanesConfig(turned_deg=0))
+    ]
+    (b,) = [p for p in planes if np.mean(np.abs(board @ p.normal - p.offset) < 0.02) > 0.2]
+    assert np.degrees(np.arccos(min(1.0, abs(b.normal @ n)))) < 0.5
+
+
+def _turned_board(deg: float) -> tuple:
+    """(points, normals, the board's points, its normal): a floor, two walls, a table and a
+    2.5 x 1.2 m board turned deg degrees about the vertical off the x axis."""
+    rng = np.random.default_rng(4)
+    parts = _floor_two_walls_and_a_table(rng)
+    yaw = np.radians(deg)
+    n = np.array([np.sin(yaw), -np.cos(yaw), 0.0])  # faces the room (-y), turned
+    along = np.array([np.cos(yaw), np.sin(yaw), 0.0])
+    u = rng.uniform(0.0, 2.5, 6000)
+    v = rng.uniform(0.3, 1.5, 6000)
+    board = np.array([0.2, 2.3, 0.0]) + u[:, None] * along + v[:, None] * [0, 0, 1.0]
+    board += rng.normal(0, 0.003, (6000, 1)) * n
+    parts.append((board, np.tile(n, (6000, 1))))
+    pts = np.concatenate([p for p, _ in parts])
+    nrm = np.concatenate([q for _, q in parts]).astype(np.float64)
+    return pts, nrm, board, n
 
 
 def test_a_floor_tilted_past_the_refit_turns_the_room_axes_with_it(monkeypatch):

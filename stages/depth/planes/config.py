@@ -55,8 +55,8 @@ class PlanesConfig:
     #                 max_tilt_deg: none. 0 -> 8 against the sensor at SfM poses: office plane
     #                 fills within 5 cm 79.0 -> 82.5 % (its whiteboard, turned 3.1 degrees:
     #                 245 k fills 91.7 %, where two fronts had 79 and 73 %), coverage 81.2 ->
-    #                 82.7 %, plan 64.2 -> 63.5; honest procedural room 95.3 -> 95.2 % (within
-    #                 3 cm 94.6 -> 94.5), plan 80.3 -> 80.2 (against its gt/ 65.5 -> 65.6);
+    #                 82.7 %, plan 64.2 -> 63.5; honest procedural room 95.3 % (94.6 within
+    #                 3 cm) either way, plan 80.30 -> 80.31 (against its gt/ 65.46 -> 65.58);
     #                 kitchen: fill undone either way, plan 65.37 the same; demo room: no fill
     bounding_walls: bool = False  # add a wall at the outermost points on each side of each
     #                 wall axis where no peak shows one (plain walls); on, all views: honest

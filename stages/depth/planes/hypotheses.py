@@ -530,9 +530,10 @@ def _turned(
     it, and their fills were 10 cm off at the board's far end). Around each peak (strongest
     first), the voting points within TURN_REACH of it vote again along the directions turned
     up to turned_deg about up, in steps of TURN_STEP degrees: the direction with the most
-    points within `band` of one offset, when it lies beyond max_tilt_deg and holds TURN_GAIN
-    times the axis's most, is refitted (`_refit` about it). A Hough vote rather than RANSAC:
-    deterministic, and a plain board's few, noisy readings decide by their count alone."""
+    points within `band` of one offset, when it lies beyond max_tilt_deg, inside the search's
+    ends, and holds TURN_GAIN times the axis's most, is refitted (`_refit` about it). A
+    Hough vote rather than RANSAC: deterministic, and a plain board's few, noisy readings
+    decide by their count alone."""
     if not peaks:
         return peaks
     side = np.cross(up, axis)
@@ -563,6 +564,7 @@ def _turned(
         if (
             np.degrees(np.arccos(min(1.0, float(dirs[k] @ axis)))) <= cfg.max_tilt_deg
             or best[k] < TURN_GAIN * best[at_axis]
+            or k in (0, len(dirs) - 1)  # the most at the search's end: no turn located
         ):
             continue
         dk = (lo[k] + np.argmax(within[k]) + 0.5) * cfg.bin
