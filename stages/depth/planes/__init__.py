@@ -85,10 +85,10 @@ def fill(
         pts += [p]
         nrm += [np.zeros_like(p)]
         col += [np.asarray(img, np.float64)[s > 0]]
-    allp, allc = np.concatenate(pts), np.concatenate(col)
+    allp, alln, allc = np.concatenate(pts), np.concatenate(nrm), np.concatenate(col)
     feet = feet_finder(views, cfg) if cfg.wall_feet else None
-    planes = find_planes(allp, np.concatenate(nrm), cfg, feet)
-    hists = plane_colours(planes, allp, allc, cfg.band)
+    planes = find_planes(allp, alln, cfg, feet)
+    hists = plane_colours(planes, allp, allc, cfg.band, alln, cfg.normal_cos)
     ceil = [p.offset for p in planes if p.kind == CEILING_NAME]
     ceiling = ceil[0] if ceil else None
     order = neighbours(views, cfg.neighbours)

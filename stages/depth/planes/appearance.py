@@ -16,15 +16,26 @@ GAIN = 4.0  # a colour at a quarter of the plane's most common one counts as ful
 
 
 def plane_colours(
-    planes: list[Plane], points: np.ndarray, colours: np.ndarray, band: float
+    planes: list[Plane],
+    points: np.ndarray,
+    colours: np.ndarray,
+    band: float,
+    normals: np.ndarray | None = None,
+    normal_cos: float = 0.9,
 ) -> np.ndarray:
     """[P, BINS, BINS, BINS] colour histograms of the points within band of each plane and
-    inside its inliers' box, peak 1 (all ones for a plane without coloured inliers)."""
+    inside its inliers' box, peak 1 (all ones for a plane without coloured inliers). With
+    normals (zeros where unknown), only the points whose own normal lies within normal_cos
+    of the plane's: the surface itself, not what stands on it or crosses it (every chair
+    leg and shadowed sofa foot lies within band of the floor: the office's floor took
+    every dark colour, and its fills covered the dark chair seats)."""
     out = np.ones((len(planes), BINS, BINS, BINS))
     idx = bin_index(colours)
     for k, p in enumerate(planes):
         near = np.abs(points @ p.normal - p.offset) <= band
         near &= np.all((points >= p.lo - band) & (points <= p.hi + band), axis=1)
+        if normals is not None:
+            near &= np.abs(normals @ p.normal) >= normal_cos
         if near.sum() < 20:
             continue
         h = np.bincount(idx[near], minlength=BINS**3).reshape(BINS, BINS, BINS).astype(float)
