@@ -52,6 +52,7 @@ WALL_TOP = 2.4  # metres above the floor a wall reaches at least (walls_span)
 READ_WALL = 1.5  # m²: a vertical plane whose inliers fill this much of it (in support
 #                   cells) and reach READ_TOP above the floor is a wall stereo read: a wall's
 #                   foot seen beyond or before it is a mark or a piece of furniture
+READ_TOP = 1.2  # metres (the office's walls are read up to 1.4-2.2 m, behind its sofa too)
 # a surface turned off a wall axis (_turned): its points are sought this far (metres) either
 # side of a peak, its direction in steps of TURN_STEP degrees, and it must hold TURN_GAIN
 # times the points the axis's direction holds within band of one offset (the office's
@@ -59,7 +60,6 @@ READ_WALL = 1.5  # m²: a vertical plane whose inliers fill this much of it (in 
 TURN_REACH = 0.12
 TURN_STEP = 0.5
 TURN_GAIN = 1.15
-READ_TOP = 1.2  # metres (the office's walls are read up to 1.4-2.2 m, behind its sofa too)
 
 
 @dataclass(frozen=True)
@@ -326,7 +326,7 @@ def free_planes(
 ) -> list[Plane]:
     """Up to cfg.free_planes fronts of any orientation but near-horizontal, by RANSAC over the
     stereo points (known normals, not horizontal) that lie within `band` of no plane found
-    along the room's axes.
+    along the room's axes (a turned one, `_turned`, excepted).
 
     A surface off the room's axes has no histogram peak, and the fill pastes the nearest axis
     plane over it. The Replica office's sofa back leans 11 degrees: it now gets a plane of its
@@ -544,15 +544,17 @@ def _turned(
     at_axis = int(np.argmin(np.abs(yaw)))
     width = 2 * int(round(cfg.band / cfg.bin)) + 1  # bins within band of an offset
     sel = np.flatnonzero(votes)
+    q = pts[sel]  # the voting points, and their offsets along the axis
+    along = q @ axis
     added: list[tuple[np.ndarray, float, np.ndarray]] = []
     gone: set[int] = set()
     for i, (_, d0, _) in enumerate(peaks):
         if i in gone:
             continue
-        near = sel[np.abs(pts[sel] @ axis - d0) <= TURN_REACH]
-        if len(near) < cfg.min_support:
+        near = np.abs(along - d0) <= TURN_REACH
+        if near.sum() < cfg.min_support:
             continue
-        off = pts[near] @ dirs.T  # [M, D]
+        off = q[near] @ dirs.T  # [M, D]
         lo = np.floor(off.min(0) / cfg.bin)
         b = np.floor(off / cfg.bin) - lo
         nb = int(b.max()) + 1
@@ -568,7 +570,7 @@ def _turned(
         ):
             continue
         dk = (lo[k] + np.argmax(within[k]) + 0.5) * cfg.bin
-        fit = _refit(pts[sel], dirs[k], dk, cfg)
+        fit = _refit(q, dirs[k], dk, cfg)
         if fit is None:
             continue
         n, d, idx = fit
