@@ -10,14 +10,15 @@ id (0 = none), from its centre, unit normal and area:
    `planes.max_tilt_deg`) cover `planes.min_area`.
 2. Walls: RANSAC planes over the remaining vertical triangles; a plane is a wall when its
    inliers span `walls.min_height` in z, `walls.min_length` along the floor and cover
-   `walls.min_area` (a cabinet front is too low, a chair back too small), and no other such
-   plane stands behind it within `walls.behind` (blinds before a window wall, cubicle panels,
-   tall cabinets against a wall: the wall is the outermost surface). Planes that fail stay
-   in the object pool, except one before a wall that hangs clear of the floor (blinds, a
-   curtain, a whiteboard: unknown), and with it what lies from `walls.hanger_slab` before it
-   to the wall behind it, along the stretches it covers (its frame, legs and stand); one that
-   hangs within `walls.hanger_slab` of that wall (blinds, a curtain over a window) closes it:
-   wall, with what lies by it.
+   `walls.min_area` (a cabinet front is too low, a chair back too small), it stands within
+   `walls.max_lean_deg` of upright on the floor, and no other such plane, nor a wall from
+   the views' points, stands behind it within `walls.behind` (blinds before a window wall,
+   cubicle panels, tall cabinets against a wall, a whiteboard before a plain wall: the wall
+   is the outermost surface). Planes that fail stay in the object pool, except one before a
+   wall that hangs clear of the floor (blinds, a curtain, a whiteboard: unknown), and with it
+   what lies from `walls.hanger_slab` before it to the wall behind it, along the stretches it
+   covers (its frame, legs and stand); one that hangs within `walls.hanger_slab` of that wall
+   (blinds, a curtain over a window) closes it: wall, with what lies by it.
 3. Unlabelled triangles within `planes.plane_dist` of an accepted plane, inside its extent, join it
    whatever their normal: the rounded seams of the TSDF surface where a wall meets the
    floor would otherwise form thin "objects" along every wall. A wall takes none that faces
@@ -40,7 +41,7 @@ floor triangle faces up), which tells a floor from the underside of a table top.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -114,13 +115,18 @@ def segment(
             _accept(seg, plane, inl, CEILING_NAME, CEILING, c, area)
     pool = vert & (seg.cls == UNKNOWN)
     found = []
+    floors = [p["normal"] for p in seg.planes if p["kind"] == FLOOR_NAME]
+    up = np.asarray(floors[0], np.float64) if floors else np.array([0.0, 0.0, 1.0])
     for plane, inl in _planes(c, n, area, pool, cfg, rng, horizontal=False):
-        if _is_wall(plane, c[inl], area[inl], cfg):
+        if _is_wall(plane, c[inl], area[inl], cfg, up):
             found.append((plane, inl))
         else:
             seg.rejected.append(_describe(plane, inl, "vertical", c, area))
             log.debug("semantics: not a wall %s", seg.rejected[-1])
-    behind = _behind(found, c, n, cfg.walls.behind)
+    # the walls the views' points give (found before the fronts are told from the walls: a
+    # board standing before a plain wall the mesh holds too little of is a front of it)
+    extra = more_walls(c, n, area, seg.floor_z) if more_walls is not None else []
+    behind = _behind(found, c, n, cfg.walls.behind, extra)
     hung = np.zeros(t, bool)  # surfaces hanging before a wall: in no object
     hangers: list[tuple[np.ndarray, np.ndarray, float]] = []  # see _by_hangers
     for (plane, inl), (gap, facing) in zip(found, behind, strict=True):
@@ -136,11 +142,10 @@ def segment(
             hung[inl] = True
             along = c[inl] @ _axes(facing)
             hangers.append((facing, _stretches(along, area[inl], cfg.walls.hanger_slab), gap))
-    if more_walls is not None:
-        for w in more_walls(c, n, area, seg.floor_z):
-            if not any(_same_wall(w, p) for p in seg.planes if p["kind"] == WALL_NAME):
-                seg.planes.append(w)
-                log.debug("semantics: wall from points %s", w)
+    for w in extra:
+        if not any(_same_wall(w, p) for p in seg.planes if p["kind"] == WALL_NAME):
+            seg.planes.append(w)
+            log.debug("semantics: wall from points %s", w)
     _absorb(seg, c, n, cfg)
     by = _by_hangers(c, hangers, cfg.walls.hanger_slab) & (seg.cls == UNKNOWN) & ~hung
     seg.hanger_triangles = int(by.sum())
@@ -221,37 +226,60 @@ def _axes(plane: np.ndarray) -> np.ndarray:
     return u / max(np.linalg.norm(u), 1e-12)
 
 
-def _is_wall(plane: np.ndarray, c: np.ndarray, area: np.ndarray, cfg: SemanticsConfig) -> bool:
+def _is_wall(
+    plane: np.ndarray, c: np.ndarray, area: np.ndarray, cfg: SemanticsConfig, up: np.ndarray
+) -> bool:
     s = c @ _axes(plane)  # [N] position along the plane
     lo, hi = np.percentile(np.stack([s, c[:, 2]], axis=1), SPAN_PCT, axis=0)  # [2] each
     length, height = hi - lo
+    lean = np.degrees(np.arcsin(min(1.0, abs(float(plane[:3] @ up)))))
     return bool(
         height >= cfg.walls.min_height
         and length >= cfg.walls.min_length
         and area.sum() >= cfg.walls.min_area
+        and lean <= cfg.walls.max_lean_deg
     )
 
 
 def _behind(
-    found: list[tuple[np.ndarray, np.ndarray]], c: np.ndarray, n: np.ndarray, behind: float
+    found: list[tuple[np.ndarray, np.ndarray]],
+    c: np.ndarray,
+    n: np.ndarray,
+    behind: float,
+    walls: Sequence[dict] = (),
 ) -> list[tuple[float, np.ndarray]]:
     """For each wall plane (plane [4], inlier indices): how far behind it (metres, away from
     the room, the side its triangles do not face) the nearest other wall plane facing the
     same way lies, between 2 cm and `behind`, along at least half its length (5-95 % of its
     inliers): 0 when none does (the plane is the outermost surface there, a wall), and the
     plane facing the room [4]. Blinds before a window wall, cubicle panels or a row of tall
-    cabinets before the wall they stand against are no wall. behind 0: all are."""
+    cabinets before the wall they stand against are no wall. behind 0: all are.
+
+    walls: walls from the views' points (pointwalls.py, innerwalls.py: normal facing the
+    room, box along it) count as planes behind too, from beyond their own `dist` (nearer,
+    the plane is that wall's own surface): photos leave a plain wall too few triangles for
+    a plane of its own, and a board on a stand 0.25 m before it was taken for the wall."""
     facing = []  # [unit normal facing the room, d]
     for plane, inl in found:
         sign = 1.0 if (n[inl] @ plane[:3]).sum() >= 0 else -1.0
         facing.append(sign * plane)
-    if behind <= 0 or len(found) < 2:
+    if behind <= 0 or len(found) + len(walls) < 2:
         return [(0.0, f) for f in facing]
     out = []
     for i, (_, inl) in enumerate(found):
         u = _axes(facing[i])
         lo, hi = np.percentile(c[inl] @ u, SPAN_PCT)
         gap = 0.0
+        for w in walls:
+            nw = np.asarray(w["normal"], np.float64)
+            if facing[i][:3] @ nw < np.cos(np.radians(15.0)):
+                continue
+            off = float(np.median(c[inl] @ nw + w["d"]))  # > 0: the plane before the wall
+            a, b = np.percentile(c[inl] @ _axes(nw), SPAN_PCT)  # the plane along the wall's axis
+            if max(w.get("dist", 0.0), 0.02) < off <= behind and (
+                min(b, w["box"][2]) - max(a, w["box"][0]) >= 0.5 * (b - a)
+            ):
+                gap = off if gap == 0 else min(gap, off)
         for j, (_, other) in enumerate(found):
             if j == i or facing[i][:3] @ facing[j][:3] < np.cos(np.radians(15.0)):
                 continue

@@ -460,6 +460,36 @@ def test_a_wall_is_the_outermost_surface_not_the_blinds_before_it():
     assert walls[0.0] == pytest.approx([Y - 0.3, Y], abs=0.01)  # the rule off: both
 
 
+def test_a_plane_leaning_off_the_floor_is_no_wall_an_upright_one_on_a_tilted_floor_is():
+    """A panel 3.5 m long and 2.2 m tall leaning 6.5 degrees (a plane RANSAC drew across a sofa
+    back and the board above it) passes the wall bounds and has no wall behind it: it is
+    no wall (walls.max_lean_deg 3), and is one with the rule off. A wall upright on a floor
+    tilted 4 degrees off z (an aligned world a few degrees off) stays a wall."""
+    lean = np.radians(6.5)
+    top = 2.2 * np.tan(lean)  # the panel's top leans back towards +y
+    panel = [(0.25, 2.0, 0.0), (3.75, 2.0, 0.0), (3.75, 2.0 + top, 2.2), (0.25, 2.0 + top, 2.2)]
+    parts = [
+        _quad([(0, 0, 0), (X, 0, 0), (X, Y, 0), (0, Y, 0)], (0, 0, 1)),
+        _quad(panel, (0, -1, 0)),
+    ]
+    verts, tris = subdivided(parts)
+    walls = {}
+    for deg in (3.0, 90.0):
+        seg = segment(verts, tris, SemanticsConfig(walls=WallsConfig(max_lean_deg=deg)))
+        walls[deg] = [p for p in seg.planes if p["kind"] == "wall"]
+    assert not walls[3.0] and len(walls[90.0]) == 1
+    # the same room turned 4 degrees about x, with an upright wall in place of the panel
+    parts = [
+        _quad([(0, 0, 0), (X, 0, 0), (X, Y, 0), (0, Y, 0)], (0, 0, 1)),
+        _quad([(0.25, 2.0, 0.0), (3.75, 2.0, 0.0), (3.75, 2.0, 2.2), (0.25, 2.0, 2.2)], (0, -1, 0)),
+    ]
+    verts, tris = subdivided(parts)
+    a = np.radians(4.0)
+    turn = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    seg = segment(verts @ turn.T, tris, SemanticsConfig())
+    assert len([p for p in seg.planes if p["kind"] == "wall"]) == 1
+
+
 def test_the_stand_of_a_board_before_a_wall_hangs_with_it():
     # a whiteboard 0.3 m before the wall at y = 3 (0.7 to 1.9 m up, 1.8 m long) on two legs
     # from the floor at its ends: the board is no wall and hangs (unknown); its legs lie

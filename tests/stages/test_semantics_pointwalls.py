@@ -21,7 +21,8 @@ from stages.common.io import read_label, write_depth_npy
 from stages.semantics import IMPLS, SemanticsConfig, SemanticsInputs
 from stages.semantics.config import PointWallsConfig
 from stages.semantics.pointwalls import PointWallOptions, point_walls, room_directions
-from tests.stages.test_semantics import _look, _views_capture
+from stages.semantics.segment import segment, triangles
+from tests.stages.test_semantics import Y, _look, _quad, _views_capture, subdivided
 from tests.stages.test_semantics_floorfree import _rays, box_mesh
 
 LX, NORTH = 6.0, 3.0  # the counters run along x in [0, LX]; the wall stands at y = NORTH
@@ -174,3 +175,40 @@ def test_a_wall_whose_readings_scatter_with_their_range_stands_amid_them():
     front = np.stack([u, np.full(n, 2.4), rng.uniform(0.0, 0.72, n)], 1)
     top = np.stack([u, rng.uniform(2.4, 3.0, n), np.full(n, 0.75)], 1)
     assert not north(np.concatenate([front, top]), np.concatenate([eye, eye]), 0.03)
+
+
+def test_a_board_before_a_wall_the_points_hold_is_no_wall():
+    # the mesh holds the floor, a board 2.6 m long from the floor to 1.9 m standing 0.25 m
+    # before the north wall, and only a 0.3 m strip of that wall (too little for a wall plane
+    # of the mesh), as photos give of a plain wall with a whiteboard before it; the views'
+    # points hold the wall (more_walls). The board passes the wall bounds, but the wall
+    # behind it is the room's: the plan's wall is the points' at y = Y, and the board is no
+    # wall. A mesh plane within the point wall's dist of it is that wall's own surface
+    yb = Y - 0.25
+    parts = [
+        _quad([(0, 0, 0), (4, 0, 0), (4, Y, 0), (0, Y, 0)], (0, 0, 1)),
+        _quad([(0.7, yb, 0), (3.3, yb, 0), (3.3, yb, 1.9), (0.7, yb, 1.9)], (0, -1, 0)),
+        _quad([(0, Y, 2.0), (4, Y, 2.0), (4, Y, 2.3), (0, Y, 2.3)], (0, -1, 0)),
+    ]
+    verts, tris = subdivided(parts)
+    c, _, _ = triangles(verts, tris)
+    board = np.abs(c[:, 1] - yb) < 1e-6
+
+    def wall_at(y: float) -> dict:
+        return {"kind": "wall", "normal": [0.0, -1.0, 0.0], "d": y, "area_m2": 9.2,
+                "triangles": 0, "box": [0.0, 0.0, 4.0, 2.3], "span": [3.6, 2.1],
+                "source": "points", "dist": 0.05}  # fmt: skip
+
+    def walls(seg) -> list[float]:
+        return sorted(-p["d"] * np.sign(p["normal"][1]) for p in seg.planes if p["kind"] == "wall")
+
+    seg = segment(verts, tris, SemanticsConfig(), lambda *_: [wall_at(Y)])
+    assert walls(seg) == pytest.approx([Y], abs=0.01)
+    assert not (seg.cls[board] == WALL).any()
+    assert sum(bool(r.get("front")) for r in seg.rejected) == 1  # the board: a front
+    # without the points' wall the board is the wall; with it 3 cm behind the board (within
+    # its dist) the board is that wall's surface and the points' wall is dropped as the same
+    for more, want in ((None, [yb]), (lambda *_: [wall_at(yb + 0.03)], [yb])):
+        seg = segment(verts, tris, SemanticsConfig(), more)
+        assert walls(seg) == pytest.approx(want, abs=0.01)
+        assert (seg.cls[board] == WALL).mean() > 0.9
