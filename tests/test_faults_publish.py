@@ -247,6 +247,36 @@ def test_full_disk_one_line_nothing_half_written(room, done, tmp_path):
     assert (out / "report.json").read_bytes() == old
 
 
+def test_full_disk_while_fusion_writes_its_mesh_keeps_no_entry(room, done, tmp_path):
+    """Open3D's mesh writer cuts a file short without an error (it prints and returns True):
+    the disk fills as fusion writes mesh.ply (RLIMIT_FSIZE 64 kB, the mesh is larger). One
+    line naming the file, exit 2, and no fusion entry for the new key, so the next run does
+    not read a truncated mesh from the cache."""
+    out = copy_run(done, tmp_path / "run")
+    keys = set(entries(out)["fusion"])
+
+    def limit() -> None:
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (64_000, 64_000))
+
+    args = ["run", str(room), "--out", str(out), *FAST, *QUICK, "--set", "fusion.voxel=0.04"]
+    r = subprocess.run(
+        [sys.executable, "-m", "pipeline", *args],
+        cwd=ROOT,
+        env={**os.environ, "BLUNF_THREADS": "1"},
+        capture_output=True,
+        text=True,
+        timeout=300,
+        preexec_fn=limit,
+    )
+    assert r.returncode == 2, r.stderr
+    line = one_error_line(r.stderr)
+    assert "mesh.ply: cannot write" in line and str(out) in line, line
+    assert set(entries(out)["fusion"]) == keys
+    assert_entries_complete(out)
+    assert not list(out.rglob(".tmp-*")) and not list(out.glob(".*.tmp-*"))
+
+
 def test_clean_drops_entries_the_latest_run_did_not_use(room, done, tmp_path, capsys):
     """`blunf clean RUN`: the entries the latest report names stay (a rerun of it is all
     cached), every other one goes, and it says how much it freed."""

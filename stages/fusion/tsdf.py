@@ -33,6 +33,7 @@ from stages.common.capture import Capture, Frame
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth, read_image, write_depth_npy, write_json
 from stages.common.o3d import CPU, o3d_extrinsic, o3d_intrinsic, o3d_tensor, touched_blocks
+from stages.common.ply import check_written
 from stages.common.progress import track
 from stages.fusion import regions
 from stages.fusion.carve import supporting_views
@@ -85,6 +86,8 @@ def run(cfg: FusionConfig, inputs: FusionInputs, out: Path) -> FusionOutputs:
     cloud.point.colors = cloud.point.colors.clip(0.0, 1.0)
     o3d.t.io.write_triangle_mesh(outs.mesh, mesh)
     o3d.t.io.write_point_cloud(outs.cloud, cloud)
+    for path in (outs.mesh, outs.cloud):  # a full disk cuts them short without an error
+        check_written(path)
     t_extract = time.perf_counter() - t0
 
     t0 = time.perf_counter()

@@ -24,13 +24,7 @@ import numpy as np
 import trimesh
 
 from stages.common.errors import BlunfError
-
-_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
-}  # fmt: skip
+from stages.common.ply import read_header
 
 
 def read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -53,28 +47,10 @@ def _binary_ply(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
     properties) then a face element of one list property, every face a triangle; None for
     any other file (read elsewhere)."""
     with open(path, "rb") as f:
-        if f.readline().strip() != b"ply":
+        header = read_header(f)
+        if header is None:
             return None
-        elements: list[list] = []  # [name, count, [(prop, type or (count type, index type))]]
-        fmt = None
-        while True:
-            line = f.readline()
-            if not line:
-                return None
-            w = line.decode("ascii", "replace").split()
-            if not w or w[0] in ("comment", "obj_info"):
-                continue
-            if w[0] == "end_header":
-                break
-            if w[0] == "format":
-                fmt = w[1]
-            elif w[0] == "element":
-                elements.append([w[1], int(w[2]), []])
-            elif w[0] == "property" and elements:
-                if w[1] == "list":
-                    elements[-1][2].append((w[4], (_TYPES.get(w[2]), _TYPES.get(w[3]))))
-                else:
-                    elements[-1][2].append((w[2], _TYPES.get(w[1])))
+        fmt, elements = header
         if fmt != "binary_little_endian" or [e[0] for e in elements] != ["vertex", "face"]:
             return None
         (_, nv, vprops), (_, nf, fprops) = elements
