@@ -16,6 +16,12 @@ depth sees through them than lies on them); 54 % of those have fewer than two su
 views within 5 cm, against 3-7 % of the others. Sensor depth needs none of it (the plan
 from the room's exact depth: fwIoU 89.8 without, 89.9 with), so it is off unless a config
 asks for it (configs/phone.yaml).
+
+Two views often agree on a wrong surface all the same: stereo's errors at an object's edge
+repeat from one view to the next along a walk (a skirt from a table's top down to the floor
+behind it). The views that look across that place from elsewhere read what lies beyond it:
+free space there. `fusion.max_through` removes the surface more than that many views per
+supporting view saw through (docs/figures.md#fusion-max-through).
 """
 
 from __future__ import annotations
@@ -37,8 +43,20 @@ def supporting_views(
             intrinsics; [4, 4] camera-to-world), read one at a time.
         dist: metres, along the view's optical axis.
     """
+    return view_votes(points, views, dist)[0]
+
+
+def view_votes(
+    points: np.ndarray, views: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], dist: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """(support, through) [N] int32 each: the views with a reading within `dist` of each
+    world point (supporting_views), and the views whose reading lies more than `dist` beyond
+    it along their ray (they saw through it: free space there)."""
     support = np.zeros(len(points), np.int32)
+    through = np.zeros(len(points), np.int32)
     for depth, K, c2w in views:
         d, z = depth_at(points, depth, K, c2w)  # d = 0 outside the view or behind it
-        support += (d > 0) & (np.abs(d - z) <= dist)
-    return support
+        seen = d > 0
+        support += seen & (np.abs(d - z) <= dist)
+        through += seen & (d - z > dist)
+    return support, through

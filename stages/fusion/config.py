@@ -33,6 +33,10 @@ class FusionConfig:
     min_support: int = 0  # keep the fused surface only where this many views have a
     #                       reading within support_voxels of it (fusion/carve.py: removes what
     #                       averaging disagreeing depth leaves between the readings); 0 = off
+    max_through: float = 0.0  # > 0: also remove the fused surface where more than this many
+    #                        views per view whose reading lies on it read beyond it (they saw
+    #                        through it: free space there, fusion/carve.py); 0 = off
+    #                        (docs/figures.md#fusion-max-through)
     support_voxels: float = 2.5  # ... within this many voxels, along the view's optical axis
     region_mb: float = 200.0  # voxels of more than this (MB) touched: fuse region by region,
     #                           each a box of blocks holding at most this much (2560 blocks of
@@ -63,6 +67,8 @@ class FusionConfig:
             raise BlunfError(f"fusion.region_mb: must be >= 0 MB, got {self.region_mb}")
         if self.min_support < 0:
             raise BlunfError(f"fusion.min_support: must be >= 0, got {self.min_support}")
+        if not self.max_through >= 0:
+            raise BlunfError(f"fusion.max_through: must be >= 0, got {self.max_through}")
         if not self.support_voxels > 0:
             raise BlunfError(f"fusion.support_voxels: must be > 0, got {self.support_voxels}")
         if not self.weight_threshold >= 0:

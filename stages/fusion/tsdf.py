@@ -36,7 +36,7 @@ from stages.common.o3d import CPU, o3d_extrinsic, o3d_intrinsic, o3d_tensor, tou
 from stages.common.ply import check_written
 from stages.common.progress import track
 from stages.fusion import regions
-from stages.fusion.carve import supporting_views
+from stages.fusion.carve import view_votes
 from stages.fusion.config import FusionConfig, FusionInputs, FusionOutputs
 
 log = logging.getLogger(__name__)
@@ -75,7 +75,7 @@ def run(cfg: FusionConfig, inputs: FusionInputs, out: Path) -> FusionOutputs:
     t_o3d = fused.pop("integrate_open3d_seconds")
 
     t0 = time.perf_counter() - fused.pop("extract_seconds")
-    carved: dict = {"carved_vertices": 0, "carved_points": 0}
+    carved: dict = {"carved_vertices": 0, "carved_points": 0, "seen_through_vertices": 0}
     if cfg.min_support > 0 and mesh.vertex.positions.shape[0]:
         mesh, cloud, carved = _carve(mesh, cloud, cap, cfg, inputs.frames)
     mesh, cloud = canonical_mesh(mesh), canonical_cloud(cloud)  # the same files every run
@@ -322,13 +322,19 @@ def _carve(
     mesh: o3d.t.geometry.TriangleMesh, cloud: o3d.t.geometry.PointCloud, cap: Capture,
     cfg: FusionConfig, where: Path,
 ) -> tuple[o3d.t.geometry.TriangleMesh, o3d.t.geometry.PointCloud, dict]:  # fmt: skip
-    """The mesh and cloud without what fewer than cfg.min_support views' readings lie on."""
+    """The mesh and cloud without what fewer than cfg.min_support views' readings lie on,
+    nor (cfg.max_through > 0) what more than max_through views per view on it saw through."""
     t0 = time.perf_counter()
     v = mesh.vertex.positions.numpy().astype(np.float64)
     p = cloud.point.positions.numpy().astype(np.float64)
     dist = cfg.support_voxels * cfg.voxel
-    support = supporting_views(np.concatenate([v, p]), _views(cap, cfg), dist)
-    keep_v, keep_p = np.split(support >= cfg.min_support, [len(v)])
+    support, through = view_votes(np.concatenate([v, p]), _views(cap, cfg), dist)
+    keep = support >= cfg.min_support
+    seen_through = np.zeros_like(keep)
+    if cfg.max_through > 0:
+        seen_through = keep & (through > cfg.max_through * support)
+        keep &= ~seen_through
+    keep_v, keep_p = np.split(keep, [len(v)])
     if not keep_v.any():
         raise BlunfError(
             f"fusion: fusion.min_support = {cfg.min_support} removes the whole surface fused "
@@ -339,6 +345,7 @@ def _carve(
     facts = {
         "carved_vertices": int((~keep_v).sum()),  # of the mesh extracted from the TSDF
         "carved_points": int((~keep_p).sum()),
+        "seen_through_vertices": int(seen_through[: len(v)].sum()),  # of those carved
         "carve_seconds": round(time.perf_counter() - t0, 3),
     }
     return mesh, cloud, facts

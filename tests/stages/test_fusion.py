@@ -23,7 +23,7 @@ from stages.common.capture import Capture, Frame
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth, write_depth_png
 from stages.fusion import IMPLS, FusionConfig, FusionInputs
-from stages.fusion.carve import supporting_views
+from stages.fusion.carve import supporting_views, view_votes
 from stages.fusion.tsdf import canonical_cloud, canonical_mesh
 from tests.conftest import shared_capture
 from tests.stages.exact_room import (
@@ -279,6 +279,56 @@ def test_min_support_removes_the_surface_only_one_view_saw(tmp_path):
     assert clean_stats["carved_vertices"] < 0.05 * clean_stats["vertices"], clean_stats
 
 
+def test_view_votes_count_readings_on_and_beyond_a_point():
+    """A point 2 m out on a view's axis: a reading within dist of it supports it, one more
+    than dist beyond it saw through it (free space there), one nearer hides it (neither)."""
+    pose = look_at((0.0, 0.0, 1.0), (0.0, 5.0, 1.0))
+    p = np.array([[0.0, 2.0, 1.0]])
+    views = [(np.full((H, W), d, np.float32), INTR.K, pose) for d in (2.03, 3.0, 2.2, 1.0, 0.0)]
+    support, through = view_votes(p, views, 0.05)
+    assert support.tolist() == [1] and through.tolist() == [2]
+
+
+def test_a_surface_more_views_see_through_than_lie_on_is_removed(tmp_path):
+    """A box 20 cm across floating 1.3 m before view 2, in the depth of view 2 and its twin
+    only (a surface two views' stereo agree on and nothing holds): min_support 2 keeps it;
+    the views whose readings lie beyond it (three or four per vertex) outnumber the two it
+    lies on, and fusion.max_through 1 removes it. The true room keeps its surface (the views'
+    readings lie on it, none beyond)."""
+    twins = [p.copy() for p in room_poses()]
+    for p in twins:
+        p[:3, 3] += 0.15 * p[:3, 0]
+    poses = room_poses() + twins
+    clean = Capture.load(room_capture(tmp_path / "cap", poses=poses))
+    c = poses[2][:3, 3] + 1.3 * poses[2][:3, 2]
+    box = o3d.t.geometry.TriangleMesh.from_legacy(
+        o3d.geometry.TriangleMesh.create_box(0.2, 0.2, 0.2).translate(c - 0.1)
+    )
+    ghost = make_scene()
+    ghost.add_triangles(box.vertex.positions.to(o3c.float32), box.triangle.indices.to(o3c.uint32))
+    frames = list(clean.frames)
+    for i in (2, 10):
+        path = tmp_path / f"ghost{i}.png"
+        write_depth_png(path, render(ghost, poses[i])[0])
+        frames[i] = replace(frames[i], depth=path)
+    clean.with_frames(frames).save(tmp_path / "ghost.json")
+
+    def far_and_near(outs) -> tuple[int, int]:
+        v = np.asarray(o3d.io.read_triangle_mesh(str(outs.mesh)).vertices, np.float32)
+        dist = make_scene().compute_distance(o3c.Tensor(v)).numpy()  # [N] metres
+        return int((dist > 0.3).sum()), int((dist < 1.5 * VOXEL).sum())
+
+    outs = fuse(tmp_path / "ghost.json", tmp_path / "kept", min_support=2)
+    kept = far_and_near(outs)
+    assert json.loads(outs.stats.read_text())["seen_through_vertices"] == 0
+    outs = fuse(tmp_path / "ghost.json", tmp_path / "gone", min_support=2, max_through=1)
+    gone = far_and_near(outs)
+    assert kept[0] > 20, kept  # the box is fused and two views' readings lie on it
+    assert gone[0] == 0, gone
+    assert gone[1] > 0.97 * kept[1], (gone, kept)
+    assert json.loads(outs.stats.read_text())["seen_through_vertices"] >= kept[0]
+
+
 def test_min_support_that_removes_everything_says_so(tmp_path):
     frames = room_capture(tmp_path / "cap")  # each surface seen by one or two of 8 views
     with pytest.raises(BlunfError, match="min_support = 20 removes the whole surface"):
@@ -291,6 +341,8 @@ def test_min_support_settings_are_checked():
         FusionConfig(min_support=-1)
     with pytest.raises(BlunfError, match="fusion.support_voxels"):
         FusionConfig(support_voxels=0.0)
+    with pytest.raises(BlunfError, match="fusion.max_through"):
+        FusionConfig(max_through=-1.0)
 
 
 @pytest.mark.slow
