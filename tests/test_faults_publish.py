@@ -202,6 +202,26 @@ def test_read_only_run_folder_one_line(room, done, tmp_path):
     assert tree(out) == before
 
 
+def run_with_64kb_files(room: Path, out: Path, setting: str) -> subprocess.CompletedProcess:
+    """`blunf run` of room into out with --set setting, in a process whose writes past
+    64 kB fail with EFBIG (RLIMIT_FSIZE), as on a full disk."""
+
+    def limit() -> None:
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # EFBIG instead of a killing signal
+        resource.setrlimit(resource.RLIMIT_FSIZE, (64_000, 64_000))
+
+    args = ["run", str(room), "--out", str(out), *FAST, *QUICK, "--set", setting]
+    return subprocess.run(
+        [sys.executable, "-m", "pipeline", *args],
+        cwd=ROOT,
+        env={**os.environ, "BLUNF_THREADS": "1"},
+        capture_output=True,
+        text=True,
+        timeout=300,
+        preexec_fn=limit,
+    )
+
+
 def test_full_disk_one_line_nothing_half_written(room, done, tmp_path):
     """The disk fills while a stage writes (RLIMIT_FSIZE: writes past 64 kB fail with EFBIG,
     as on a full disk): one line naming the folder, exit 2, no temp folder, no entry without
@@ -210,31 +230,8 @@ def test_full_disk_one_line_nothing_half_written(room, done, tmp_path):
     before = published(out)
     old = (out / "report.json").read_bytes()
 
-    def limit() -> None:
-        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # EFBIG instead of a killing signal
-        resource.setrlimit(resource.RLIMIT_FSIZE, (64_000, 64_000))
-
-    r = subprocess.run(  # a new export title: export reruns and writes the (large) plan files
-        [
-            sys.executable,
-            "-m",
-            "pipeline",
-            "run",
-            str(room),
-            "--out",
-            str(out),
-            *FAST,
-            *QUICK,
-            "--set",
-            "export.title=full",
-        ],
-        cwd=ROOT,
-        env={**os.environ, "BLUNF_THREADS": "1"},
-        capture_output=True,
-        text=True,
-        timeout=300,
-        preexec_fn=limit,
-    )
+    # a new export title: export reruns and writes the (large) plan files
+    r = run_with_64kb_files(room, out, "export.title=full")
     assert r.returncode == 2, r.stderr
     line = one_error_line(r.stderr)
     # the first write past the limit fails: the export stage's files, or the layout stage's
@@ -255,20 +252,7 @@ def test_full_disk_while_fusion_writes_its_mesh_keeps_no_entry(room, done, tmp_p
     out = copy_run(done, tmp_path / "run")
     keys = set(entries(out)["fusion"])
 
-    def limit() -> None:
-        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-        resource.setrlimit(resource.RLIMIT_FSIZE, (64_000, 64_000))
-
-    args = ["run", str(room), "--out", str(out), *FAST, *QUICK, "--set", "fusion.voxel=0.04"]
-    r = subprocess.run(
-        [sys.executable, "-m", "pipeline", *args],
-        cwd=ROOT,
-        env={**os.environ, "BLUNF_THREADS": "1"},
-        capture_output=True,
-        text=True,
-        timeout=300,
-        preexec_fn=limit,
-    )
+    r = run_with_64kb_files(room, out, "fusion.voxel=0.04")  # fusion reruns
     assert r.returncode == 2, r.stderr
     line = one_error_line(r.stderr)
     assert "mesh.ply: cannot write" in line and str(out) in line, line
