@@ -76,7 +76,7 @@ def run(cfg: FusionConfig, inputs: FusionInputs, out: Path) -> FusionOutputs:
 
     t0 = time.perf_counter() - fused.pop("extract_seconds")
     carved: dict = {"carved_vertices": 0, "carved_points": 0, "seen_through_vertices": 0}
-    if cfg.min_support > 0 and mesh.vertex.positions.shape[0]:
+    if (cfg.min_support > 0 or cfg.max_through > 0) and mesh.vertex.positions.shape[0]:
         mesh, cloud, carved = _carve(mesh, cloud, cap, cfg, inputs.frames)
     mesh, cloud = canonical_mesh(mesh), canonical_cloud(cloud)  # the same files every run
     n_vert, n_tri = mesh.vertex.positions.shape[0], mesh.triangle.indices.shape[0]
@@ -336,6 +336,12 @@ def _carve(
         keep &= ~seen_through
     keep_v, keep_p = np.split(keep, [len(v)])
     if not keep_v.any():
+        if (support[: len(v)] >= cfg.min_support).any():
+            raise BlunfError(
+                f"fusion: fusion.max_through = {cfg.max_through} removes the whole surface "
+                f"fused from {where} (more views see through every vertex than that many per "
+                "view whose reading lies on it)"
+            )
         raise BlunfError(
             f"fusion: fusion.min_support = {cfg.min_support} removes the whole surface fused "
             f"from {where} (no vertex lies on that many views' readings)"

@@ -327,6 +327,10 @@ def test_a_surface_more_views_see_through_than_lie_on_is_removed(tmp_path):
     assert gone[0] == 0, gone
     assert gone[1] > 0.97 * kept[1], (gone, kept)
     assert json.loads(outs.stats.read_text())["seen_through_vertices"] >= kept[0]
+    # the rule runs without the support check too
+    outs = fuse(tmp_path / "ghost.json", tmp_path / "alone", max_through=1)
+    assert far_and_near(outs)[0] == 0
+    assert json.loads(outs.stats.read_text())["seen_through_vertices"] >= kept[0]
 
 
 def test_min_support_that_removes_everything_says_so(tmp_path):
