@@ -53,10 +53,10 @@ def read_header(f: BinaryIO) -> tuple[str | None, list[Element]] | None:
                 elements[-1][2].append((w[2], TYPES.get(w[1])))
 
 
-def check_written(path: Path, list_len: int = 3) -> None:
+def check_written(path: Path) -> None:
     """A one-line error naming `path` unless the binary PLY there is as long as its header
-    says (every list property holding `list_len` items: a triangle mesh's faces). ASCII
-    files and unknown types are not checked."""
+    says (every list property holding 3 items: a triangle mesh's faces). ASCII files and
+    unknown types are not checked."""
     path = Path(path)
     with open(path, "rb") as f:
         got = read_header(f)
@@ -74,7 +74,7 @@ def check_written(path: Path, list_len: int = 3) -> None:
             if isinstance(t, tuple):
                 if None in t:
                     return
-                row += np.dtype(t[0]).itemsize + list_len * np.dtype(t[1]).itemsize
+                row += np.dtype(t[0]).itemsize + 3 * np.dtype(t[1]).itemsize
             elif t is None:
                 return
             else:

@@ -33,25 +33,18 @@ import numpy as np
 from stages.common.camera import depth_at
 
 
-def supporting_views(
+def view_votes(
     points: np.ndarray, views: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], dist: float
-) -> np.ndarray:
-    """How many views have a reading within `dist` of each world point [N, 3] -> [N] int32.
+) -> tuple[np.ndarray, np.ndarray]:
+    """(support, through) [N] int32 each, for world points [N, 3]: how many views have a
+    reading within `dist` of each point, and how many a reading more than `dist` beyond it
+    along their ray (they saw through it: free space there).
 
     Args:
         views: per view (depth [H, W]: z-depth in metres, 0 = no reading; its [3, 3]
             intrinsics; [4, 4] camera-to-world), read one at a time.
         dist: metres, along the view's optical axis.
     """
-    return view_votes(points, views, dist)[0]
-
-
-def view_votes(
-    points: np.ndarray, views: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], dist: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """(support, through) [N] int32 each: the views with a reading within `dist` of each
-    world point (supporting_views), and the views whose reading lies more than `dist` beyond
-    it along their ray (they saw through it: free space there)."""
     support = np.zeros(len(points), np.int32)
     through = np.zeros(len(points), np.int32)
     for depth, K, c2w in views:

@@ -329,14 +329,11 @@ def _carve(
     p = cloud.point.positions.numpy().astype(np.float64)
     dist = cfg.support_voxels * cfg.voxel
     support, through = view_votes(np.concatenate([v, p]), _views(cap, cfg), dist)
-    keep = support >= cfg.min_support
-    seen_through = np.zeros_like(keep)
-    if cfg.max_through > 0:
-        seen_through = keep & (through > cfg.max_through * support)
-        keep &= ~seen_through
-    keep_v, keep_p = np.split(keep, [len(v)])
+    supported = support >= cfg.min_support
+    seen_through = supported & (cfg.max_through > 0) & (through > cfg.max_through * support)
+    keep_v, keep_p = np.split(supported & ~seen_through, [len(v)])
     if not keep_v.any():
-        if (support[: len(v)] >= cfg.min_support).any():
+        if supported[: len(v)].any():
             raise BlunfError(
                 f"fusion: fusion.max_through = {cfg.max_through} removes the whole surface "
                 f"fused from {where} (more views see through every vertex than that many per "

@@ -62,6 +62,7 @@ from stages.semantics.segmentation import Segmentation
 log = logging.getLogger(__name__)
 
 SPAN_PCT = (5.0, 95.0)  # robust extent of a plane's inliers (percentiles)
+PARALLEL_COS = float(np.cos(np.radians(15.0)))  # two walls this near parallel face one way
 HANGS = 0.1  # metres: a surface before a wall whose lowest inliers (5 %) lie higher hangs
 
 
@@ -269,25 +270,25 @@ def _behind(
     for i, (_, inl) in enumerate(found):
         u = _axes(facing[i])
         lo, hi = np.percentile(c[inl] @ u, SPAN_PCT)
-        gap = 0.0
+        gaps = []  # metres to each plane behind it
         for w in walls:
             nw = np.asarray(w["normal"], np.float64)
-            if facing[i][:3] @ nw < np.cos(np.radians(15.0)):
+            if facing[i][:3] @ nw < PARALLEL_COS:
                 continue
             off = float(np.median(c[inl] @ nw + w["d"]))  # > 0: the plane before the wall
             a, b = np.percentile(c[inl] @ _axes(nw), SPAN_PCT)  # the plane along the wall's axis
             if max(w.get("dist", 0.0), 0.02) < off <= behind and (
                 min(b, w["box"][2]) - max(a, w["box"][0]) >= 0.5 * (b - a)
             ):
-                gap = off if gap == 0 else min(gap, off)
+                gaps.append(off)
         for j, (_, other) in enumerate(found):
-            if j == i or facing[i][:3] @ facing[j][:3] < np.cos(np.radians(15.0)):
+            if j == i or facing[i][:3] @ facing[j][:3] < PARALLEL_COS:
                 continue
             off = float(np.median(c[other] @ facing[i][:3] + facing[i][3]))  # < 0: behind
             a, b = np.percentile(c[other] @ u, SPAN_PCT)
             if -behind <= off <= -0.02 and min(hi, b) - max(lo, a) >= 0.5 * (hi - lo):
-                gap = -off if gap == 0 else min(gap, -off)
-        out.append((gap, facing[i]))
+                gaps.append(-off)
+        out.append((min(gaps, default=0.0), facing[i]))
     return out
 
 
@@ -328,7 +329,7 @@ def _same_wall(a: dict, b: dict) -> bool:
     (the stretches of one plane either side of a doorway are two walls)."""
     na, nb = np.asarray(a["normal"]), np.asarray(b["normal"])
     sign = 1.0 if na @ nb >= 0 else -1.0
-    if sign * (na @ nb) < np.cos(np.radians(15.0)):
+    if sign * (na @ nb) < PARALLEL_COS:
         return False
     lo, hi = sorted([sign * b["box"][0], sign * b["box"][2]])  # b's box on a's axis
     overlap = min(a["box"][2], hi) - max(a["box"][0], lo)

@@ -23,7 +23,7 @@ from stages.common.capture import Capture, Frame
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth, write_depth_png
 from stages.fusion import IMPLS, FusionConfig, FusionInputs
-from stages.fusion.carve import supporting_views, view_votes
+from stages.fusion.carve import view_votes
 from stages.fusion.tsdf import canonical_cloud, canonical_mesh
 from tests.conftest import shared_capture
 from tests.stages.exact_room import (
@@ -220,7 +220,7 @@ def test_all_depth_invalid_is_an_error(tmp_path):
         fuse(frames, tmp_path / "out", depth_max=0.5, far_share=0.0)
 
 
-def test_supporting_views_counts_readings_near_a_point():
+def test_view_votes_support_counts_readings_near_a_point():
     """A point 2 m in front of a camera: supported by a reading within dist of 2 m at its
     pixel, not by one farther, nor by a view it lies behind or outside of."""
     pose = look_at((0.0, 0.0, 1.0), (0.0, 5.0, 1.0))  # looks along +y
@@ -230,14 +230,14 @@ def test_supporting_views_counts_readings_near_a_point():
     def views(*depths, c2w=pose):
         return [(np.full((H, W), d, np.float32), K, c2w) for d in depths]
 
-    assert supporting_views(p, views(2.03), 0.05).tolist() == [1]
-    assert supporting_views(p, views(2.03, 1.97, 2.0), 0.05).tolist() == [3]
-    assert supporting_views(p, views(2.03), 0.02).tolist() == [0]
-    assert supporting_views(p, views(3.0, 0.0), 0.05).tolist() == [0]  # far; no reading
+    assert view_votes(p, views(2.03), 0.05)[0].tolist() == [1]
+    assert view_votes(p, views(2.03, 1.97, 2.0), 0.05)[0].tolist() == [3]
+    assert view_votes(p, views(2.03), 0.02)[0].tolist() == [0]
+    assert view_votes(p, views(3.0, 0.0), 0.05)[0].tolist() == [0]  # far; no reading
     behind = look_at((0.0, 4.0, 1.0), (0.0, 9.0, 1.0))  # the point is 2 m behind it
-    assert supporting_views(p, views(2.0, c2w=behind), 0.05).tolist() == [0]
+    assert view_votes(p, views(2.0, c2w=behind), 0.05)[0].tolist() == [0]
     aside = look_at((0.0, 0.0, 1.0), (5.0, 0.0, 1.0))  # the point is 90 deg off its axis
-    assert supporting_views(p, views(2.0, c2w=aside), 0.05).tolist() == [0]
+    assert view_votes(p, views(2.0, c2w=aside), 0.05)[0].tolist() == [0]
 
 
 def test_min_support_removes_the_surface_only_one_view_saw(tmp_path):
