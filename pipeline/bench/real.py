@@ -10,8 +10,8 @@ from the geometry the same way):
                comes from the sensor depth (poses.scale_from auto), and that depth gives the
                plan, so the poses it is read at are the photos-only run's but for the scale;
   ref          the old reference: the sensor depth at the dataset's poses (and gravity).
-The references draw the plan as the photos-only run does (its blueprint.blunf.wall_face and
-margin: `drawn_alike`), then take --ref-set.
+The references draw the plan as the photos-only run does (its blueprint.blunf.wall_face,
+margin and fill: `drawn_alike`), then take --ref-set.
 The photos-only plan is scored against each reference per class, on the reference's cells
 within its projected points' bounds (`observed`; "padded" keeps the whole grid), through
 the similarity between the two runs' whole poses (stages.common.gt_frame), so a wrong metric
@@ -307,8 +307,8 @@ def main(argv: list[str] | None = None) -> int:
 
 def drawn_alike(config: Path, sets: list[str]) -> list[str]:
     """The photos-only run's choices of how a plan is drawn, as --set items for the
-    references (before their own --ref-set): blueprint.blunf.wall_face and its margin, and
-    hidden_insides. The references must draw walls as the photos-only plan does, or the way
+    references (before their own --ref-set): blueprint.blunf.wall_face, its margin and fill,
+    and hidden_insides. The references must draw walls as the photos-only plan does, or the way
     of drawing is scored as depth error: with the default's wall_face against phone.yaml's
     plan without it, the office read 61.09 (wall 29.6) where both drawn without it read
     61.95 (wall 43.6)."""
@@ -316,6 +316,7 @@ def drawn_alike(config: Path, sets: list[str]) -> list[str]:
     return [
         f"blueprint.blunf.wall_face={str(b.wall_face).lower()}",
         f"blueprint.blunf.wall_face_margin={b.wall_face_margin}",
+        f"blueprint.blunf.wall_face_fill={b.wall_face_fill}",
         f"blueprint.blunf.hidden_insides={str(b.hidden_insides).lower()}",
     ]
 

@@ -79,7 +79,14 @@ def run(cfg: BlueprintConfig, inputs: BlueprintInputs, out: Path) -> BlueprintOu
     fronted = 0
     if c.wall_face and inputs.observed is not None:
         labels, fronted = behind_faces(
-            labels, classes, grid, pts_xy, pts_label, inputs.observed, c.wall_face_margin
+            labels,
+            classes,
+            grid,
+            pts_xy,
+            pts_label,
+            inputs.observed,
+            c.wall_face_margin,
+            c.wall_face_fill,
         )
     shrink = round(c.shrink / grid.cell)  # cells
     labels, shrunk = shrink_objects(labels, classes, shrink)

@@ -11,6 +11,7 @@ from stages.common.errors import BlunfError
 
 Encoding = Literal["none", "pe", "hash", "siren"]  # as stages.common.encoding.ENCODINGS
 ENCODINGS = get_args(Encoding)
+WallFaceFill = Literal["floor", "nearest"]  # what the cells cut in front of a wall face become
 
 
 @dataclass(frozen=True)
@@ -70,6 +71,14 @@ class BlunfConfig:
     # up to a cell in front of the face the other views fused (held-out pAcc 91.48, kitchen
     # 96.10); 0.5 keeps the cell the face crosses and cuts only the cells wholly in front of it
     wall_face_margin: float = 0.5
+    # what the wall cells cut in front of a face become: "floor" (the strip between a wall
+    # and a bed a little off it is floor: the sensor home 89.46 against 88.01 with
+    # "nearest") or "nearest", the class of the nearest cell the field drew not wall (a sofa
+    # standing against the wall keeps the cells up to it). From photos, on (margin 0.5),
+    # floor -> nearest: office against its sensor at SfM poses 63.87 -> 65.98, kitchen 67.87
+    # -> 68.66, honest room 80.53 -> 81.00 (against its gt/ 65.59 -> 65.60); the 3-room home
+    # 83.13 -> 82.15, demo room 86.84 -> 86.11 (docs/figures.md#phone-wall-face)
+    wall_face_fill: WallFaceFill = "floor"
     # the cells no view saw into and no ray crossed, closed round by one object's points (a
     # tall cabinet's inside, its top above the cameras) become that object (hidden.py).
     # Off -> on, 3-room sensor home seed 0: fwIoU 89.63 -> 90.52 (cabinet 64.6 -> 78.2),

@@ -120,6 +120,7 @@ def behind_faces(
     label: np.ndarray,
     observed: Path,
     margin: float = 0.0,
+    fill: str = "floor",
 ) -> tuple[np.ndarray, int]:
     """wall_fronts of the plan labels [H, W] with the wall points among the points xy
     [N, 2] (world metres) labelled `label` [N] and the free cells of observed.npz (the plan
@@ -128,7 +129,7 @@ def behind_faces(
     if free is None:
         return labels, 0
     wall = np.isin(label, ids_named(classes, WALL_NAME))
-    return wall_fronts(labels, classes, grid, np.asarray(xy)[wall, :2], free > 0, margin)
+    return wall_fronts(labels, classes, grid, np.asarray(xy)[wall, :2], free > 0, margin, fill)
 
 
 def wall_fronts(
@@ -138,18 +139,21 @@ def wall_fronts(
     xy: np.ndarray,
     free: np.ndarray,
     margin: float = 0.0,
+    fill: str = "floor",
 ) -> tuple[np.ndarray, int]:
     """(The plan [H, W] with every wall cell whose centre lies more than `margin` cells in
-    front of its nearest face made floor, how many cells changed).
+    front of its nearest face made floor, or the nearest class that is not wall, how many
+    cells changed).
 
     In front of a face is the room's open space: the field drew wall there from the face's
     own points (a top view keeps the wall's points, the highest, in the cells that hold
-    them and drops the floor's). Floor, not the nearest class that is not wall: the strip
-    between a wall and a bed or sofa standing a little off it is floor (home3 with sensor
-    depth and free_floor: fwIoU 89.46 with floor, 88.01 with the nearest class: bed 92.4
-    and sofa 83.4 against 96.7 and 88.3; measured before faces needed one-sided free
-    cells). A plan without a floor class gets the nearest
-    class that is not wall.
+    them and drops the floor's). fill "floor": the strip between a wall and a bed or sofa
+    standing a little off it is floor (home3 with sensor depth and free_floor: fwIoU 89.46
+    with floor, 88.01 with the nearest class: bed 92.4 and sofa 83.4 against 96.7 and 88.3;
+    measured before faces needed one-sided free cells). fill "nearest": the class of the
+    nearest cell the field drew neither wall nor unknown, so furniture standing against the
+    wall reaches it (real rooms from photos, blueprint.blunf.wall_face_fill). A plan without
+    a floor class gets the nearest class that is not wall either way.
 
     xy [N, 2]: the wall points (world metres); free: bool [H, W], the cells rays crossed.
     margin: 0 cuts to the ground truth's convention; 0.5 keeps the cell the face crosses (its
@@ -172,7 +176,7 @@ def wall_fronts(
         return labels, 0
     out = labels.copy()
     floor = ids_named(classes, FLOOR_NAME)
-    if floor:
+    if floor and fill == "floor":
         out[front] = floor[0]
     else:
         _, (r, c) = ndimage.distance_transform_edt(~other, return_indices=True)

@@ -25,9 +25,9 @@ def test_reference_cells_beyond_its_points_bounds_are_not_scored(tmp_path):
 
 
 def test_references_draw_walls_as_the_photos_run_does():
-    # phone.yaml draws no wall_face; the default does. The references take the photos-only
-    # run's choice (else the drawing is scored as depth error), and their own --ref-set
-    # still has the last word.
+    # phone.yaml cuts the wall cells in front of a face to the nearest class the field drew;
+    # the default cuts them to floor. The references take the photos-only run's choices (else
+    # the drawing is scored as depth error), and their own --ref-set still has the last word.
     from pathlib import Path
 
     from pipeline.bench.real import drawn_alike
@@ -35,13 +35,17 @@ def test_references_draw_walls_as_the_photos_run_does():
 
     root = Path(__file__).resolve().parents[2]
     phone = root / "configs" / "phone.yaml"
-    assert load_config()["blueprint"].blunf.wall_face
-    assert not load_config(phone)["blueprint"].blunf.wall_face
-    ref = drawn_alike(phone, [])
-    assert not load_config(None, ref)["blueprint"].blunf.wall_face
+    default, photos = load_config()["blueprint"].blunf, load_config(phone)["blueprint"].blunf
+    assert default.wall_face and default.wall_face_fill == "floor"
+    assert photos.wall_face and photos.wall_face_fill == "nearest"
+    ref = load_config(None, drawn_alike(phone, []))["blueprint"].blunf
+    assert ref.wall_face and ref.wall_face_fill == "nearest"
+    off = drawn_alike(phone, ["blueprint.blunf.wall_face=false"])
+    assert not load_config(None, off)["blueprint"].blunf.wall_face
     moved = drawn_alike(
-        phone, ["blueprint.blunf.wall_face=true", "blueprint.blunf.wall_face_margin=0"]
+        phone, ["blueprint.blunf.wall_face_margin=0", "blueprint.blunf.wall_face_fill=floor"]
     )
-    assert load_config(None, moved)["blueprint"].blunf.wall_face_margin == 0
-    last = load_config(None, ref + ["blueprint.blunf.wall_face=true"])["blueprint"].blunf
+    drawn = load_config(None, moved)["blueprint"].blunf
+    assert drawn.wall_face_margin == 0 and drawn.wall_face_fill == "floor"
+    last = load_config(None, off + ["blueprint.blunf.wall_face=true"])["blueprint"].blunf
     assert last.wall_face

@@ -152,3 +152,24 @@ def test_a_face_with_free_cells_on_both_sides_is_left_to_the_field() -> None:
     assert changed == 0 and (both == labels).all()
     one, changed = wall_fronts(labels, CLASSES, grid, xy, x < 0.2037 + CELL)
     assert changed == 20 * 2 and (one[:, x[0] > 0.2037] == labels[:, x[0] > 0.2037]).all()
+
+
+def test_the_nearest_fill_gives_furniture_against_a_wall_its_cells_and_floor_the_rest() -> None:
+    """fill "nearest": the wall cells cut in front of the face take the class of the nearest
+    cell the field drew not wall: a sofa standing against the wall keeps the cells up to it,
+    the open floor beside it stays floor; fill "floor" gives the sofa's cells to the floor."""
+    grid = Grid((0.0, 0.0), CELL, (20, 20))
+    x, y = grid.centers()[..., 0], grid.centers()[..., 1]
+    face = 0.2037  # the room at x < face
+    xy = np.c_[np.full(2000, face), np.linspace(0.0, 0.4, 2000)]
+    labels = np.where(x > 0.16, 1, 0).astype(np.uint8)  # wall drawn from 0.16 on
+    labels[(x < 0.16) & (y < 0.2)] = 3  # the sofa the field drew up to the wall's band
+    classes = {0: "floor", 1: "wall", 3: "sofa"}
+    cut = (x > 0.16) & (x < face)  # the columns centred 0.17 and 0.19
+    near, n_near = wall_fronts(labels, classes, grid, xy, x < face + CELL, fill="nearest")
+    flat, n_flat = wall_fronts(labels, classes, grid, xy, x < face + CELL, fill="floor")
+    assert n_near == n_flat == int(cut.sum()) == 20 * 2
+    assert (near[cut & (y < 0.2)] == 3).all() and (near[cut & (y > 0.2)] == 0).all()
+    assert (flat[cut] == 0).all()
+    assert (near[x > face] == 1).all() and (flat[x > face] == 1).all()
+    assert (near[~cut] == labels[~cut]).all()
