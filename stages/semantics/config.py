@@ -97,6 +97,10 @@ class ObjectsConfig:
     # m²: a cluster resting on an object covers at least this
     # (docs/figures.md#semantics-rest-min-area)
     rest_min_area: float = 0.05
+    # a cluster above max_gap (of at least rest_min_area) under less than this share of
+    # whose plan cells the mesh holds any surface stands on something no view saw (objects.
+    # _stands_hidden); 0 = off
+    hidden_stand: float = 0.0
     # a cluster above max_gap that faces up over at least table_min_top m² and a third its
     # area, at a median height of at most table_max_top, is an object all the same (a table
     # whose legs no view fused); 0 = off (docs/figures.md#semantics-tables)
@@ -115,7 +119,7 @@ class ObjectsConfig:
     def __post_init__(self) -> None:
         _positive(self, "objects", ("cluster_eps", "piece_cell", "piece_min_width"))
         _at_least_one(self, "objects", ("cluster_min_points",))
-        sizes = ("min_area", "max_gap", "rest_min_area", "piece_step")
+        sizes = ("min_area", "max_gap", "rest_min_area", "piece_step", "hidden_stand")
         _non_negative(self, "objects", (*sizes, "table_max_top", "table_min_top"))
 
 

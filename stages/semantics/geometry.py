@@ -105,6 +105,7 @@ def run(cfg: SemanticsConfig, inputs: SemanticsInputs, out: Path) -> SemanticsOu
         "noise_triangles": seg.noise_triangles,  # labelled unknown
         "floating_clusters": seg.floating_clusters,  # labelled unknown
         "resting_clusters": seg.resting_clusters,  # on a standing object: objects
+        "hidden_stand_clusters": seg.hidden_stand_clusters,  # nothing seen under: objects
         "hanger_triangles": seg.hanger_triangles,  # by what hangs before a wall: unknown
         "object_base_z": round(seg.object_base_z, 3),  # clusters stand within objects.max_gap of it
         "outside_triangles": seg.outside_triangles,  # objects outside the room: unknown

@@ -9,6 +9,8 @@ into pieces where its top steps (pieces.py).
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import open3d as o3d
 
@@ -18,6 +20,8 @@ from stages.common.rows import unique_rows
 from stages.semantics.config import SemanticsConfig
 from stages.semantics.pieces import split_by_top
 from stages.semantics.segmentation import Segmentation
+
+log = logging.getLogger(__name__)
 
 
 def _table_top(
@@ -49,16 +53,36 @@ def _rests_on(
     if not standing:
         return False
     low = c[members, 2].min()
-
-    def key(p: np.ndarray) -> np.ndarray:  # [N] packed plan cell of centres p [N, 3]
-        ij = np.floor(p[:, :2] / cell).astype(np.int64) + (1 << 20)
-        return ij[:, 0] * (1 << 21) + ij[:, 1]
-
-    mine = np.unique(key(c[members]))
+    mine = np.unique(_plan_cells(c[members], cell))
     other = np.concatenate(standing)
     p = c[other[c[other, 2] <= low + 1e-6]]  # standing surfaces below the cluster
-    z = p[np.isin(key(p), mine), 2]
+    z = p[np.isin(_plan_cells(p, cell), mine), 2]
     return bool(len(z) and low - float(z.max()) <= gap)
+
+
+def _plan_cells(p: np.ndarray, cell: float) -> np.ndarray:
+    """[N] packed `cell`-metre plan cell of centres p [N, 3]."""
+    ij = np.floor(p[:, :2] / cell).astype(np.int64) + (1 << 20)
+    return ij[:, 0] * (1 << 21) + ij[:, 1]
+
+
+def _stands_hidden(
+    c: np.ndarray, cells: np.ndarray, members: np.ndarray, ok: np.ndarray, share: float
+) -> bool:
+    """Whether a cluster that does not reach the floor stands on something no view saw:
+    under fewer than `share` of the plan cells it covers (`cells` [N]: each triangle's, from
+    _plan_cells) does the mesh hold any surface below its lowest point (floor, an object's
+    top, anything). A plant whose pot and stem stood hidden behind a sofa shows its leaves
+    alone; a wall cabinet hangs over the counter the views saw, a lamp over its table,
+    fused noise over the floor."""
+    low = c[members, 2].min()
+    mine = np.unique(cells[members])
+    below = ok & (c[:, 2] < low - 1e-6)
+    under = np.isin(mine, cells[below])
+    log.debug(
+        "hidden stand: cluster from %.2f m, %d cells, %.2f under", low, len(mine), under.mean()
+    )
+    return bool(under.mean() < share)
 
 
 def objects(
@@ -121,10 +145,19 @@ def objects(
         else:
             place(members)
     standing = [m for _, _, m in found]
+    if floating and cfg.objects.hidden_stand > 0:
+        cells = _plan_cells(c, cfg.objects.cluster_eps)
     for members in floating:
         big = float(area[members].sum()) >= cfg.objects.rest_min_area
         if big and _rests_on(c, members, standing, cfg.objects.cluster_eps, cfg.objects.max_gap):
             seg.resting_clusters += 1
+            place(members)
+        elif (
+            big
+            and cfg.objects.hidden_stand > 0
+            and _stands_hidden(c, cells, members, ok, cfg.objects.hidden_stand)
+        ):
+            seg.hidden_stand_clusters += 1
             place(members)
         else:
             seg.floating_clusters += 1

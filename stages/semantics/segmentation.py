@@ -22,6 +22,7 @@ class Segmentation:
     noise_triangles: int = 0  # triangles DBSCAN calls noise (unknown)
     floating_clusters: int = 0  # clusters above object_max_gap (unknown)
     resting_clusters: int = 0  # clusters above it that rest on a standing object (objects)
+    hidden_stand_clusters: int = 0  # clusters above it with nothing seen under them (objects)
     hanger_triangles: int = 0  # by a surface hanging before a wall, its frame (unknown)
     outside_triangles: int = 0  # object triangles outside the room (outside_unknown)
     floor_z: float = 0.0  # median height of the floor triangles (0 when no floor was found)

@@ -20,7 +20,7 @@ from stages.common.io import read_label, write_image
 from stages.fusion import IMPLS as FUSION
 from stages.fusion import FusionConfig, FusionInputs
 from stages.semantics import IMPLS, SemanticsConfig, SemanticsInputs
-from stages.semantics.config import FloorFillConfig, PlanesConfig, WallsConfig
+from stages.semantics.config import FloorFillConfig, ObjectsConfig, PlanesConfig, WallsConfig
 from stages.semantics.floorfill import Footprint
 from stages.semantics.segment import segment, triangles
 from tests.conftest import shared_capture
@@ -547,3 +547,45 @@ def test_a_plant_resting_on_its_stand_is_an_object_a_cabinet_above_a_counter_is_
     assert (seg.cls[cabinet] == UNKNOWN).all() and (seg.cls[screen] == UNKNOWN).all()
     # below objects.rest_min_area: stereo's fragments over furniture rest on nothing
     assert (seg.cls[inside(boxes[5])] == UNKNOWN).all() and seg.floating_clusters == 3
+
+
+def test_leaves_over_floor_no_view_saw_stand_on_it_a_box_over_seen_floor_hangs():
+    # objects.hidden_stand: a plant whose pot stood hidden shows its leaves alone (a box
+    # 0.75-1.1 m up) over a hole in the fused floor; it stands on what no view saw and is an
+    # object. The same box over floor the views saw hangs (fused noise, a lamp), and so does
+    # a wall cabinet over its counter; off, the leaves hang too
+    hole = (0.4, 0.4, 1.2, 1.2)  # the floor no view saw, under the plant
+    x0, y0, x1, y1 = hole
+    boxes = [
+        ((0.5, 0.5, 0.75), (1.1, 1.1, 1.1)),  # the plant's leaves
+        ((2.6, 0.5, 0.75), (3.2, 1.1, 1.1)),  # the same over seen floor
+        ((2.0, 2.4, 0.0), (3.6, 3.0, 0.9)),  # counter
+        ((2.0, 2.65, 1.5), (3.6, 3.0, 2.1)),  # wall cabinet
+    ]
+    parts = [trimesh.creation.box(bounds=b) for b in boxes]
+    parts = [(np.asarray(b.vertices), np.asarray(b.faces)) for b in parts]
+    up = (0, 0, 1)
+    for q in (
+        [(0, 0, 0), (X, 0, 0), (X, y0, 0), (0, y0, 0)],
+        [(0, y1, 0), (X, y1, 0), (X, Y, 0), (0, Y, 0)],
+        [(0, y0, 0), (x0, y0, 0), (x0, y1, 0), (0, y1, 0)],
+        [(x1, y0, 0), (X, y0, 0), (X, y1, 0), (x1, y1, 0)],
+    ):
+        parts.append(_quad(q, up))
+    parts.append(_quad([(0, Y, 0), (X, Y, 0), (X, Y, Z), (0, Y, Z)], (0, -1, 0)))
+    verts, tris = subdivided(parts)
+    c, _, _ = triangles(verts, tris)
+
+    def inside(b: tuple) -> np.ndarray:  # its faces off the floor and the wall
+        lo, hi = np.asarray(b[0]), np.asarray(b[1])
+        box = ((c >= lo - 1e-6) & (c <= hi + 1e-6)).all(axis=1)
+        return box & (c[:, 2] > 0.05) & (c[:, 1] < Y - 0.05)
+
+    leaves, noise, cabinet = inside(boxes[0]), inside(boxes[1]), inside(boxes[3])
+    on = segment(verts, tris, SemanticsConfig(objects=ObjectsConfig(hidden_stand=0.3)))
+    assert (on.cls[leaves] == OBJECT).all() and on.hidden_stand_clusters == 1
+    assert (on.cls[noise] == UNKNOWN).all() and (on.cls[cabinet] == UNKNOWN).all()
+    assert on.floating_clusters == 2
+    off = segment(verts, tris, SemanticsConfig())
+    assert (off.cls[leaves] == UNKNOWN).all() and off.hidden_stand_clusters == 0
+    assert off.floating_clusters == 3
