@@ -66,19 +66,34 @@ def _plan_cells(p: np.ndarray, cell: float) -> np.ndarray:
     return ij[:, 0] * (1 << 21) + ij[:, 1]
 
 
+def _lowest_by_cell(c: np.ndarray, ok: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
+    """(plan cells [K] sorted, the lowest triangle centre's height in each [K]) of the
+    triangles `ok` (centres c [N, 3]) on `cell`-metre plan cells: computed once, read by
+    every floating cluster (_stands_hidden)."""
+    keys, inv = np.unique(_plan_cells(c[ok], cell), return_inverse=True)
+    low = np.full(len(keys), np.inf)
+    np.minimum.at(low, inv, c[ok, 2])
+    return keys, low
+
+
 def _stands_hidden(
-    c: np.ndarray, cells: np.ndarray, members: np.ndarray, ok: np.ndarray, share: float
+    c: np.ndarray,
+    members: np.ndarray,
+    lowest: tuple[np.ndarray, np.ndarray],
+    cell: float,
+    share: float,
 ) -> bool:
     """Whether a cluster that does not reach the floor stands on something no view saw:
-    under fewer than `share` of the plan cells it covers (`cells` [N]: each triangle's, from
-    _plan_cells) does the mesh hold any surface below its lowest point (floor, an object's
-    top, anything). A plant whose pot and stem stood hidden behind a sofa shows its leaves
-    alone; a wall cabinet hangs over the counter the views saw, a lamp over its table,
-    fused noise over the floor."""
+    under fewer than `share` of the plan cells it covers does the mesh hold any surface
+    below its lowest point (floor, an object's top, anything; `lowest`: _lowest_by_cell). A
+    plant whose pot and stem stood hidden behind a sofa shows its leaves alone; a wall
+    cabinet hangs over the counter the views saw, a lamp over its table, fused noise over
+    the floor."""
     low = c[members, 2].min()
-    mine = np.unique(cells[members])
-    below = ok & (c[:, 2] < low - 1e-6)
-    under = np.isin(mine, cells[below])
+    mine = np.unique(_plan_cells(c[members], cell))
+    keys, lowest_z = lowest
+    at = np.minimum(np.searchsorted(keys, mine), len(keys) - 1)
+    under = (keys[at] == mine) & (lowest_z[at] < low - 1e-6)
     log.debug(
         "hidden stand: cluster from %.2f m, %d cells, %.2f under", low, len(mine), under.mean()
     )
@@ -146,7 +161,7 @@ def objects(
             place(members)
     standing = [m for _, _, m in found]
     if floating and cfg.objects.hidden_stand > 0:
-        cells = _plan_cells(c, cfg.objects.cluster_eps)
+        lowest = _lowest_by_cell(c, ok, cfg.objects.cluster_eps)
     for members in floating:
         big = float(area[members].sum()) >= cfg.objects.rest_min_area
         if big and _rests_on(c, members, standing, cfg.objects.cluster_eps, cfg.objects.max_gap):
@@ -155,7 +170,9 @@ def objects(
         elif (
             big
             and cfg.objects.hidden_stand > 0
-            and _stands_hidden(c, cells, members, ok, cfg.objects.hidden_stand)
+            and _stands_hidden(
+                c, members, lowest, cfg.objects.cluster_eps, cfg.objects.hidden_stand
+            )
         ):
             seg.hidden_stand_clusters += 1
             place(members)

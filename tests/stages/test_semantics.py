@@ -517,6 +517,25 @@ def test_the_stand_of_a_board_before_a_wall_hangs_with_it():
     assert (off.cls[legs] == OBJECT).any() and off.instance.max() == 3
 
 
+def _boxes_before_a_wall(boxes: list, floor: list) -> tuple:
+    """(vertices, triangles, inside) of boxes ((lo, hi) corners) on the floor quads `floor`
+    (corner lists, facing up) before the wall at y = Y; inside(box): bool over the triangles,
+    the box's faces off the floor and the wall."""
+    parts = [trimesh.creation.box(bounds=b) for b in boxes]
+    parts = [(np.asarray(b.vertices), np.asarray(b.faces)) for b in parts]
+    parts += [_quad(q, (0, 0, 1)) for q in floor]
+    parts.append(_quad([(0, Y, 0), (X, Y, 0), (X, Y, Z), (0, Y, Z)], (0, -1, 0)))
+    verts, tris = subdivided(parts)
+    c, _, _ = triangles(verts, tris)
+
+    def inside(b: tuple) -> np.ndarray:
+        lo, hi = np.asarray(b[0]), np.asarray(b[1])
+        box = ((c >= lo - 1e-6) & (c <= hi + 1e-6)).all(axis=1)
+        return box & (c[:, 2] > 0.05) & (c[:, 1] < Y - 0.05)
+
+    return verts, tris, inside
+
+
 def test_a_plant_resting_on_its_stand_is_an_object_a_cabinet_above_a_counter_is_not():
     # a plant (a box 0.75-1.2 m up) 15 cm above its stand (0.6 m tall) rests on it: an object
     # though it does not reach the floor; a wall cabinet 0.6 m above a counter and a screen
@@ -529,18 +548,8 @@ def test_a_plant_resting_on_its_stand_is_an_object_a_cabinet_above_a_counter_is_
         ((1.5, 0.1, 1.0), (2.5, 0.2, 1.6)),  # screen
         ((2.5, 2.5, 1.05), (2.6, 2.6, 1.1)),  # a fragment over the counter (0.04 m²)
     ]
-    parts = [trimesh.creation.box(bounds=b) for b in boxes]
-    parts = [(np.asarray(b.vertices), np.asarray(b.faces)) for b in parts]
-    parts.append(_quad([(0, 0, 0), (X, 0, 0), (X, Y, 0), (0, Y, 0)], (0, 0, 1)))
-    parts.append(_quad([(0, Y, 0), (X, Y, 0), (X, Y, Z), (0, Y, Z)], (0, -1, 0)))
-    verts, tris = subdivided(parts)
-    c, _, _ = triangles(verts, tris)
-
-    def inside(b: tuple) -> np.ndarray:  # its faces off the floor and the wall
-        lo, hi = np.asarray(b[0]), np.asarray(b[1])
-        box = ((c >= lo - 1e-6) & (c <= hi + 1e-6)).all(axis=1)
-        return box & (c[:, 2] > 0.05) & (c[:, 1] < Y - 0.05)
-
+    floor = [[(0, 0, 0), (X, 0, 0), (X, Y, 0), (0, Y, 0)]]
+    verts, tris, inside = _boxes_before_a_wall(boxes, floor)
     seg = segment(verts, tris, SemanticsConfig())
     plant, cabinet, screen = inside(boxes[1]), inside(boxes[3]), inside(boxes[4])
     assert (seg.cls[plant] == OBJECT).all() and seg.resting_clusters == 1
@@ -562,25 +571,13 @@ def test_leaves_over_floor_no_view_saw_stand_on_it_a_box_over_seen_floor_hangs()
         ((2.0, 2.4, 0.0), (3.6, 3.0, 0.9)),  # counter
         ((2.0, 2.65, 1.5), (3.6, 3.0, 2.1)),  # wall cabinet
     ]
-    parts = [trimesh.creation.box(bounds=b) for b in boxes]
-    parts = [(np.asarray(b.vertices), np.asarray(b.faces)) for b in parts]
-    up = (0, 0, 1)
-    for q in (
+    floor = [  # round the hole
         [(0, 0, 0), (X, 0, 0), (X, y0, 0), (0, y0, 0)],
         [(0, y1, 0), (X, y1, 0), (X, Y, 0), (0, Y, 0)],
         [(0, y0, 0), (x0, y0, 0), (x0, y1, 0), (0, y1, 0)],
         [(x1, y0, 0), (X, y0, 0), (X, y1, 0), (x1, y1, 0)],
-    ):
-        parts.append(_quad(q, up))
-    parts.append(_quad([(0, Y, 0), (X, Y, 0), (X, Y, Z), (0, Y, Z)], (0, -1, 0)))
-    verts, tris = subdivided(parts)
-    c, _, _ = triangles(verts, tris)
-
-    def inside(b: tuple) -> np.ndarray:  # its faces off the floor and the wall
-        lo, hi = np.asarray(b[0]), np.asarray(b[1])
-        box = ((c >= lo - 1e-6) & (c <= hi + 1e-6)).all(axis=1)
-        return box & (c[:, 2] > 0.05) & (c[:, 1] < Y - 0.05)
-
+    ]
+    verts, tris, inside = _boxes_before_a_wall(boxes, floor)
     leaves, noise, cabinet = inside(boxes[0]), inside(boxes[1]), inside(boxes[3])
     on = segment(verts, tris, SemanticsConfig(objects=ObjectsConfig(hidden_stand=0.3)))
     assert (on.cls[leaves] == OBJECT).all() and on.hidden_stand_clusters == 1
