@@ -55,6 +55,11 @@ class StereoConfig:
     min_std: float = 0.02  # ... and this grey-level spread (0-1) in its window
     tol: float = 0.02  # relative depth within which other views confirm a reading
     agree: int = 2  # ... and this many of them must
+    edge_px: int = 0  # > 0: drop the readings within this many pixels of a reading 10 %
+    #                   farther: the near side of a depth edge, where a window over an
+    #                   object's edge matched the object and carried it out over what lies
+    #                   behind, and surfaces seen at a grazing angle (sweep.near_edge_dropped);
+    #                   0 = keep them (docs/figures.md#depth-stereo-edge-px)
     fuse: bool = True  # depth for fusion: the stereo (and plane) reading where there is one,
     #                    the field's render elsewhere; false: the field's render alone
 
@@ -76,6 +81,8 @@ class StereoConfig:
             )
         if not 0 < self.cell < float("inf"):
             raise BlunfError(f"depth.stereo.cell must be a finite number > 0, got {self.cell}")
+        if self.edge_px < 0:
+            raise BlunfError(f"depth.stereo.edge_px must be >= 0, got {self.edge_px}")
         if self.window < 3 or self.window % 2 == 0:
             raise BlunfError(f"depth.stereo.window must be odd and >= 3, got {self.window}")
         if not 0 < self.max_cost <= 2:
