@@ -58,8 +58,9 @@ class StereoConfig:
     edge_px: int = 0  # > 0: drop the readings within this many pixels of a reading 10 %
     #                   farther: the near side of a depth edge, where a window over an
     #                   object's edge matched the object and carried it out over what lies
-    #                   behind, and surfaces seen at a grazing angle (sweep.near_edge_dropped);
-    #                   0 = keep them (docs/figures.md#depth-stereo-edge-px)
+    #                   behind, and surfaces seen at a grazing angle (sweep.near_edge_dropped,
+    #                   after the plane fill); 0 = keep them (docs/figures.md#depth-stereo-
+    #                   edge-px)
     fuse: bool = True  # depth for fusion: the stereo (and plane) reading where there is one,
     #                    the field's render elsewhere; false: the field's render alone
 

@@ -40,7 +40,7 @@ from stages.depth.config import (
 )
 from stages.depth.field import fill as field_fill
 from stages.depth.render import upsample_depth
-from stages.depth.sweep import sweep_depths
+from stages.depth.sweep import near_edge_dropped, sweep_depths
 
 log = logging.getLogger(__name__)
 
@@ -107,6 +107,20 @@ def _run(cfg: DepthConfig, inputs: DepthInputs, out: Path, sweep: bool) -> Depth
             log.info("depth: %s", reason)
             parts["planes"] = _part(sources, time.process_time() - c0, ran=need)
 
+            # stereo's readings on the near side of a depth edge (depth.stereo.edge_px), here
+            # after the plane fill: its planes' offsets read every checked reading (without
+            # the oblique ones the honest room's walls moved 1-2 cm), and a reading carried
+            # out over a plane-filled floor is as much the near side of an edge
+            if cfg.stereo.edge_px > 0:
+                c0 = time.process_time()
+                depths, sources, dropped = _near_edges_dropped(depths, sources, cfg.stereo.edge_px)
+                facts["edge_dropped"] = round(dropped / max(1, sum(d.size for d in depths)), 4)
+                parts["edges"] = _part(sources, time.process_time() - c0)
+                log.info(
+                    "depth: %.1f %% of the pixels dropped beside depth edges",
+                    100 * facts["edge_dropped"],
+                )
+
         fill = _fill_needed(cfg.field, parts, sweep)
         facts["field_fill"] = fill
         log.info("depth: %s", fill)
@@ -158,6 +172,20 @@ def _load(cap: Capture) -> tuple[list[np.ndarray], list[np.ndarray]]:
         d = read_depth(f.depth, cap.depth_scale, cap.depth_invalid) if f.depth else None
         sparse.append(d if d is not None else np.zeros((h, w), np.float32))
     return images, sparse
+
+
+def _near_edges_dropped(
+    depths: list[np.ndarray], sources: list[np.ndarray], px: int
+) -> tuple[list[np.ndarray], list[np.ndarray], int]:
+    """(depths, sources, readings dropped): the stereo readings sweep.near_edge_dropped takes
+    (px pixels of a reading 10 % farther, stereo's or a plane's) removed; plane fills stay."""
+    out_d, out_s, dropped = [], [], 0
+    for d, s in zip(depths, sources, strict=True):
+        gone = (near_edge_dropped(d, px) == 0) & (d > 0) & (s == STEREO)
+        dropped += int(gone.sum())
+        out_d.append(np.where(gone, 0, d).astype(d.dtype))
+        out_s.append(np.where(gone, NONE, s).astype(s.dtype))
+    return out_d, out_s, dropped
 
 
 def _part(sources: list[np.ndarray], cpu: float, ran: bool = True) -> dict:

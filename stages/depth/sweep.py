@@ -94,10 +94,6 @@ def sweep_depths(
     checked, _ = consistent_depth(
         raw, [K for _, K in fine], poses, cfg.tol, cfg.agree, 10**6, 2 * cfg.views
     )
-    if cfg.edge_px > 0:
-        before = sum(int((c > 0).sum()) for c in checked)
-        checked = [near_edge_dropped(c, cfg.edge_px) for c in checked]
-        edge_dropped = before - sum(int((c > 0).sum()) for c in checked)
     facts = {
         "matched": round(matched / max(1, total), 4),
         "kept": round(sum(int((c > 0).sum()) for c in checked) / max(1, total), 4),
@@ -107,8 +103,6 @@ def sweep_depths(
         "planes_mean": round(float(np.mean(swept)), 2) if swept else 0.0,
         "views": cfg.views,
     }
-    if cfg.edge_px > 0:
-        facts["edge_dropped"] = round(edge_dropped / max(1, total), 4)
     return checked, facts
 
 

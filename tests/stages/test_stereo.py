@@ -379,10 +379,9 @@ def test_dropping_the_near_side_of_edges_leaves_fewer_fattened_readings(room, sw
     # the exact depth that read the nearer side's depth on the farther side (off by > 10 %)
     # are stereo's fattening. edge_px = 2 drops a share of them (those with a reading of the
     # farther surface beside them), and away from the edges leaves nearly every reading.
-    images, ks, poses, tracks, gt = room
+    *_, gt = room
     plain, _ = swept
-    cut, facts = sweep_depths(images, ks, poses, tracks, StereoConfig(edge_px=2))
-    assert facts["edge_dropped"] > 0
+    cut = [near_edge_dropped(d, 2) for d in plain]
     fat_plain = fat_cut = kept_calm = calm_n = 0
     for a, b, g in zip(plain, cut, gt, strict=True):
         far = ndimage.maximum_filter(g, size=7)
@@ -397,3 +396,45 @@ def test_dropping_the_near_side_of_edges_leaves_fewer_fattened_readings(room, sw
     # 6401 readings away from the edges kept (the rest beside a reading stereo put too far)
     assert fat_plain > 0 and fat_cut < 0.75 * fat_plain, (fat_plain, fat_cut)
     assert kept_calm >= 0.99 * calm_n, (kept_calm, calm_n)
+
+
+def test_the_stage_drops_stereo_beside_edges_after_the_plane_fill(tiny_room, tmp_path, room):
+    # depth.stereo.edge_px with the plane fill on: the fill reads every checked reading, so
+    # its fills are those of the run without edge_px; then stereo's readings beside an edge
+    # go (a subset of the run's readings, the share reported), the plane fills all stay
+    from stages.common.capture import Capture
+    from stages.common.io import read_json
+    from stages.depth import DepthConfig, DepthInputs
+    from stages.depth.config import FieldFillConfig
+    from stages.depth.planes import PlanesConfig
+    from stages.depth.stage import run_stereo
+
+    _tracks_frames(tiny_room, room[3], tmp_path)
+    got = {}
+    for px in (0, 2):
+        out = tmp_path / f"out{px}"
+        out.mkdir()
+        cfg = DepthConfig(
+            stereo=StereoConfig(edge_px=px),
+            field=FieldFillConfig(fill=False),
+            planes=PlanesConfig(below=1.0, max_dropped=1.0, width=96, superpixels=150),
+        )
+        outs = run_stereo(cfg, DepthInputs(tmp_path / "frames.json"), out)
+        frames = Capture.load(outs.frames).frames
+        got[px] = (
+            read_json(outs.stats),
+            [read_label(outs.sources / f"{f.stem}.png") for f in frames],
+            [np.load(f.depth) for f in frames],
+        )
+    (plain, s0, d0), (cut, s2, d2) = got[0], got[2]
+    assert "edge_dropped" not in plain and cut["edge_dropped"] > 0
+    assert cut["plane_fill"]["planes"] == plain["plane_fill"]["planes"]
+    stereo0 = sum(int((s == 1).sum()) for s in s0)
+    stereo2 = sum(int((s == 1).sum()) for s in s2)
+    assert 0 < stereo2 < stereo0
+    for a, b, da, db in zip(s0, s2, d0, d2, strict=True):
+        assert ((b == 1) <= (a == 1)).all()  # stereo only ever removed
+        assert ((a == 2) == (b == 2)).all() and (da[a == 2] == db[b == 2]).all()  # fills kept
+    n = sum(s.size for s in s0)
+    assert cut["edge_dropped"] == pytest.approx((stereo0 - stereo2) / n, abs=1e-4)
+    assert cut["parts"]["edges"]["coverage"] == cut["coverage"]["edges"]
