@@ -40,7 +40,7 @@ from stages.depth.config import (
 )
 from stages.depth.field import fill as field_fill
 from stages.depth.render import upsample_depth
-from stages.depth.sweep import near_edge_dropped, sweep_depths
+from stages.depth.sweep import near_edge, sweep_depths
 
 log = logging.getLogger(__name__)
 
@@ -177,11 +177,11 @@ def _load(cap: Capture) -> tuple[list[np.ndarray], list[np.ndarray]]:
 def _near_edges_dropped(
     depths: list[np.ndarray], sources: list[np.ndarray], px: int
 ) -> tuple[list[np.ndarray], list[np.ndarray], int]:
-    """(depths, sources, readings dropped): the stereo readings sweep.near_edge_dropped takes
-    (px pixels of a reading 10 % farther, stereo's or a plane's) removed; plane fills stay."""
+    """(depths, sources, readings dropped): the stereo readings on sweep.near_edge (px pixels
+    of a reading 10 % farther, stereo's or a plane's) removed; plane fills stay."""
     out_d, out_s, dropped = [], [], 0
     for d, s in zip(depths, sources, strict=True):
-        gone = (near_edge_dropped(d, px) == 0) & (d > 0) & (s == STEREO)
+        gone = near_edge(d, px) & (s == STEREO)
         dropped += int(gone.sum())
         out_d.append(np.where(gone, 0, d).astype(d.dtype))
         out_s.append(np.where(gone, NONE, s).astype(s.dtype))

@@ -109,9 +109,9 @@ def sweep_depths(
 EDGE_JUMP = 0.1  # a reading this share farther within edge_px pixels: an edge or a steep slope
 
 
-def near_edge_dropped(depth: np.ndarray, px: int) -> np.ndarray:
-    """depth [H, W] (0 = none) without the readings within px pixels (a square) of a reading
-    EDGE_JUMP farther than theirs. At a depth edge these are its near side, where a
+def near_edge(depth: np.ndarray, px: int) -> np.ndarray:
+    """bool [H, W]: the readings of depth [H, W] (0 = none) within px pixels (a square) of a
+    reading EDGE_JUMP farther than theirs. At a depth edge these are its near side, where a
     correlation window over the edge matched the nearer surface and carried it out over the
     farther one; on a surface seen so obliquely that its depth grows EDGE_JUMP in px pixels,
     a window spans a wide range of depths and matches none of them well. Kept, both put
@@ -120,7 +120,12 @@ def near_edge_dropped(depth: np.ndarray, px: int) -> np.ndarray:
     pixels, keeps the oblique readings: the 7-Scenes kitchen's plan from its photos then
     gained 0.2 where this gains 2.4, docs/figures.md#depth-stereo-edge-px.)"""
     far = ndimage.maximum_filter(depth, size=2 * px + 1, mode="nearest")
-    return np.where(far > depth * (1.0 + EDGE_JUMP), 0.0, depth).astype(depth.dtype)
+    return (depth > 0) & (far > depth * (1.0 + EDGE_JUMP))
+
+
+def near_edge_dropped(depth: np.ndarray, px: int) -> np.ndarray:
+    """depth [H, W] without its near_edge readings (0 there)."""
+    return np.where(near_edge(depth, px), 0.0, depth).astype(depth.dtype)
 
 
 def stereo_scale(cfg: StereoConfig, Ks: list[np.ndarray], z: np.ndarray) -> int:
