@@ -91,7 +91,9 @@ def _recipe(r: Runner, pub: Publication, capture: Path, cfg: Config, spec: EditS
     nerf = r.step(plan.get("nerf"), NerfInputs(frames=labelled))
     if nerf is None and depth is not None and (depth.field / "model.pt").is_file():
         nerf = NerfOutputs.at(depth.field)  # the depth step's field fill, when it trained
-    pts = r.step(plan.get("project"), ProjectInputs(frames=labelled, holdout=plan.heldout))
+    pts = r.step(
+        plan.get("project"), ProjectInputs(frames=labelled, holdout=plan.heldout, readings=read)
+    )
     gt = gt_files(cap)
     plans = {}
     for step in plan.all("blueprint"):

@@ -23,7 +23,7 @@ import numpy as np
 from scipy import ndimage
 
 from stages.common.blueprint import Grid
-from stages.common.camera import depth_at
+from stages.common.camera import Intrinsics, depth_at
 
 # cells between samples along a ray's plan projection (kitchen: 0.5 took 3x the time for 3
 # cells more inside, of 37 076)
@@ -80,6 +80,7 @@ def observed(
     view: np.ndarray,
     radius: float,
     ray_every: int,
+    read: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(near, free, distance): bool [H, W], bool [H, W] and point_distance on `grid`.
 
@@ -90,12 +91,18 @@ def observed(
         view: [N] the view of each point (index into cams).
         radius: metres: a cell is near when a point lies this close.
         ray_every: every ray_every-th point gives a free-space ray (0 = none).
+        read: bool [N] the points whose view read that far (points._read), or None for all:
+            only those give rays. Where the fused surface has a hole (no view read a plain
+            cabinet front), the depth runs through it to the wall behind; a ray there is no
+            sign that the space was looked through.
     """
     dist = point_distance(grid, xy)
     near = dist <= radius
     if ray_every <= 0 or len(xy) == 0:
         return near, np.zeros(grid.shape, bool), dist
     pick = np.arange(0, len(xy), ray_every)
+    if read is not None:  # the same rays less those not read (a new subsample would move
+        pick = pick[read[pick]]  # the rays everywhere: the sensor home's plan by 0.3)
     return near, ray_cells(grid, cams[view[pick]], xy[pick]), dist
 
 
@@ -134,17 +141,25 @@ def looked_past(grid: Grid, cells: np.ndarray, views: Iterable, height: float) -
     """How many views looked past the point `height` metres above the centre of each cell of
     `cells` (bool [H, W]): the point lies in the view's frame, in front of the camera, and the
     view's depth there reads farther than the point (by PAST_MARGIN cells + PAST_SLACK of its
-    distance: in the world's units, as the grid). uint16 [H, W], 0 off `cells`.
+    distance: in the world's units, as the grid), and so does its own reading when it has one.
+    uint16 [H, W], 0 off `cells`.
 
     Round the cameras' own path the floor lies below every frame, yet views across the room
     look past the space above it; an object's inside is never looked past, whether or not a
-    view saw its top. One view at a time, at most PAST_CHUNK cells at once: memory bounded
-    by the plan, time linear in the views.
+    view saw its top. The depth is the fused surface's, which is whole: where no view read
+    anything (a plain cabinet front stereo found no match on) the surface has a hole and its
+    depth is the wall or floor behind it. The view's own reading (the depth the fusion read,
+    at its own resolution) tells a hole from space looked through: it must read past the point
+    too, so a pixel it holds no reading at is no evidence (3-room photos home: the front of a
+    cabinet seen only from 0.6 m had 2-7 views "looking past" its inside, and took floor).
+    One view at a time, at most PAST_CHUNK cells at once: memory bounded by the plan, time
+    linear in the views.
 
     Args:
         grid: the plan grid.
         cells: bool [H, W] the cells to test.
-        views: (intrinsics, c2w [4, 4], depth [h, w] metres, 0 = no reading) per view.
+        views: (intrinsics, c2w [4, 4], depth [h, w] metres, 0 = no reading, and the view's
+            own reading or None: (depth [h', w'] metres, its intrinsics)) per view.
         height: metres above the floor (z = 0).
     """
     out = np.zeros(grid.shape, np.uint16)
@@ -155,13 +170,23 @@ def looked_past(grid: Grid, cells: np.ndarray, views: Iterable, height: float) -
     pts = np.concatenate([xy, np.full((len(r), 1), height)], 1)  # [K, 3]
     count = np.zeros(len(r), np.int64)
     margin = PAST_MARGIN * grid.cell
-    for intr, c2w, depth in views:
-        h, w = depth.shape
-        if (intr.width, intr.height) != (w, h):
-            intr = intr.scaled(w, h)
+    for intr, c2w, depth, reading in views:
         c2w = np.asarray(c2w, np.float64)
+        maps = [(depth, at_size(intr, depth))]
+        if reading is not None:
+            maps.append((reading[0], at_size(reading[1], reading[0])))
         for a in range(0, len(r), PAST_CHUNK):
-            d, z = depth_at(pts[a : a + PAST_CHUNK], depth, intr.K, c2w, intr.dist)
-            count[a : a + PAST_CHUNK] += (d > 0) & (d > z * (1 + PAST_SLACK) + margin)
+            p = pts[a : a + PAST_CHUNK]
+            ok = np.ones(len(p), bool)
+            for m, k in maps:
+                d, z = depth_at(p, m, k.K, c2w, k.dist)
+                ok &= (d > 0) & (d > z * (1 + PAST_SLACK) + margin)
+            count[a : a + PAST_CHUNK] += ok
     out[r, c] = np.minimum(count, np.iinfo(np.uint16).max)
     return out
+
+
+def at_size(intr: Intrinsics, depth: np.ndarray) -> Intrinsics:
+    """intr at the resolution of `depth` [h, w]."""
+    h, w = depth.shape
+    return intr if (intr.width, intr.height) == (w, h) else intr.scaled(w, h)

@@ -25,17 +25,19 @@ from pathlib import Path
 import numpy as np
 
 from stages.common.blueprint import Grid
-from stages.common.camera import Intrinsics, pixel_grid, unproject
+from stages.common.camera import Intrinsics, depth_at, pixel_grid, unproject
 from stages.common.capture import UNKNOWN, Capture, Frame, heldout_views
 from stages.common.classes import HEIGHT as HEIGHT_CLASSES
 from stages.common.errors import BlunfError
 from stages.common.io import image_size, read_depth, read_label, save_npz, write_json
 from stages.common.points import str_keys, write_grid, write_points
 from stages.project.config import ProjectConfig, ProjectInputs, ProjectOutputs
-from stages.project.observed import looked_past, observed, past_height, room_inside
+from stages.project.observed import at_size, looked_past, observed, past_height, room_inside
 from stages.project.topview import top_view_keep
 
 log = logging.getLogger(__name__)
+
+READ_SLACK = 0.1  # _read: a reading this share nearer than the point still reads to it
 
 
 def run(cfg: ProjectConfig, inputs: ProjectInputs, out: Path) -> ProjectOutputs:
@@ -108,14 +110,20 @@ def run(cfg: ProjectConfig, inputs: ProjectInputs, out: Path) -> ProjectOutputs:
     outs = ProjectOutputs.at(out)
     cams = np.array([np.asarray(f.pose, np.float64)[:3, 3] for f in cap.frames])[:, :2]
     world_xy = xyz[:, :2].astype(np.float64) + origin[:2]  # [N, 2]
-    near, free, dist = observed(grid, world_xy, cams, view, cfg.seen_radius, cfg.ray_every)
+    readings = Capture.load(inputs.readings) if inputs.readings else None
+    read = None
+    if readings is not None and cfg.free_read:
+        read = _read(cap, readings, xyz.astype(np.float64) + origin, view)
+        counts["points_read"] = int(read.sum())
+    near, free, dist = observed(grid, world_xy, cams, view, cfg.seen_radius, cfg.ray_every, read)
     inside = room_inside(near, free, round(cfg.inside_close / grid.cell))
     labelled = inside & (dist <= max(cfg.fill_radius, cfg.seen_radius))
     row, col, on = grid.cell_of(world_xy)
     empty = free.copy()  # free cells that hold no point: floor no view saw, or an object's
     empty[row[on], col[on]] = False  # inside; `past` tells them apart
     height = past_height(np.array([np.asarray(cap.frames[i].pose)[2, 3] for i in todo]))
-    past = looked_past(grid, empty, _views(cap, todo), height)
+    by = readings if cfg.free_read else None
+    past = looked_past(grid, empty, _views(cap, todo, by), height)
     save_npz(
         outs.observed,
         near=near.astype(np.uint8),
@@ -266,13 +274,44 @@ def _frame_points(
     return xyz, lab, inst
 
 
-def _views(cap: Capture, todo: list[int]):
-    """(intrinsics, c2w, depth metres) of the frames `todo`, one at a time."""
+def _views(cap: Capture, todo: list[int], readings: Capture | None = None):
+    """(intrinsics, c2w, depth metres, the view's reading in `readings` and its intrinsics,
+    or None) of the frames `todo`, one at a time."""
+    by = {f.stem: f for f in readings.frames} if readings is not None else {}
     for i in todo:
         f = cap.frames[i]
         assert f.depth is not None and f.pose is not None  # checked by _frame_points
         depth = read_depth(f.depth, cap.depth_scale, cap.depth_invalid)
-        yield f.intrinsics, np.asarray(f.pose, np.float64), depth
+        g = by.get(f.stem)
+        reading = None
+        if g is not None and g.depth is not None:
+            assert readings is not None
+            got = read_depth(g.depth, readings.depth_scale, readings.depth_invalid)
+            reading = (got, g.intrinsics)
+        yield f.intrinsics, np.asarray(f.pose, np.float64), depth, reading
+
+
+def _read(cap: Capture, readings: Capture, xyz: np.ndarray, view: np.ndarray) -> np.ndarray:
+    """Whether each point xyz [N, 3] (world) lies no farther from its view than that view's
+    own reading in `readings` at its pixel (within READ_SLACK): the view read that far along
+    the ray. False where the view has no reading there (a hole the fused surface closed or
+    ran through) or reads something nearer. bool [N]; the points grouped by view, as run()
+    gathers them."""
+    by = {f.stem: f for f in readings.frames}
+    out = np.zeros(len(xyz), bool)
+    bounds = np.flatnonzero(np.diff(view)) + 1
+    for a, b in zip(np.r_[0, bounds], np.r_[bounds, len(view)], strict=True):
+        if a == b:
+            continue
+        f = cap.frames[int(view[a])]
+        g = by.get(f.stem)
+        if g is None or g.depth is None:
+            continue
+        reading = read_depth(g.depth, readings.depth_scale, readings.depth_invalid)
+        intr = at_size(g.intrinsics, reading)
+        d, z = depth_at(xyz[a:b], reading, intr.K, np.asarray(f.pose, np.float64), intr.dist)
+        out[a:b] = (d > 0) & (d >= z * (1 - READ_SLACK))
+    return out
 
 
 def _local_origin(cap: Capture) -> np.ndarray:
