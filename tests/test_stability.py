@@ -245,12 +245,22 @@ def test_default_raycast_depth_survives_units(reference_raycast, room, tmp_path,
     64x48 room with 5 cm voxels MVR agrees with the sensor-depth plan on only ~50 % of the
     cells, so the sensor-depth reference would not do). Measured: 100 % at both scales."""
     cap = transformed(room, tmp_path / "cap", s, (0.0, 0.0, 0.0))
-    run_ok(cap, tmp_path / "run", *scaled_sets(s))  # fusion.raycast left on (the default)
+    report = run_ok(cap, tmp_path / "run", *scaled_sets(s))  # fusion.raycast on (the default)
+    # the free-space rays come from the points the capture's own depth reaches (read in its
+    # units): as many in every world, most of them (the ray-cast surface is the sensor's)
+    ref_report = json.loads((reference_raycast / "run" / "report.json").read_text())
+    read, read0 = (_project_facts(r)["points_read"] for r in (report, ref_report))
+    assert read0 > 0.8 * _project_facts(ref_report)["points"]
+    assert abs(read - read0) <= 0.005 * read0
     ref, mvr = read_through(reference_raycast / "run", tmp_path / "run", s, (0, 0, 0), "mvr")
     known = (ref.labels != UNKNOWN) | (mvr != UNKNOWN)
     agree = float((mvr == ref.labels)[known].mean())
     print(f"raycast on at s={s:g}: MVR agrees on {agree:.2%} of the known cells")
     assert agree >= 0.995
+
+
+def _project_facts(report: dict) -> dict:
+    return next(x for x in report["stages"] if x["name"] == "project")["facts"]
 
 
 PERIOD = 0.02  # metres: the plan cell (the plan grid sits at world multiples of it)
