@@ -81,16 +81,23 @@ def _scene():
     return poses, depths, xyz[keep], label[keep], view[keep]
 
 
-def test_the_floor_round_the_path_is_looked_past_and_the_cabinet_is_not(tmp_path) -> None:
-    poses, depths, xyz, label, view = _scene()
-    assert ((label == 6) & (xyz[:, 2] > CABINET[2] - 1e-3)).sum() <= 2  # its top: unseen
+def _observed(poses: list[np.ndarray], xyz: np.ndarray, view: np.ndarray):
+    """(grid, camera centres [C, 3], near, free, the free cells holding no point, the
+    height looked past) of the scene's points on a 0.1 m grid."""
     grid = Grid((0.0, 0.0), 0.1, (40, 60))
     cams = np.array([p[:3, 3] for p in poses])
     near, free, _ = observed(grid, xyz[:, :2], cams[:, :2], view, 0.15, 1)
     row, col, inside = grid.cell_of(xyz[:, :2])
     empty = free.copy()
     empty[row[inside], col[inside]] = False
-    height = past_height(cams[:, 2])
+    return grid, cams, near, free, empty, past_height(cams[:, 2])
+
+
+def test_the_floor_round_the_path_is_looked_past_and_the_cabinet_is_not(tmp_path) -> None:
+    poses, depths, xyz, label, view = _scene()
+    assert ((label == 6) & (xyz[:, 2] > CABINET[2] - 1e-3)).sum() <= 2  # its top: unseen
+    grid, cams, near, free, empty, height = _observed(poses, xyz, view)
+    row, col, inside = grid.cell_of(xyz[:, :2])
     assert height == 0.5 * CAM_Z
     views = [(INTR, c2w, d, None) for c2w, d in zip(poses, depths, strict=True)]
     past = looked_past(grid, empty, views, height)
@@ -130,13 +137,7 @@ def test_a_hole_in_the_surface_is_not_looked_through_where_the_view_read_nothing
     # on its front (stereo matched nothing there) and a half-size copy (the depth stage's
     # working size).
     poses, depths, xyz, label, view = _scene()
-    grid = Grid((0.0, 0.0), 0.1, (40, 60))
-    cams = np.array([p[:3, 3] for p in poses])
-    near, free, _ = observed(grid, xyz[:, :2], cams[:, :2], view, 0.15, 1)
-    row, col, inside = grid.cell_of(xyz[:, :2])
-    empty = free.copy()
-    empty[row[inside], col[inside]] = False
-    height = past_height(cams[:, 2])
+    grid, cams, near, free, empty, height = _observed(poses, xyz, view)
     holey = [_render(c2w, cabinet=False) for c2w in poses]
     read = []
     for whole, d in zip(holey, depths, strict=True):
