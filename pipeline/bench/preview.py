@@ -52,10 +52,6 @@ def timed(scene: Scene, pose, intr: Intrinsics, edits, fast: bool) -> tuple[Rend
     return r, time.perf_counter() - w0, time.process_time() - c0
 
 
-def at(intr: Intrinsics, size: tuple[int, int]) -> Intrinsics:
-    return intr if (intr.width, intr.height) == size else intr.scaled(*size)
-
-
 def bench(run: Path, spec: Path, views: list[int], repeats: int, quality: bool = True) -> dict:
     """Both paths' timings on the spec's views (and, with `quality`, their agreement)."""
     scene = Scene(run_files(run))
@@ -72,7 +68,7 @@ def bench(run: Path, spec: Path, views: list[int], repeats: int, quality: bool =
             pose, intr = scene.view(v)
             for _ in range(repeats):
                 for name, fast in (("volume", False), ("fast", True)):
-                    _, w, c = timed(scene, pose, at(intr, size), edits, fast)
+                    _, w, c = timed(scene, pose, intr.scaled(*size), edits, fast)
                     rows[name]["wall"].append(w)
                     rows[name]["cpu"].append(c)
         med = {p: {k: statistics.median(x) for k, x in d.items()} for p, d in rows.items()}
@@ -87,8 +83,8 @@ def bench(run: Path, spec: Path, views: list[int], repeats: int, quality: bool =
 
     def pair(v: int, eds) -> tuple[np.ndarray, np.ndarray, float]:
         pose, intr = scene.view(v)
-        vol = scene.render(pose, at(intr, size), eds).rgb
-        fst = scene.render(pose, at(intr, size), eds, fast=True)
+        vol = scene.render(pose, intr.scaled(*size), eds).rgb
+        fst = scene.render(pose, intr.scaled(*size), eds, fast=True)
         return vol, fst.rgb, fst.volume_rendered or 0.0
 
     unedited = []

@@ -40,7 +40,10 @@ class Intrinsics:
 
     def scaled(self, width: int, height: int) -> Intrinsics:
         """The same camera at another resolution. Pixel centres are integers here, so the
-        principal point scales about the image's corner at (-0.5, -0.5)."""
+        principal point scales about the image's corner at (-0.5, -0.5). At its own size,
+        itself (the round trip of cx through the corner would move it by a rounding)."""
+        if (width, height) == (self.width, self.height):
+            return self
         sx, sy = width / self.width, height / self.height
         cx, cy = (self.cx + 0.5) * sx - 0.5, (self.cy + 0.5) * sy - 0.5
         return Intrinsics(self.fx * sx, self.fy * sy, cx, cy, width, height, self.dist)

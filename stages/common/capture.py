@@ -18,7 +18,7 @@ from stages.common.camera import Intrinsics, check_pose
 from stages.common.checks import check_intrinsics, check_unique_stems
 from stages.common.classes import UNKNOWN as UNKNOWN  # (re-exported: its home is classes)
 from stages.common.errors import BlunfError
-from stages.common.io import read_json, write_json
+from stages.common.io import read_depth, read_json, write_json
 
 IMAGE_EXTS = (".jpg", ".jpeg", ".png")
 DEPTH_EXTS = (".png", ".npy")
@@ -376,6 +376,24 @@ def write_layout(cap: Capture, out: Path, with_poses: bool = True) -> Path:
         out.rmdir()
     tmp.rename(out)
     return out
+
+
+def readings_of(path: Path | None) -> Callable[[str], np.ndarray | None]:
+    """The depth reading (metres, [h, w]) of each view by its stem, from frames.json `path`
+    (the depth the fusion read); None for a view without one, or for every view without
+    `path`."""
+    if path is None:
+        return lambda stem: None
+    cap = Capture.load(path)
+    by = {f.stem: f for f in cap.frames}
+
+    def reading(stem: str) -> np.ndarray | None:
+        f = by.get(stem)
+        if f is None or f.depth is None:
+            return None
+        return read_depth(f.depth, cap.depth_scale, cap.depth_invalid)
+
+    return reading
 
 
 def heldout_views(n: int, every: int) -> list[int]:

@@ -58,7 +58,7 @@ class StereoConfig:
     edge_px: int = 0  # > 0: drop the readings within this many pixels of a reading 10 %
     #                   farther: the near side of a depth edge, where a window over an
     #                   object's edge matched the object and carried it out over what lies
-    #                   behind, and surfaces seen at a grazing angle (sweep.near_edge_dropped,
+    #                   behind, and surfaces seen at a grazing angle (sweep.near_edge,
     #                   after the plane fill); 0 = keep them (docs/figures.md#depth-stereo-
     #                   edge-px)
     fuse: bool = True  # depth for fusion: the stereo (and plane) reading where there is one,

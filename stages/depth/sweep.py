@@ -123,11 +123,6 @@ def near_edge(depth: np.ndarray, px: int) -> np.ndarray:
     return (depth > 0) & (far > depth * (1.0 + EDGE_JUMP))
 
 
-def near_edge_dropped(depth: np.ndarray, px: int) -> np.ndarray:
-    """depth [H, W] without its near_edge readings (0 there)."""
-    return np.where(near_edge(depth, px), 0.0, depth).astype(depth.dtype)
-
-
 def stereo_scale(cfg: StereoConfig, Ks: list[np.ndarray], z: np.ndarray) -> int:
     """The sweep's resolution divisor: `cfg.scale`, or (0, auto) the largest k at which one
     pixel at the median track depth `z` spans at most `cfg.cell` metres (the plan's cell: a

@@ -64,8 +64,8 @@ class ProjectInputs:
     frames: Path  # frames.json of a capture with poses and depth (Capture.save)
     holdout: bool = True  # hold views out for heldout_pacc (the planner: no GT plan to score)
     # frames.json whose depth the fusion read (the sensor's, or the depth stage's from photos):
-    # a view looked past the space over a cell only where its own reading reads past it too
-    # (observed.looked_past: a hole in the fused surface is not space looked through)
+    # with free_read, the free-space rays and the views looking past a cell go only where a
+    # view's own reading reaches (a hole in the fused surface is not space looked through)
     readings: Path | None = None
 
 

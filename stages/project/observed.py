@@ -23,7 +23,7 @@ import numpy as np
 from scipy import ndimage
 
 from stages.common.blueprint import Grid
-from stages.common.camera import Intrinsics, depth_at
+from stages.common.camera import depth_at
 
 # cells between samples along a ray's plan projection (kitchen: 0.5 took 3x the time for 3
 # cells more inside, of 37 076)
@@ -159,7 +159,7 @@ def looked_past(grid: Grid, cells: np.ndarray, views: Iterable, height: float) -
         grid: the plan grid.
         cells: bool [H, W] the cells to test.
         views: (intrinsics, c2w [4, 4], depth [h, w] metres, 0 = no reading, and the view's
-            own reading or None: (depth [h', w'] metres, its intrinsics)) per view.
+            own reading [h', w'] metres or None) per view.
         height: metres above the floor (z = 0).
     """
     out = np.zeros(grid.shape, np.uint16)
@@ -172,9 +172,7 @@ def looked_past(grid: Grid, cells: np.ndarray, views: Iterable, height: float) -
     margin = PAST_MARGIN * grid.cell
     for intr, c2w, depth, reading in views:
         c2w = np.asarray(c2w, np.float64)
-        maps = [(depth, at_size(intr, depth))]
-        if reading is not None:
-            maps.append((reading[0], at_size(reading[1], reading[0])))
+        maps = [(m, intr.scaled(m.shape[1], m.shape[0])) for m in (depth, reading) if m is not None]
         for a in range(0, len(r), PAST_CHUNK):
             p = pts[a : a + PAST_CHUNK]
             ok = np.ones(len(p), bool)
@@ -184,9 +182,3 @@ def looked_past(grid: Grid, cells: np.ndarray, views: Iterable, height: float) -
             count[a : a + PAST_CHUNK] += ok
     out[r, c] = np.minimum(count, np.iinfo(np.uint16).max)
     return out
-
-
-def at_size(intr: Intrinsics, depth: np.ndarray) -> Intrinsics:
-    """intr at the resolution of `depth` [h, w]."""
-    h, w = depth.shape
-    return intr if (intr.width, intr.height) == (w, h) else intr.scaled(w, h)

@@ -19,6 +19,7 @@ from __future__ import annotations
 import logging
 import os
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -26,13 +27,13 @@ import numpy as np
 
 from stages.common.blueprint import Grid
 from stages.common.camera import Intrinsics, depth_at, pixel_grid, unproject
-from stages.common.capture import UNKNOWN, Capture, Frame, heldout_views
+from stages.common.capture import UNKNOWN, Capture, Frame, heldout_views, readings_of
 from stages.common.classes import HEIGHT as HEIGHT_CLASSES
 from stages.common.errors import BlunfError
 from stages.common.io import image_size, read_depth, read_label, save_npz, write_json
 from stages.common.points import str_keys, write_grid, write_points
 from stages.project.config import ProjectConfig, ProjectInputs, ProjectOutputs
-from stages.project.observed import at_size, looked_past, observed, past_height, room_inside
+from stages.project.observed import looked_past, observed, past_height, room_inside
 from stages.project.topview import top_view_keep
 
 log = logging.getLogger(__name__)
@@ -110,10 +111,14 @@ def run(cfg: ProjectConfig, inputs: ProjectInputs, out: Path) -> ProjectOutputs:
     outs = ProjectOutputs.at(out)
     cams = np.array([np.asarray(f.pose, np.float64)[:3, 3] for f in cap.frames])[:, :2]
     world_xy = xyz[:, :2].astype(np.float64) + origin[:2]  # [N, 2]
-    readings = Capture.load(inputs.readings) if inputs.readings else None
+    # the views' own readings (free_read), read again view by view for `past` below: the
+    # rays decide which cells are empty, so the two passes cannot share one, and holding every
+    # reading between them would make memory grow with the views
+    with_readings = cfg.free_read and inputs.readings is not None
+    reading = readings_of(inputs.readings if with_readings else None)
     read = None
-    if readings is not None and cfg.free_read:
-        read = _read(cap, readings, xyz.astype(np.float64) + origin, view)
+    if with_readings:
+        read = _read(cap, reading, xyz.astype(np.float64) + origin, view)
         counts["points_read"] = int(read.sum())
     near, free, dist = observed(grid, world_xy, cams, view, cfg.seen_radius, cfg.ray_every, read)
     inside = room_inside(near, free, round(cfg.inside_close / grid.cell))
@@ -122,8 +127,7 @@ def run(cfg: ProjectConfig, inputs: ProjectInputs, out: Path) -> ProjectOutputs:
     empty = free.copy()  # free cells that hold no point: floor no view saw, or an object's
     empty[row[on], col[on]] = False  # inside; `past` tells them apart
     height = past_height(np.array([np.asarray(cap.frames[i].pose)[2, 3] for i in todo]))
-    by = readings if cfg.free_read else None
-    past = looked_past(grid, empty, _views(cap, todo, by), height)
+    past = looked_past(grid, empty, _views(cap, todo, reading), height)
     save_npz(
         outs.observed,
         near=near.astype(np.uint8),
@@ -264,9 +268,7 @@ def _frame_points(
             raise BlunfError(f"{f.instance}: negative instance ids")
     else:
         inst = np.zeros(len(lab), np.int64)
-    intr = f.intrinsics
-    if (intr.width, intr.height) != (w, h):
-        intr = intr.scaled(w, h)
+    intr = f.intrinsics.scaled(w, h)
     uvk = _undistort(uv[keep], intr) if any(intr.dist) else uv[keep]
     xyz = unproject(uvk, d[keep], intr.K, np.asarray(f.pose, np.float64), origin)
     if labelling == "height":
@@ -274,42 +276,35 @@ def _frame_points(
     return xyz, lab, inst
 
 
-def _views(cap: Capture, todo: list[int], readings: Capture | None = None):
-    """(intrinsics, c2w, depth metres, the view's reading in `readings` and its intrinsics,
-    or None) of the frames `todo`, one at a time."""
-    by = {f.stem: f for f in readings.frames} if readings is not None else {}
+def _views(cap: Capture, todo: list[int], reading: Callable[[str], np.ndarray | None]):
+    """(intrinsics, c2w, depth metres, the view's own reading or None: capture.readings_of)
+    of the frames `todo`, one at a time."""
     for i in todo:
         f = cap.frames[i]
         assert f.depth is not None and f.pose is not None  # checked by _frame_points
         depth = read_depth(f.depth, cap.depth_scale, cap.depth_invalid)
-        g = by.get(f.stem)
-        reading = None
-        if g is not None and g.depth is not None:
-            assert readings is not None
-            got = read_depth(g.depth, readings.depth_scale, readings.depth_invalid)
-            reading = (got, g.intrinsics)
-        yield f.intrinsics, np.asarray(f.pose, np.float64), depth, reading
+        yield f.intrinsics, np.asarray(f.pose, np.float64), depth, reading(f.stem)
 
 
-def _read(cap: Capture, readings: Capture, xyz: np.ndarray, view: np.ndarray) -> np.ndarray:
+def _read(
+    cap: Capture, reading: Callable[[str], np.ndarray | None], xyz: np.ndarray, view: np.ndarray
+) -> np.ndarray:
     """Whether each point xyz [N, 3] (world) lies no farther from its view than that view's
-    own reading in `readings` at its pixel (within READ_SLACK): the view read that far along
-    the ray. False where the view has no reading there (a hole the fused surface closed or
-    ran through) or reads something nearer. bool [N]; the points grouped by view, as run()
-    gathers them."""
-    by = {f.stem: f for f in readings.frames}
+    own reading (capture.readings_of; the same camera as the view's frame, at its own
+    resolution) at its pixel, within READ_SLACK: the view read that far along the ray. False
+    where the view has no reading there (a hole the fused surface closed or ran through) or
+    reads something nearer. bool [N]; the points grouped by view, as run() gathers them."""
     out = np.zeros(len(xyz), bool)
     bounds = np.flatnonzero(np.diff(view)) + 1
     for a, b in zip(np.r_[0, bounds], np.r_[bounds, len(view)], strict=True):
         if a == b:
             continue
         f = cap.frames[int(view[a])]
-        g = by.get(f.stem)
-        if g is None or g.depth is None:
+        got = reading(f.stem)
+        if got is None:
             continue
-        reading = read_depth(g.depth, readings.depth_scale, readings.depth_invalid)
-        intr = at_size(g.intrinsics, reading)
-        d, z = depth_at(xyz[a:b], reading, intr.K, np.asarray(f.pose, np.float64), intr.dist)
+        intr = f.intrinsics.scaled(got.shape[1], got.shape[0])
+        d, z = depth_at(xyz[a:b], got, intr.K, np.asarray(f.pose, np.float64), intr.dist)
         out[a:b] = (d > 0) & (d >= z * (1 - READ_SLACK))
     return out
 

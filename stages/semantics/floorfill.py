@@ -27,16 +27,12 @@ floor under it; the project stage's top view lets the counter top seen above it 
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
 from skimage.morphology import convex_hull_image
 
-from stages.common.capture import Capture
-from stages.common.io import read_depth
 from stages.semantics.segment import in_extent
 
 
@@ -187,21 +183,3 @@ def floor_past(
     ok &= np.abs(o[..., 2] + reading * d[..., 2] - floor_z) <= tol
     ok &= room.contains(o[..., :2] + t[..., None] * d[..., :2])
     return np.where(ok, t, 0.0).astype(np.float32)
-
-
-def readings_of(path: Path | None) -> Callable[[str], np.ndarray | None]:
-    """The depth reading (metres, [h, w]) of each view by its stem, from frames.json `path`
-    (the depth the fusion read); None for a view without one, or for every view without
-    `path`."""
-    if path is None:
-        return lambda stem: None
-    cap = Capture.load(path)
-    by = {f.stem: f for f in cap.frames}
-
-    def reading(stem: str) -> np.ndarray | None:
-        f = by.get(stem)
-        if f is None or f.depth is None:
-            return None
-        return read_depth(f.depth, cap.depth_scale, cap.depth_invalid)
-
-    return reading

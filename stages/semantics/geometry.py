@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
-from stages.common.capture import UNKNOWN, Capture, Frame
+from stages.common.capture import UNKNOWN, Capture, Frame, readings_of
 from stages.common.classes import (
     CEILING_NAME,
     FLOOR,
@@ -38,7 +38,7 @@ from stages.semantics.config import (
     SemanticsInputs,
     SemanticsOutputs,
 )
-from stages.semantics.floorfill import Footprint, Reach, floor_past, floor_through, readings_of
+from stages.semantics.floorfill import Footprint, Reach, floor_past, floor_through
 from stages.semantics.innerwalls import inner_walls
 from stages.semantics.pointwalls import (
     PointWallOptions,

@@ -8,7 +8,7 @@ import numpy as np
 from stages.blueprint.blunf import add_free_floor
 from stages.common.blueprint import Grid
 from stages.common.camera import Intrinsics, unproject
-from stages.common.capture import Capture, Frame
+from stages.common.capture import Capture, Frame, readings_of
 from stages.common.io import write_depth_npy
 from stages.project.observed import looked_past, observed, past_height
 from stages.project.points import _read
@@ -154,14 +154,14 @@ def test_a_hole_in_the_surface_is_not_looked_through_where_the_view_read_nothing
         grid, empty, [(INTR, c, d, None) for c, d in zip(poses, holey, strict=True)], height
     )
     assert (blind[empty & box] >= 2).mean() > 0.5  # through the hole: the case
-    views = [(INTR, c, d, (r, INTR)) for c, d, r in zip(poses, holey, read, strict=True)]
+    views = [(INTR, c, d, r) for c, d, r in zip(poses, holey, read, strict=True)]
     past = looked_past(grid, empty, views, height)
     assert not past[box].any()
     assert (past <= blind).all()
     # the floor round the path is still looked past, but by fewer views: those that saw the
     # cabinet's front behind it read nothing there (0.80 here; 0.85+ with whole readings)
     assert (past[empty & path] >= 2).mean() > 0.75
-    whole = [(INTR, c, d, (r, INTR)) for c, d, r in zip(poses, holey, depths, strict=True)]
+    whole = [(INTR, c, d, r) for c, d, r in zip(poses, holey, depths, strict=True)]
     assert (looked_past(grid, empty, whole, height)[empty & path] >= 2).mean() > 0.85
 
 
@@ -187,8 +187,8 @@ def test_rays_through_a_hole_in_the_surface_do_not_free_what_they_cross(tmp_path
         write_depth_npy(root / f"r{i}.npy", r[::2, ::2].astype(np.float32))  # half size
         surf.append(Frame(f"{i}", root / "x.png", INTR, root / f"s{i}.npy", None, c2w))
         read.append(Frame(f"{i}", root / "x.png", INTR, root / f"r{i}.npy", None, c2w))
-    cap, readings = Capture(root, tuple(surf)), Capture(root, tuple(read))
-    got = _read(cap, readings, xyz, view)
+    Capture(root, tuple(read)).save(tmp_path / "readings.json")
+    got = _read(Capture(root, tuple(surf)), readings_of(tmp_path / "readings.json"), xyz, view)
 
     grid = Grid((0.0, 0.0), 0.1, (40, 60))
     cams = np.array([p[:3, 3] for p in poses])[:, :2]

@@ -17,7 +17,7 @@ from stages.depth.sweep import (
     _window_inside,
     _window_stats,
     costs_for,
-    near_edge_dropped,
+    near_edge,
     plane_count,
     smallest_mean,
     sweep_depths,
@@ -350,7 +350,12 @@ def test_fewer_planes_from_the_disparity_still_match_the_exact_depth(room, swept
     assert np.median(e) < 0.015 and facts["kept"] > 0.7 * swept[1]["kept"], (facts, swept[1])
 
 
-def test_near_edge_dropped_takes_the_fattened_rim_and_keeps_a_gentle_slope():
+def _dropped(d: np.ndarray, px: int) -> np.ndarray:
+    """d without its near_edge readings (0 there), in d's dtype."""
+    return np.where(near_edge(d, px), 0.0, d)
+
+
+def test_near_edge_takes_the_fattened_rim_and_keeps_a_gentle_slope():
     # A box 1 m away before a wall 2 m away, read 2 px too wide all round (a correlation
     # window over the box's edge matched the box); below it a floor whose depth grows 2 % a
     # pixel, and below that one seen at a grazing angle, 8 % a pixel. The near side of the
@@ -360,7 +365,7 @@ def test_near_edge_dropped_takes_the_fattened_rim_and_keeps_a_gentle_slope():
     d[30:40] = 2.0 * 1.02 ** np.arange(10)[:, None]  # the gentle floor
     d[40:] = 3.0 * 1.08 ** np.arange(10)[:, None]  # the grazing floor
     d[10:20, 20:40] = 1.0  # the box as stereo read it, true extent [12:18, 22:38]
-    out = near_edge_dropped(d, 2)
+    out = _dropped(d, 2)
     assert out.dtype == d.dtype
     assert (out[10:20, 20:40][[0, 1, -2, -1]] == 0).all()  # its rim rows
     assert (out[10:20, 20:40][:, [0, 1, -2, -1]] == 0).all()  # its rim columns
@@ -371,7 +376,7 @@ def test_near_edge_dropped_takes_the_fattened_rim_and_keeps_a_gentle_slope():
     assert (out[~box] == d[~box]).all()  # the wall round the box
     assert (out[30:36] == d[30:36]).all()  # the gentle floor
     assert (out[40:48] == 0).all()  # the grazing floor (its last 2 rows: no pixel beyond)
-    assert (near_edge_dropped(np.where(box, 0, d), 2) == np.where(box, 0, d)).all()  # a hole
+    assert (_dropped(np.where(box, 0, d), 2) == np.where(box, 0, d)).all()  # a hole
 
 
 def test_dropping_the_near_side_of_edges_leaves_fewer_fattened_readings(room, swept):
@@ -381,7 +386,7 @@ def test_dropping_the_near_side_of_edges_leaves_fewer_fattened_readings(room, sw
     # farther surface beside them), and away from the edges leaves nearly every reading.
     *_, gt = room
     plain, _ = swept
-    cut = [near_edge_dropped(d, 2) for d in plain]
+    cut = [_dropped(d, 2) for d in plain]
     fat_plain = fat_cut = kept_calm = calm_n = 0
     for a, b, g in zip(plain, cut, gt, strict=True):
         far = ndimage.maximum_filter(g, size=7)
