@@ -84,6 +84,12 @@ class PlanesConfig:
     #                 office 66.1 -> 64.0; plane fills within 5 cm kitchen 47.4 -> 57.8 %,
     #                 office 77.7 -> 77.0 % (docs/depth.md#planes-hidden-behind-furniture)
     cell_points: int = 3  # inlier voxels a support cell needs (a stray track is not a table)
+    top_tile: float = 0.6  # metres, > 0: horizontal planes are also sought in square tiles of
+    #                 the floor this wide (hypotheses._local_tops): a table read at its rim
+    #                 only makes no peak among the whole room's points; 0: off
+    top_holes: float = 2.0  # m², > 0: a horizontal plane's support cells take in the holes
+    #                 of up to this area they enclose (a table top read at its rim only); 0:
+    #                 the cells its inliers fill alone
     normal_cos: float = 0.9  # a stereo point votes on an axis its normal is within ~25° of
     # per view (view.py)
     width: int = 320  # pixels: working width of the superpixels and the data term
@@ -144,6 +150,9 @@ class PlanesConfig:
         for k in pos:
             if not getattr(self, k) > 0:
                 raise BlunfError(f"depth.planes.{k} must be > 0, got {getattr(self, k)}")
+        for k in ("top_tile", "top_holes"):
+            if not 0.0 <= getattr(self, k) < float("inf"):
+                raise BlunfError(f"depth.planes.{k} must be a finite number >= 0, got {getattr(self, k)}")
         if not 0.0 <= self.support_cell < float("inf") or self.cell_points < 1:
             raise BlunfError(
                 "depth.planes.support_cell must be a finite number >= 0 and cell_points >= 1, "

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import binary_dilation, gaussian_filter1d, uniform_filter1d
 from scipy.signal import find_peaks
+from skimage.morphology import remove_small_holes
 
 from stages.common.camera import pixel_grid, unproject
 from stages.common.classes import CEILING_NAME, FLOOR_NAME, WALL_NAME
@@ -52,6 +53,13 @@ WALL_TOP = 2.4  # metres above the floor a wall reaches at least (walls_span)
 READ_WALL = 1.5  # m²: a vertical plane whose inliers fill this much of it (in support
 #                   cells) and reach READ_TOP above the floor is a wall stereo read: a wall's
 #                   foot seen beyond or before it is a mark or a piece of furniture
+# local tops (_local_tops): the floor is cut in square tiles of cfg.top_tile (and again half
+# a tile over), and a horizontal peak in one tile's own histogram, LOCAL_ABOVE or more above
+# the floor, holding LOCAL_SUPPORT voxels within band, is a top where the room's histogram
+# shows none within band (a table read at its rim on the flank of the walls' hump)
+LOCAL_ABOVE = 0.15  # metres
+LOCAL_SUPPORT = 40  # voxels (0.016 m² of 2 cm voxels: a 0.9 x 0.6 m table's rim read once)
+LOCAL_TOPS = 8  # at most this many local tops are kept ahead of the stronger planes
 READ_TOP = 1.2  # metres (the office's walls are read up to 1.4-2.2 m, behind its sofa too)
 # a surface turned off a wall axis (_turned): its points are sought this far (metres) either
 # side of a peak, its direction in steps of TURN_STEP degrees, and it must hold TURN_GAIN
@@ -74,8 +82,16 @@ class Cells:
     occupied: np.ndarray  # [nu, nv] bool
 
     @classmethod
-    def of(cls, normal: np.ndarray, points: np.ndarray, size: float, min_points: int) -> Cells:
-        """The cells of the plane through `points` (its inliers) holding >= min_points."""
+    def of(
+        cls,
+        normal: np.ndarray,
+        points: np.ndarray,
+        size: float,
+        min_points: int,
+        holes: float = 0.0,
+    ) -> Cells:
+        """The cells of the plane through `points` (its inliers) holding >= min_points, and
+        the holes of up to `holes` m² they enclose (a table top read at its rim only)."""
         n = np.asarray(normal, np.float64)
         ref = np.array([0.0, 0.0, 1.0]) if abs(n[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
         a = ref - (ref @ n) * n
@@ -87,7 +103,11 @@ class Cells:
         shape = tuple(ij.max(0) + 1) if len(ij) else (1, 1)
         count = np.zeros(shape, np.int64)
         np.add.at(count, (ij[:, 0], ij[:, 1]), 1)
-        return cls(axes, origin, float(size), count >= min_points)
+        occupied = count >= min_points
+        if holes > 0:
+            # scikit-image's remove_small_holes: 4-connected holes of at most this many cells
+            occupied = remove_small_holes(occupied, int(holes / size**2), connectivity=1)
+        return cls(axes, origin, float(size), occupied)
 
     def near(self, x: np.ndarray, margin: float) -> np.ndarray:
         """[N] whether points x [N, 3] (on or near the plane) lie within `margin` (metres,
@@ -231,18 +251,23 @@ def find_planes(
     axes = floor_axes(pts, nrm, room_axes(nrm), cfg)
     known = np.linalg.norm(nrm, axis=1) > 0.5
     found: list[Found] = []
+    tops: list[Found] = []  # the local tops (_local_tops), kept ahead of weaker planes
     for k, a in enumerate(axes):
         votes = ~known | (np.abs(nrm @ a) >= cfg.normal_cos)
         peaks = _axis_planes(pts, votes, a, cfg)
         if k and cfg.turned_deg > cfg.max_tilt_deg:
             peaks = _turned(pts, votes, peaks, a, axes[0], cfg)
-        for n, d, idx in peaks:
+        local = _local_tops(pts, votes, a, peaks, cfg) if k == 0 and cfg.top_tile > 0 else []
+        for j, (n, d, idx) in enumerate(peaks + local):
             inl = pts[idx]
             box = (np.percentile(inl, 2, 0), np.percentile(inl, 98, 0))
             cells = None
             if cfg.support_cell > 0:
-                cells = Cells.of(n, inl, cfg.support_cell, cfg.cell_points)
+                holes = cfg.top_holes if k == 0 else 0.0
+                cells = Cells.of(n, inl, cfg.support_cell, cfg.cell_points, holes)
             found.append((n, d, len(idx), *box, cells))
+            if j >= len(peaks):
+                tops.append(found[-1])
     # the floor: the lowest horizontal plane within FLOOR_SEARCH of z = 0 (the align stage's
     # floor can sit a few cm off where stereo read little of a plain floor)
     floor = [f for f in found if f[0][2] > 0.97 and abs(f[1]) <= FLOOR_SEARCH]
@@ -261,6 +286,10 @@ def find_planes(
         lo[2], hi[2] = best[3][2], best[4][2]
         best = (best[0], best[1], best[2], lo, hi, None)
     rest.sort(key=lambda f: -f[2])
+    # a local top (a table read at its rim) is kept ahead of the planes weaker than it is,
+    # up to LOCAL_TOPS of them: its support is small by nature, and the strongest planes
+    # that fill the cap are often a vertical slab of the floor's points across the room
+    lead = [f for f in rest if any(f is t for t in tops)][:LOCAL_TOPS]
     bounds = _bounding_walls(pts, axes, rest, box, cfg) if cfg.bounding_walls else []
     room = box
     if feet is not None:
@@ -279,7 +308,10 @@ def find_planes(
                 None,
             )
             bounds += walls
-    chosen = [best, *bounds, *rest[: cfg.max_planes - 1 - len(bounds)]]
+    room_for = max(0, cfg.max_planes - 1 - len(bounds) - len(lead))
+    others = [f for f in rest if not any(f is t for t in lead)][:room_for]
+    picked = sorted(lead + others, key=lambda f: -f[2])
+    chosen = [best, *bounds, *picked]
     planes = _kinds(chosen)
     if cfg.walls_span:
         # the outermost walls a foot or stereo's reading shows (a weak outermost plane may
@@ -509,6 +541,86 @@ def _axis_planes(
         if any(abs(d - d2) < cfg.band and n @ n2 > 0.999 for n2, d2, _ in out):
             continue  # the same plane from two neighbouring peaks
         out.append((n, d, sel[idx]))
+    return out
+
+
+def _local_tops(
+    pts: np.ndarray,
+    votes: np.ndarray,
+    up: np.ndarray,
+    peaks: list,
+    cfg: PlanesConfig,
+) -> list[tuple[np.ndarray, float, np.ndarray]]:
+    """Horizontal planes a tile of the floor shows and the room's histogram does not: the
+    peaks of each tile's own offset histogram (tiles of cfg.top_tile, two grids half a tile
+    apart), LOCAL_ABOVE over the floor, with LOCAL_SUPPORT voting voxels within band; peaks
+    within band of a room-wide one or of each other are one plane, refitted (within band and
+    max_tilt_deg of up) on its tiles' points alone, so that its cells stay where it was seen.
+
+    The room's histogram along up sums every voting point, and those whose normal is
+    unknown (sparse stereo: a reading without its four neighbours) spread over all heights
+    on the walls: a table read only at its rim lies on that hump's flank and makes no peak
+    of its own (the office's table at 0.50 m beside a peak at 0.54 m, its top then filled
+    with the floor's plane)."""
+    sel = np.flatnonzero(votes)
+    off = pts[sel] @ up
+    sel, off = sel[off >= LOCAL_ABOVE], off[off >= LOCAL_ABOVE]
+    if len(sel) < LOCAL_SUPPORT:
+        return []
+    side = np.array([1.0, 0.0, 0.0]) - up[0] * up
+    side /= max(float(np.linalg.norm(side)), 1e-12)
+    uv = pts[sel] @ np.stack([side, np.cross(up, side)]).T
+    lo = np.floor(off.min() / cfg.bin)
+    nb = int(np.ceil(off.max() / cfg.bin) - lo) + 1
+    b = (np.floor(off / cfg.bin) - lo).astype(np.int64)
+    height = LOCAL_SUPPORT / max(1.0, 2 * cfg.band / cfg.bin)
+    known = [d for _, d, _ in peaks]
+    groups: list[tuple[float, list[np.ndarray]]] = []  # (offset, the tiles' inlier indices)
+    for shift in (0.0, 0.5):
+        tile = np.floor(uv / cfg.top_tile + shift).astype(np.int64)
+        _, t_id = np.unique(tile, axis=0, return_inverse=True)
+        t_id = t_id.reshape(-1)
+        n_t = int(t_id.max()) + 1
+        hist = np.bincount(t_id * nb + b, minlength=n_t * nb).reshape(n_t, nb).astype(float)
+        sm = gaussian_filter1d(hist, cfg.smooth, axis=1)
+        for t in np.flatnonzero(hist.sum(1) >= LOCAL_SUPPORT):
+            found, _ = find_peaks(sm[t], height=height, distance=max(1, int(cfg.band / cfg.bin)))
+            for p in found:
+                d0 = (lo + p + 0.5) * cfg.bin
+                if any(abs(d0 - d) < cfg.band for d in known):
+                    continue
+                mine = (t_id == t) & (np.abs(off - d0) <= cfg.band)
+                if mine.sum() < LOCAL_SUPPORT:
+                    continue
+                g = next((g for g in groups if abs(g[0] - d0) < cfg.band), None)
+                if g is None:
+                    groups.append((d0, [np.flatnonzero(mine)]))
+                else:
+                    g[1].append(np.flatnonzero(mine))
+    out: list[tuple[np.ndarray, float, np.ndarray]] = []
+    for d0, parts in groups:
+        idx = sel[np.unique(np.concatenate(parts))]
+        q = pts[idx]
+        n, d = up, d0
+        cos_max = np.cos(np.radians(cfg.max_tilt_deg))
+        for _ in range(3):  # least squares on the tiles' points within band (as _refit)
+            inl = q[np.abs(q @ n - d) <= cfg.band]
+            if len(inl) < LOCAL_SUPPORT:
+                break
+            m = np.linalg.svd(inl - inl.mean(0), full_matrices=False)[2][-1]
+            m = m * np.sign(m @ up or 1.0)
+            n = m if m @ up >= cos_max else up
+            d = float(np.median(inl @ n))
+        keep = idx[np.abs(q @ n - d) <= cfg.band]
+        if len(keep) < LOCAL_SUPPORT or any(abs(d - e) < cfg.band for _, e, _ in out):
+            continue
+        out.append((n / np.linalg.norm(n), d, keep))
+    if out:
+        log.info(
+            "depth/planes: %d local tops at %s m",
+            len(out),
+            ", ".join(f"{d:.2f}" for _, d, _ in sorted(out, key=lambda o: o[1])),
+        )
     return out
 
 
