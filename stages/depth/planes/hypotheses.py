@@ -59,6 +59,7 @@ READ_WALL = 1.5  # m²: a vertical plane whose inliers fill this much of it (in 
 # shows none within band (a table read at its rim on the flank of the walls' hump)
 LOCAL_ABOVE = 0.15  # metres
 LOCAL_SUPPORT = 40  # voxels (0.016 m² of 2 cm voxels: a 0.9 x 0.6 m table's rim read once)
+LOCAL_SHARE = 0.1  # of the tile's voting voxels above LOCAL_ABOVE
 LOCAL_TOPS = 8  # at most this many local tops are kept ahead of the stronger planes
 READ_TOP = 1.2  # metres (the office's walls are read up to 1.4-2.2 m, behind its sofa too)
 # a surface turned off a wall axis (_turned): its points are sought this far (metres) either
@@ -106,7 +107,7 @@ class Cells:
         occupied = count >= min_points
         if holes > 0:
             # scikit-image's remove_small_holes: 4-connected holes of at most this many cells
-            occupied = remove_small_holes(occupied, int(holes / size**2), connectivity=1)
+            occupied = remove_small_holes(occupied, max_size=int(holes / size**2), connectivity=1)
         return cls(axes, origin, float(size), occupied)
 
     def near(self, x: np.ndarray, margin: float) -> np.ndarray:
@@ -553,15 +554,17 @@ def _local_tops(
 ) -> list[tuple[np.ndarray, float, np.ndarray]]:
     """Horizontal planes a tile of the floor shows and the room's histogram does not: the
     peaks of each tile's own offset histogram (tiles of cfg.top_tile, two grids half a tile
-    apart), LOCAL_ABOVE over the floor, with LOCAL_SUPPORT voting voxels within band; peaks
-    within band of a room-wide one or of each other are one plane, refitted (within band and
-    max_tilt_deg of up) on its tiles' points alone, so that its cells stay where it was seen.
+    apart) LOCAL_ABOVE over the floor, holding LOCAL_SUPPORT voting voxels and LOCAL_SHARE of
+    the tile's within band, each refitted (within band and max_tilt_deg of up) on its tile's
+    points alone so that its cells stay where it was seen; two at one height whose tiles
+    touch are one plane; none within band of a room-wide peak.
 
     The room's histogram along up sums every voting point, and those whose normal is
     unknown (sparse stereo: a reading without its four neighbours) spread over all heights
     on the walls: a table read only at its rim lies on that hump's flank and makes no peak
-    of its own (the office's table at 0.50 m beside a peak at 0.54 m, its top then filled
-    with the floor's plane)."""
+    of its own (the office's table at 0.46-0.50 m beside a peak at 0.54 m, its top then
+    filled with the floor's plane). In a tile beside a wall the same points give a flat
+    histogram whose bumps hold 2-4 % of the tile; the table's peak holds 40 % of its tile."""
     sel = np.flatnonzero(votes)
     off = pts[sel] @ up
     sel, off = sel[off >= LOCAL_ABOVE], off[off >= LOCAL_ABOVE]
@@ -575,7 +578,7 @@ def _local_tops(
     b = (np.floor(off / cfg.bin) - lo).astype(np.int64)
     height = LOCAL_SUPPORT / max(1.0, 2 * cfg.band / cfg.bin)
     known = [d for _, d, _ in peaks]
-    groups: list[tuple[float, list[np.ndarray]]] = []  # (offset, the tiles' inlier indices)
+    found: list[tuple[int, float, np.ndarray]] = []  # (support, offset, indices into sel)
     for shift in (0.0, 0.5):
         tile = np.floor(uv / cfg.top_tile + shift).astype(np.int64)
         _, t_id = np.unique(tile, axis=0, return_inverse=True)
@@ -583,27 +586,37 @@ def _local_tops(
         n_t = int(t_id.max()) + 1
         hist = np.bincount(t_id * nb + b, minlength=n_t * nb).reshape(n_t, nb).astype(float)
         sm = gaussian_filter1d(hist, cfg.smooth, axis=1)
-        for t in np.flatnonzero(hist.sum(1) >= LOCAL_SUPPORT):
-            found, _ = find_peaks(sm[t], height=height, distance=max(1, int(cfg.band / cfg.bin)))
-            for p in found:
+        total = hist.sum(1)
+        for t in np.flatnonzero(total >= LOCAL_SUPPORT):
+            tops, _ = find_peaks(sm[t], height=height, distance=max(1, int(cfg.band / cfg.bin)))
+            in_t = np.flatnonzero(t_id == t)
+            for p in tops:
                 d0 = (lo + p + 0.5) * cfg.bin
                 if any(abs(d0 - d) < cfg.band for d in known):
                     continue
-                mine = (t_id == t) & (np.abs(off - d0) <= cfg.band)
-                if mine.sum() < LOCAL_SUPPORT:
-                    continue
-                g = next((g for g in groups if abs(g[0] - d0) < cfg.band), None)
-                if g is None:
-                    groups.append((d0, [np.flatnonzero(mine)]))
-                else:
-                    g[1].append(np.flatnonzero(mine))
+                mine = in_t[np.abs(off[in_t] - d0) <= cfg.band]
+                if len(mine) >= max(LOCAL_SUPPORT, LOCAL_SHARE * total[t]):
+                    found.append((len(mine), d0, mine))
+    # strongest first; one at the height of a kept one whose points lie within a tile of
+    # its points joins it
+    kept: list[tuple[float, np.ndarray]] = []
+    for _, d0, mine in sorted(found, key=lambda f: -f[0]):
+        box = (uv[mine].min(0), uv[mine].max(0))
+        for j, (e, idx) in enumerate(kept):
+            near = np.all(uv[idx].min(0) <= box[1] + cfg.top_tile) and np.all(
+                uv[idx].max(0) >= box[0] - cfg.top_tile
+            )
+            if abs(d0 - e) < cfg.band and near:
+                kept[j] = (e, np.union1d(idx, mine))
+                break
+        else:
+            kept.append((d0, mine))
     out: list[tuple[np.ndarray, float, np.ndarray]] = []
-    for d0, parts in groups:
-        idx = sel[np.unique(np.concatenate(parts))]
-        q = pts[idx]
+    cos_max = np.cos(np.radians(cfg.max_tilt_deg))
+    for d0, idx in kept:
+        q = pts[sel[idx]]
         n, d = up, d0
-        cos_max = np.cos(np.radians(cfg.max_tilt_deg))
-        for _ in range(3):  # least squares on the tiles' points within band (as _refit)
+        for _ in range(3):  # least squares on the points within band (as _refit)
             inl = q[np.abs(q @ n - d) <= cfg.band]
             if len(inl) < LOCAL_SUPPORT:
                 break
@@ -611,10 +624,9 @@ def _local_tops(
             m = m * np.sign(m @ up or 1.0)
             n = m if m @ up >= cos_max else up
             d = float(np.median(inl @ n))
-        keep = idx[np.abs(q @ n - d) <= cfg.band]
-        if len(keep) < LOCAL_SUPPORT or any(abs(d - e) < cfg.band for _, e, _ in out):
-            continue
-        out.append((n / np.linalg.norm(n), d, keep))
+        keep = sel[idx][np.abs(q @ n - d) <= cfg.band]
+        if len(keep) >= LOCAL_SUPPORT:
+            out.append((n / np.linalg.norm(n), d, keep))
     if out:
         log.info(
             "depth/planes: %d local tops at %s m",
