@@ -303,31 +303,39 @@ def _ring(rng, n, z, lo, hi, width, noise):
     return p, np.zeros_like(p)  # normals unknown: sparse stereo at an edge
 
 
-def test_a_table_read_at_its_rim_gets_its_own_top_over_its_whole_top():
+@pytest.mark.parametrize("floor", [0.0, 0.25])
+def test_a_table_read_at_its_rim_gets_its_own_top_over_its_whole_top(floor):
     """A table read only at its rim (0.50 m, 1 cm noise), beside a sofa's noisier seat at
     0.55 m across the room: the room's histogram along up rises through 0.50 to the seat's
     peak and shows none at the table, so its top would take the floor's plane (the office).
-    The tiles of the floor find it; its support takes in the unread top the rim encloses."""
+    The tiles of the floor find it; its support takes in the unread top the rim encloses.
+    With the floor 0.25 m above the aligned z = 0 (the honest room's align stage), a few
+    points 6 cm under it (a reflection) make no top, and the floor is still the floor."""
     rng = np.random.default_rng(3)
     parts = [
+        _patch(rng, 100, 2, -0.06, (3.0, 3.0, 0), (3.4, 3.4, 0), (0, 0, 0)),  # under the floor
         _patch(rng, 30000, 2, 0.0, (0, 0, 0), (4, 4, 0), (0, 0, 1)),  # floor
         _patch(rng, 15000, 0, 0.0, (0, 0, 0), (0, 4, 2.5), (0, 0, 0)),  # walls, normals
         _patch(rng, 15000, 1, 4.0, (0, 4, 0), (4, 4, 2.5), (0, 0, 0)),  # unknown
         _patch(rng, 6000, 2, 0.55, (0.2, 0.2, 0), (3.8, 0.8, 0), (0, 0, 1)),  # sofa seat
         _ring(rng, 800, 0.50, (1.3, 1.9), (2.5, 2.8), 0.06, 0.01),  # table rim
     ]
-    parts[3][0][:, 2] = 0.55 + rng.normal(0, 0.015, len(parts[3][0]))
-    pts = np.concatenate([p for p, _ in parts])
+    parts[4][0][:, 2] = 0.55 + rng.normal(0, 0.015, len(parts[4][0]))
+    pts = np.concatenate([p for p, _ in parts]) + [0, 0, floor]
     nrm = np.concatenate([q for _, q in parts]).astype(np.float64)
     # the table's centre and rim, the middle of the room (no table there)
-    at = np.array([[1.9, 2.35, 0.5], [1.32, 2.35, 0.5], [3.0, 3.4, 0.5]])
-    cam = np.array([2.0, 1.5, 1.6])
+    at = np.array([[1.9, 2.35, 0.5], [1.32, 2.35, 0.5], [3.0, 3.4, 0.5]]) + [0, 0, floor]
+    cam = np.array([2.0, 1.5, 1.6 + floor])
     r = at - cam
     r /= -r[:, 2:]
 
     def table(cfg):
         planes = find_planes(pts, nrm, cfg)
-        k = [i for i, p in enumerate(planes) if p.kind == "top" and abs(p.offset - 0.50) < 0.02]
+        k = [
+            i
+            for i, p in enumerate(planes)
+            if p.kind == "top" and abs(p.offset - 0.50 - floor) < 0.02
+        ]
         if not k:
             return None, planes
         ok = plane_valid(plane_depth(r, cam, planes), r, cam, planes, (0.5, 0.15), None)
@@ -336,10 +344,12 @@ def test_a_table_read_at_its_rim_gets_its_own_top_over_its_whole_top():
     got, planes = table(PlanesConfig())
     assert got is not None, [(p.kind, round(p.offset, 3)) for p in planes]
     top, valid = got
-    assert abs(top.offset - 0.50) < 0.005 and np.degrees(np.arccos(top.normal[2])) < 1
+    assert planes[0].kind == "floor" and abs(planes[0].offset - floor) < 0.005
+    assert not any(p.offset < floor - 0.01 for p in planes if abs(p.normal[2]) > 0.9)
+    assert abs(top.offset - 0.50 - floor) < 0.005 and np.degrees(np.arccos(top.normal[2])) < 1
     assert valid == [True, True, False]  # the unread centre too; not the room's middle
     assert top.hi[0] < 2.6 and top.lo[0] > 1.2  # its inliers are the table's alone
-    assert any(p.kind == "top" and abs(p.offset - 0.55) < 0.01 for p in planes)  # the seat
+    assert any(p.kind == "top" and abs(p.offset - 0.55 - floor) < 0.01 for p in planes)  # seat
     # without the tiles the room's histogram has no peak at the table
     assert table(PlanesConfig(top_tile=0))[0] is None
     # and without the holes taken in, only the rim (and 0.15 m into the top) is a top

@@ -59,7 +59,7 @@ READ_WALL = 1.5  # m²: a vertical plane whose inliers fill this much of it (in 
 # shows none within band (a table read at its rim on the flank of the walls' hump)
 LOCAL_ABOVE = 0.15  # metres
 LOCAL_SUPPORT = 40  # voxels (0.016 m² of 2 cm voxels: a 0.9 x 0.6 m table's rim read once)
-LOCAL_SHARE = 0.1  # of the tile's voting voxels above LOCAL_ABOVE
+LOCAL_SHARE = 0.05  # of the tile's voting voxels above LOCAL_ABOVE (office plan 72.7 at 0.1)
 LOCAL_TOPS = 8  # at most this many local tops are kept ahead of the stronger planes
 READ_TOP = 1.2  # metres (the office's walls are read up to 1.4-2.2 m, behind its sofa too)
 # a surface turned off a wall axis (_turned): its points are sought this far (metres) either
@@ -271,7 +271,11 @@ def find_planes(
                 tops.append(found[-1])
     # the floor: the lowest horizontal plane within FLOOR_SEARCH of z = 0 (the align stage's
     # floor can sit a few cm off where stereo read little of a plain floor)
-    floor = [f for f in found if f[0][2] > 0.97 and abs(f[1]) <= FLOOR_SEARCH]
+    floor = [
+        f
+        for f in found
+        if f[0][2] > 0.97 and abs(f[1]) <= FLOOR_SEARCH and not any(f is t for t in tops)
+    ]
     best = min(floor, key=lambda f: f[1]) if floor else None
     rest = [f for f in found if f is not best]
     # the floor spans the room (every point's box across), even where no point shows it
@@ -565,19 +569,22 @@ def _local_tops(
     of its own (the office's table at 0.46-0.50 m beside a peak at 0.54 m, its top then
     filled with the floor's plane). In a tile beside a wall the same points give a flat
     histogram whose bumps hold 2-4 % of the tile; the table's peak holds 40 % of its tile."""
+    known = [d for _, d, _ in peaks]
+    # above the floor: the lowest peak within FLOOR_SEARCH of z = 0, as find_planes takes it
+    base = min((d for d in known if abs(d) <= FLOOR_SEARCH), default=0.0)
     sel = np.flatnonzero(votes)
     off = pts[sel] @ up
-    sel, off = sel[off >= LOCAL_ABOVE], off[off >= LOCAL_ABOVE]
+    high = off >= base + LOCAL_ABOVE
+    sel, off = sel[high], off[high]
     if len(sel) < LOCAL_SUPPORT:
         return []
     side = np.array([1.0, 0.0, 0.0]) - up[0] * up
     side /= max(float(np.linalg.norm(side)), 1e-12)
     uv = pts[sel] @ np.stack([side, np.cross(up, side)]).T
-    lo = np.floor(off.min() / cfg.bin)
-    nb = int(np.ceil(off.max() / cfg.bin) - lo) + 1
+    lo = np.floor(off.min() / cfg.bin) - 3  # margins: a peak at either end is a peak
+    nb = int(np.ceil(off.max() / cfg.bin) - lo) + 4
     b = (np.floor(off / cfg.bin) - lo).astype(np.int64)
     height = LOCAL_SUPPORT / max(1.0, 2 * cfg.band / cfg.bin)
-    known = [d for _, d, _ in peaks]
     found: list[tuple[int, float, np.ndarray]] = []  # (support, offset, indices into sel)
     for shift in (0.0, 0.5):
         tile = np.floor(uv / cfg.top_tile + shift).astype(np.int64)
