@@ -9,7 +9,10 @@ smoothed peaks are planes (Furukawa et al., "Manhattan-world stereo", 2009). Eac
 refitted on its inliers within ±`band` and ±`max_tilt_deg`, and spans the box of its
 inliers; with `support_cell` a top also keeps the cells of its plane its inliers fill
 (`Cells`): a table top's inliers and a cushion's across the room share a height, and their
-box spans the room between them. A surface turned a few degrees about up off a wall axis
+box spans the room between them. A table read at its rim alone makes no peak among the
+whole room's points (the walls' readings of unknown normal spread over every height): the
+floor's tiles find it by their own histograms (`_local_tops`), and a top's cells take in
+the holes of up to `top_holes` they enclose. A surface turned a few degrees about up off a wall axis
 (a whiteboard on its stand) gets its own plane by a Hough vote over the turns near each
 peak (`_turned`). The floor (the lowest horizontal plane within
 FLOOR_SEARCH of z = 0, else z = 0 itself) is always a hypothesis. Surfaces off the axes (a
