@@ -12,9 +12,9 @@ inliers; with `support_cell` a top also keeps the cells of its plane its inliers
 box spans the room between them. A table read at its rim alone makes no peak among the
 whole room's points (the walls' readings of unknown normal spread over every height): the
 floor's tiles find it by their own histograms (`_local_tops`), and a top's cells take in
-the holes of up to `top_holes` they enclose. A surface turned a few degrees about up off a wall axis
-(a whiteboard on its stand) gets its own plane by a Hough vote over the turns near each
-peak (`_turned`). The floor (the lowest horizontal plane within
+the holes of up to `top_holes` they enclose. A surface turned a few degrees about up off a
+wall axis (a whiteboard on its stand) gets its own plane by a Hough vote over the turns near
+each peak (`_turned`). The floor (the lowest horizontal plane within
 FLOOR_SEARCH of z = 0, else z = 0 itself) is always a hypothesis. Surfaces off the axes (a
 sofa's leaning back) get planes of their own by RANSAC among the points the axes' planes
 leave (`free_planes`). Plain walls, which no point shows, come from their feet on the floor
@@ -597,9 +597,11 @@ def _local_tops(
         hist = np.bincount(t_id * nb + b, minlength=n_t * nb).reshape(n_t, nb).astype(float)
         sm = gaussian_filter1d(hist, cfg.smooth, axis=1)
         total = hist.sum(1)
+        order = np.argsort(t_id, kind="stable")  # the points of tile t: members[t]
+        members = np.split(order, np.cumsum(np.bincount(t_id, minlength=n_t))[:-1])
         for t in np.flatnonzero(total >= LOCAL_SUPPORT):
             tops, _ = find_peaks(sm[t], height=height, distance=max(1, int(cfg.band / cfg.bin)))
-            in_t = np.flatnonzero(t_id == t)
+            in_t = members[t]
             for p in tops:
                 d0 = (lo + p + 0.5) * cfg.bin
                 if any(abs(d0 - d) < cfg.band for d in known):
