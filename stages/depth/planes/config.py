@@ -96,6 +96,8 @@ class PlanesConfig:
     #                 of up to this area they enclose (a table top read at its rim only); 0:
     #                 the cells its inliers fill alone. 0 -> 2 with the tiles: office 71.84 ->
     #                 73.67; without the tiles 64.56 either way (docs/depth.md#local-tops)
+    top_grow: float = 0.0  # metres, > 0: a top's cells grow this far into cells where nothing
+    #                 was read below it (a sofa's unread seat)
     normal_cos: float = 0.9  # a stereo point votes on an axis its normal is within ~25° of
     # per view (view.py)
     width: int = 320  # pixels: working width of the superpixels and the data term

@@ -321,6 +321,8 @@ def find_planes(
     picked = sorted(lead + others, key=lambda f: -f[2])
     chosen = [best, *bounds, *picked]
     planes = _kinds(chosen)
+    if cfg.top_grow > 0:
+        planes = [_grown(p, pts, best[1], cfg) if p.kind == "top" and p.cells is not None else p for p in planes]
     if cfg.walls_span:
         # the outermost walls a foot or stereo's reading shows (a weak outermost plane may
         # be furniture: spanning those without the feet, the honest procedural room's plane
@@ -329,6 +331,27 @@ def find_planes(
         shown = {k for k in _outer(chosen) if chosen[k][2] == 0 or _read(chosen[k], base)}
         planes = [_spanning(p, room, up, base) if k in shown else p for k, p in enumerate(planes)]
     return planes + free_planes(pts, nrm, planes, axes, cfg)
+
+
+def _grown(p: Plane, pts: np.ndarray, floor: float, cfg: PlanesConfig) -> Plane:
+    """A top whose support cells grow, up to cfg.top_grow, into the cells where nothing was
+    read below it (a sofa's seat whose back half stereo never read)."""
+    c = p.cells
+    reach = int(np.ceil(cfg.top_grow / c.size))
+    occ = np.pad(c.occupied, reach)
+    origin = c.origin - reach * c.size
+    h = pts @ p.normal  # height along the top's normal
+    low = pts[(h < p.offset - cfg.band) & (h > floor + cfg.band)]
+    floor_pts = pts[np.abs(h - floor) <= cfg.band]
+    blocked = np.zeros(occ.shape, bool)
+    for q in (low, floor_pts):
+        ij = np.floor((q @ c.axes.T - origin) / c.size).astype(np.int64)
+        ok = (ij >= 0).all(1) & (ij[:, 0] < occ.shape[0]) & (ij[:, 1] < occ.shape[1])
+        cnt = np.zeros(occ.shape, np.int64)
+        np.add.at(cnt, (ij[ok, 0], ij[ok, 1]), 1)
+        blocked |= cnt >= cfg.cell_points
+    grown = binary_dilation(occ, iterations=reach, mask=~blocked | occ)
+    return Plane(p.normal, p.offset, p.kind, p.lo, p.hi, p.support, Cells(c.axes, origin, c.size, grown))
 
 
 def _outer(found: list) -> set[int]:
