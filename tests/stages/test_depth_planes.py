@@ -359,6 +359,42 @@ def test_a_table_read_at_its_rim_gets_its_own_top_over_its_whole_top(floor):
             PlanesConfig(**{k: -1.0})
 
 
+def test_a_seat_read_at_its_front_edge_reaches_over_what_was_not_read_under_it():
+    """A sofa's seat (0.3 m) against the wall y = 4, read along its front edge alone; under
+    its unread back nothing was read, the floor round it was. The seat's support grows over
+    the unread part (the floor's plane filled it, and the plan drew floor through the sofa),
+    not over the read floor in front of it, nor past top_grow."""
+    rng = np.random.default_rng(4)
+    floor, _ = _patch(rng, 40000, 2, 0.0, (0, 0, 0), (4, 4, 0), (0, 0, 1))
+    under_sofa = (floor[:, 0] > 0.5) & (floor[:, 0] < 2.5) & (floor[:, 1] > 3.0)
+    parts = [
+        (floor[~under_sofa], np.tile((0.0, 0.0, 1.0), ((~under_sofa).sum(), 1))),
+        _patch(rng, 15000, 0, 0.0, (0, 0, 0), (0, 4, 2.5), (1, 0, 0)),  # wall x = 0
+        _patch(rng, 15000, 1, 4.0, (0, 4, 0), (4, 4, 2.5), (0, -1, 0)),  # wall y = 4
+        _patch(rng, 1500, 2, 0.3, (0.5, 3.0, 0), (2.5, 3.25, 0), (0, 0, 1)),  # seat's edge
+    ]
+    pts = np.concatenate([p for p, _ in parts])
+    nrm = np.concatenate([q for _, q in parts]).astype(np.float64)
+    # on the seat's unread back; over the read floor 0.4 m before it; past top_grow
+    at = np.array([[1.5, 3.75, 0.3], [1.5, 2.6, 0.3], [1.5, 3.9, 0.3]])
+    cam = np.array([1.5, 1.0, 1.6])
+    r = at - cam
+    r /= -r[:, 2:]
+
+    def seat(cfg):
+        planes = find_planes(pts, nrm, cfg)
+        k = [i for i, p in enumerate(planes) if p.kind == "top" and abs(p.offset - 0.3) < 0.01]
+        assert len(k) == 1, [(p.kind, round(p.offset, 3)) for p in planes]
+        ok = plane_valid(plane_depth(r, cam, planes), r, cam, planes, (0.5, 0.15), None)
+        return ok[k[0]].tolist()
+
+    assert seat(PlanesConfig(top_grow=0.6))[:2] == [True, False]
+    assert seat(PlanesConfig(top_grow=0.3))[2] is False  # 0.65 m past the read edge
+    assert seat(PlanesConfig(top_grow=0))[0] is False
+    with pytest.raises(BlunfError, match="top_grow"):
+        PlanesConfig(top_grow=-1.0)
+
+
 @pytest.fixture(scope="module")
 def plain_room(tmp_path_factory):
     from stages.synth import make_room

@@ -158,7 +158,7 @@ class PlanesConfig:
         for k in pos:
             if not getattr(self, k) > 0:
                 raise BlunfError(f"depth.planes.{k} must be > 0, got {getattr(self, k)}")
-        for k in ("top_tile", "top_holes"):
+        for k in ("top_tile", "top_holes", "top_grow"):
             if not 0.0 <= getattr(self, k) < float("inf"):
                 raise BlunfError(
                     f"depth.planes.{k} must be a finite number >= 0, got {getattr(self, k)}"

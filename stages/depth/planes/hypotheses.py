@@ -322,7 +322,10 @@ def find_planes(
     chosen = [best, *bounds, *picked]
     planes = _kinds(chosen)
     if cfg.top_grow > 0:
-        planes = [_grown(p, pts, best[1], cfg) if p.kind == "top" and p.cells is not None else p for p in planes]
+        planes = [
+            _grown(p, pts, best[1], cfg) if p.kind == "top" and p.cells is not None else p
+            for p in planes
+        ]
     if cfg.walls_span:
         # the outermost walls a foot or stereo's reading shows (a weak outermost plane may
         # be furniture: spanning those without the feet, the honest procedural room's plane
@@ -334,24 +337,38 @@ def find_planes(
 
 
 def _grown(p: Plane, pts: np.ndarray, floor: float, cfg: PlanesConfig) -> Plane:
-    """A top whose support cells grow, up to cfg.top_grow, into the cells where nothing was
-    read below it (a sofa's seat whose back half stereo never read)."""
+    """The top with its support cells grown, up to cfg.top_grow, into the cells of its
+    plane over which no point was read on the floor or between the floor and it (band
+    clear of each), and its box grown to hold them: a surface whose unread part nothing
+    seen under it contradicts (the office's sofa seat, read along its front edge only: the
+    floor's plane filled the rest, and the plan drew floor through the sofa).
+
+    A cell over read floor stops the growth, so a top does not spread over the open floor
+    around it; cells nothing was read in at all, beyond the walls among them, do not, but
+    no view's ray reaches a top's point there before the wall's."""
     c = p.cells
+    if c is None:
+        return p
     reach = int(np.ceil(cfg.top_grow / c.size))
     occ = np.pad(c.occupied, reach)
     origin = c.origin - reach * c.size
-    h = pts @ p.normal  # height along the top's normal
-    low = pts[(h < p.offset - cfg.band) & (h > floor + cfg.band)]
-    floor_pts = pts[np.abs(h - floor) <= cfg.band]
-    blocked = np.zeros(occ.shape, bool)
-    for q in (low, floor_pts):
-        ij = np.floor((q @ c.axes.T - origin) / c.size).astype(np.int64)
-        ok = (ij >= 0).all(1) & (ij[:, 0] < occ.shape[0]) & (ij[:, 1] < occ.shape[1])
-        cnt = np.zeros(occ.shape, np.int64)
-        np.add.at(cnt, (ij[ok, 0], ij[ok, 1]), 1)
-        blocked |= cnt >= cfg.cell_points
-    grown = binary_dilation(occ, iterations=reach, mask=~blocked | occ)
-    return Plane(p.normal, p.offset, p.kind, p.lo, p.hi, p.support, Cells(c.axes, origin, c.size, grown))
+    h = pts @ p.normal - floor  # above the floor, along the top's normal
+    under = pts[h < p.offset - floor - cfg.band]  # the floor and what stands below the top
+    ij = np.floor((under @ c.axes.T - origin) / c.size).astype(np.int64)
+    ok = (ij >= 0).all(1) & (ij[:, 0] < occ.shape[0]) & (ij[:, 1] < occ.shape[1])
+    count = np.zeros(occ.shape, np.int64)
+    np.add.at(count, (ij[ok, 0], ij[ok, 1]), 1)
+    grown = binary_dilation(occ, iterations=reach, mask=(count < cfg.cell_points) | occ)
+    # the box takes in the new cells' centres (on the plane)
+    i, j = np.nonzero(grown & ~occ)
+    lo, hi = p.lo.copy(), p.hi.copy()
+    if len(i):
+        uv = origin + (np.stack([i, j], 1) + 0.5) * c.size
+        x = uv @ c.axes + p.offset * p.normal
+        lo[:2] = np.minimum(lo[:2], x[:, :2].min(0))
+        hi[:2] = np.maximum(hi[:2], x[:, :2].max(0))
+    cells = Cells(c.axes, origin, c.size, grown)
+    return Plane(p.normal, p.offset, p.kind, lo, hi, p.support, cells)
 
 
 def _outer(found: list) -> set[int]:
