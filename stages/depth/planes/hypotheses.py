@@ -14,9 +14,9 @@ whole room's points (the walls' readings of unknown normal spread over every hei
 floor's tiles find it by their own histograms (`_local_tops`), and a top's cells take in
 the holes of up to `top_holes` they enclose, then grow up to `top_grow` over the cells
 nothing was read under (`_grown`: a seat read at its front edge). A surface turned a few
-degrees about up off a wall axis (a whiteboard on its stand) gets its own plane by a Hough vote over the turns near
-each peak (`_turned`). The floor (the lowest horizontal plane within
-FLOOR_SEARCH of z = 0, else z = 0 itself) is always a hypothesis. Surfaces off the axes (a
+degrees about up off a wall axis (a whiteboard on its stand) gets its own plane by a Hough
+vote over the turns near each peak (`_turned`). The floor (the lowest horizontal plane
+within FLOOR_SEARCH of z = 0, else z = 0 itself) is always a hypothesis. Surfaces off the axes (a
 sofa's leaning back) get planes of their own by RANSAC among the points the axes' planes
 leave (`free_planes`). Plain walls, which no point shows, come from their feet on the floor
 in the photos (`bases`, through `find_planes`'s `feet`); the outermost walls a foot or
