@@ -665,21 +665,10 @@ def _local_tops(
         else:
             kept.append((d0, mine))
     out: list[tuple[np.ndarray, float, np.ndarray]] = []
-    cos_max = np.cos(np.radians(cfg.max_tilt_deg))
     for d0, idx in kept:
-        q = pts[sel[idx]]
-        n, d = up, d0
-        for _ in range(3):  # least squares on the points within band (as _refit)
-            inl = q[np.abs(q @ n - d) <= cfg.band]
-            if len(inl) < LOCAL_SUPPORT:
-                break
-            m = np.linalg.svd(inl - inl.mean(0), full_matrices=False)[2][-1]
-            m = m * np.sign(m @ up or 1.0)
-            n = m if m @ up >= cos_max else up
-            d = float(np.median(inl @ n))
-        keep = sel[idx][np.abs(q @ n - d) <= cfg.band]
-        if len(keep) >= LOCAL_SUPPORT:
-            out.append((n / np.linalg.norm(n), d, keep))
+        fit = _refit(pts[sel[idx]], up, d0, cfg, LOCAL_SUPPORT)
+        if fit is not None:
+            out.append((fit[0], fit[1], sel[idx][fit[2]]))
     if out:
         log.info(
             "depth/planes: %d local tops at %s m",
@@ -772,15 +761,17 @@ def _turned(
 
 
 def _refit(
-    pts: np.ndarray, axis: np.ndarray, d0: float, cfg: PlanesConfig
+    pts: np.ndarray, axis: np.ndarray, d0: float, cfg: PlanesConfig, min_support: int = 0
 ) -> tuple[np.ndarray, float, np.ndarray] | None:
     """Least-squares plane on the points within band of n . X = d0, its normal kept within
-    max_tilt_deg of the axis (a larger tilt falls back to the axis); None when too few."""
+    max_tilt_deg of the axis (a larger tilt falls back to the axis); None when fewer than
+    min_support (cfg.min_support when 0) lie within band."""
+    min_support = min_support or cfg.min_support
     n, d = axis, d0
     cos_max = np.cos(np.radians(cfg.max_tilt_deg))
     for _ in range(3):
         idx = np.flatnonzero(np.abs(pts @ n - d) <= cfg.band)
-        if len(idx) < cfg.min_support:
+        if len(idx) < min_support:
             return None
         q = pts[idx]
         mu = q.mean(0)
@@ -789,7 +780,7 @@ def _refit(
         n = m if m @ axis >= cos_max else axis
         d = float(np.median(q @ n))
     idx = np.flatnonzero(np.abs(pts @ n - d) <= cfg.band)
-    if len(idx) < cfg.min_support:
+    if len(idx) < min_support:
         return None
     return n / np.linalg.norm(n), d, idx
 
