@@ -47,6 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.bench.runs import run_poses
+from pipeline.bench.walls import wall_offsets
 from pipeline.config import load_config
 from stages.common.blueprint import Blueprint
 from stages.common.capture import UNKNOWN, write_layout
@@ -135,7 +136,8 @@ def score(ref_run: Path, pred_run: Path) -> dict:
 
     Returns {"plan": evaluate_plan metrics + "frame" + "confusion", "padded": the plan's
     metrics counting the reference's padding band too (see observed), "poses": pose_metrics,
-    "scale": facts}.
+    "scale": facts, "walls": how far each of the reference's walls lies from the photos-only
+    run's (pipeline.bench.walls; left out when a run has no plan.json)}.
     """
     padded = Blueprint.load(Path(ref_run) / "blueprint.npz")
     ref = observed(ref_run, padded)
@@ -143,12 +145,16 @@ def score(ref_run: Path, pred_run: Path) -> dict:
     est, gt = run_poses(pred_run), run_poses(ref_run)
     m, frame = plan_frame(True, est, gt, ref.grid)
     plan = {**evaluate_plan(pred, ref, m), "frame": frame, "confusion": confusion(pred, ref, m)}
-    return {
+    res = {
         "plan": plan,
         "padded": evaluate_plan(pred, padded, m),
         "poses": pose_metrics(est, gt),
         "scale": scale_facts(pred_run),
     }
+    walls = wall_offsets(ref_run, pred_run, np.eye(4) if m is None else m)
+    if walls is not None:
+        res["walls"] = walls
+    return res
 
 
 def confusion(pred: Blueprint, ref: Blueprint, pred_to_ref: np.ndarray | None) -> dict:
@@ -261,6 +267,14 @@ def summary(res: dict) -> str:
             f" deg ATE {_num(q.get('ate_rmse_m')):.3f} m | scale "
             f"x{_num(q.get('align_scale')):.3f} ({r['scale'].get('method', '?')})"
         )
+        w = r.get("walls")
+        if w:  # + = the photos-only wall lies inside the reference's room
+            parts = [
+                f"{k} {_num(w[k]['median_cm']):+.1f} cm ({w[k]['found']}/{w['walls']})"
+                for k in ("layout", "plan_points", "sfm_points", "ref_points")
+                if k in w
+            ]
+            lines.append("  walls off the reference's (median, + inward): " + ", ".join(parts))
     d = res.get("depth")
     if d:
         per = " ".join(
