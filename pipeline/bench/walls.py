@@ -6,8 +6,11 @@ gives the distance, per wall of the reference's layout (its plan.json, the room'
 signed so that + is into the reference's room (the photos-only room is smaller there):
   layout       the nearest parallel wall (within 10 degrees) of the photos-only run's layout
                whose middle lies along the reference wall and within 0.3 m of it,
-  plan_points  the median of the photos-only run's wall points (its projected points.npz,
-               what the plan's field is fitted to) within a band round the wall,
+  plan_points  where the photos-only run's wall points (its projected points.npz, what the
+               plan's field is fitted to) pile up within a band round the wall: the
+               outermost high peak of their offsets, then the median of those within 2 cm
+               of it (what stands in front of a wall, a shelf or a picture, does not pull
+               it in: `_peak`),
   sfm_points   the same for its SfM points (the poses stage's sparse.ply in the aligned
                world): the geometry the depth stage starts from, which the depth maps
                cannot be truer than. When these lie off as far as the wall points do, the
@@ -23,6 +26,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+from scipy import ndimage
 
 from stages.common.classes import WALL_NAME, ids_named
 from stages.common.errors import BlunfError
@@ -32,7 +36,11 @@ PARALLEL_DEG = 10.0  # a layout wall matches a reference wall this close in dire
 MATCH_M = 0.3  # ...with its middle this close to the reference wall's line
 BAND_M = 0.15  # points this close to a reference wall's line count for it...
 END_M = 0.2  # ...away from its ends (corners hold the other wall's points) by this much
-MIN_POINTS = 20  # a wall's median needs this many points
+MIN_POINTS = 20  # a wall's offset needs this many points
+PEAK_BIN_M = 0.005  # the offsets' histogram bins...
+PEAK_SMOOTH_M = 0.01  # ...smoothed by a Gaussian this wide
+PEAK_KEEP_M = 0.02  # the points this close to the peak give the wall's offset
+PEAK_SHARE = 0.5  # a peak this high against the highest may be the wall's
 MIN_WALL_M = 0.5  # reference walls shorter than this are left out
 
 
@@ -90,9 +98,9 @@ def layout_offsets(ref: dict, pred: dict, pred_to_ref: np.ndarray) -> list[float
 
 
 def point_offsets(ref: dict, xy: np.ndarray) -> list[float | None]:
-    """Per reference wall: the median signed offset (metres, + into its room) of the points
-    xy [N, 2] (the reference's frame) within BAND_M of its line and END_M inside its ends;
-    None with fewer than MIN_POINTS there."""
+    """Per reference wall: the signed offset (metres, + into its room) where the points xy
+    [N, 2] (the reference's frame) within BAND_M of its line and END_M inside its ends pile
+    up (`_peak`); None with fewer than MIN_POINTS there."""
     xy = np.asarray(xy, float).reshape(-1, 2)
     out: list[float | None] = []
     for a, b, n in _walls(ref):
@@ -100,8 +108,26 @@ def point_offsets(ref: dict, xy: np.ndarray) -> list[float | None]:
         d = xy - a
         along, off = d @ t, d @ n
         sel = (along > END_M) & (along < length - END_M) & (np.abs(off) < BAND_M)
-        out.append(float(np.median(off[sel])) if sel.sum() >= MIN_POINTS else None)
+        out.append(_peak(off[sel]) if sel.sum() >= MIN_POINTS else None)
     return out
+
+
+def _peak(off: np.ndarray) -> float:
+    """The offset [N] of the wall's surface among the points round it: of the peaks of their
+    histogram (PEAK_BIN_M bins smoothed by PEAK_SMOOTH_M) holding at least PEAK_SHARE of the
+    highest's count, the outermost (a wall bounds the room: a shelf, a picture or a chair
+    stands in front of it, and may pile up higher), then the median of the points within
+    PEAK_KEEP_M of it. A median of them all is pulled in by what stands in front."""
+    edges = np.arange(-BAND_M, BAND_M + PEAK_BIN_M / 2, PEAK_BIN_M)
+    hist, _ = np.histogram(off, bins=edges)
+    smooth = ndimage.gaussian_filter1d(hist.astype(np.float64), PEAK_SMOOTH_M / PEAK_BIN_M)
+    pad = np.r_[-1.0, smooth, -1.0]
+    tops = np.nonzero((smooth >= pad[:-2]) & (smooth > pad[2:]))[0]
+    tops = tops[smooth[tops] >= PEAK_SHARE * smooth.max()]
+    i = int(tops.min()) if len(tops) else int(np.argmax(smooth))
+    top = (edges[i] + edges[i + 1]) / 2
+    near = off[np.abs(off - top) <= PEAK_KEEP_M]
+    return float(np.median(near)) if len(near) else float(top)
 
 
 def _summary(offsets: list[float | None]) -> dict:

@@ -58,14 +58,21 @@ def test_a_room_drawn_2_cm_small_reads_2_cm_inward_on_every_wall_through_the_sim
     assert abs(got[3] + 0.03) < 1e-9  # left: 3 cm outside, negative
 
 
-def test_points_give_each_walls_median_offset_and_ignore_the_corners_and_far_points():
+def test_points_give_where_each_wall_piles_up_not_what_stands_in_front_of_it():
     rng = np.random.default_rng(0)
     ref = _plan(0.0, 0.0, 4.0, 3.0)
     pts = _outline(0.04, 0.04, 3.96, 2.96, 500, rng)  # 4 cm inside on every side
     pts = pts + rng.normal(0, 0.005, pts.shape)
     clutter = np.c_[rng.uniform(1, 3, 300), rng.uniform(1, 2, 300)]  # the room's middle
-    got = point_offsets(ref, np.concatenate([pts, clutter]))
+    # a shelf 4-14 cm in front of the bottom wall, 800 points against the wall's 500: their
+    # median lies in the shelf
+    shelf = np.c_[rng.uniform(0.5, 3.5, 800), rng.uniform(0.08, 0.18, 800)]
+    both = np.concatenate([pts, clutter, shelf])
+    got = point_offsets(ref, both)
     assert all(abs(g - 0.04) < 0.003 for g in got)
+    d = both[:, 1]
+    band = (both[:, 0] > 0.2) & (both[:, 0] < 3.8) & (d < 0.15)
+    assert np.median(d[band]) > 0.08  # the plain median would read the shelf
     assert point_offsets(ref, pts[:10]) == [None] * 4  # too few points anywhere
 
 
