@@ -107,6 +107,10 @@ class KeyframesConfig:
 
     at_least: int = 200  # views mapped first; 0 = always map every view
     hold: float = 0.95  # share of the subset its model must hold
+    # sequential matching leaves out the pairs between two odd-numbered views (registered to
+    # the subset's model, never mapped) more than 2 steps apart (matching.keyframe_pairs):
+    # 3809 -> 2383 sequential pairs at 480 views; false: match them all
+    skip_pairs: bool = True
 
     def __post_init__(self) -> None:
         if self.at_least != 0 and self.at_least < MIN_MAPPED:

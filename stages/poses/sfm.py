@@ -26,6 +26,7 @@ from stages.common.progress import Progress, progress
 from stages.poses import agreement, calib, fullsize, matching, stated
 from stages.poses import models as models_detail
 from stages.poses.config import PosesConfig, PosesInputs, PosesOutputs
+from stages.poses.matching import keyframe_stride
 from stages.poses.models import metric_scale, sparse_depth
 
 log = logging.getLogger(__name__)
@@ -408,15 +409,6 @@ def _incremental_options(
         o.mapper.abs_pose_refine_focal_length = False
         o.mapper.abs_pose_refine_extra_params = False
     return o
-
-
-def keyframe_stride(n: int, at_least: int) -> int:
-    """The largest power of two k with n >= k * at_least: one view in k leaves at least
-    `at_least` of n (1: map every view; also when at_least is 0)."""
-    k = 1
-    while at_least > 0 and n >= 2 * k * at_least:
-        k *= 2
-    return k
 
 
 def _incremental(

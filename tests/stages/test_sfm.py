@@ -22,6 +22,7 @@ from stages.poses.config import (
     MatchingConfig,
     RetrievalConfig,
 )
+from stages.poses.matching import keyframe_stride
 from stages.poses.models import metric_scale
 from stages.poses.scale import (
     depth_ratios,
@@ -30,7 +31,7 @@ from stages.poses.scale import (
     scale_from_distance,
     scale_from_priors,
 )
-from stages.poses.sfm import _colmap_camera, first_octave, keyframe_stride
+from stages.poses.sfm import _colmap_camera, first_octave
 
 SHARED_DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 
@@ -472,6 +473,39 @@ def test_sfm_keyframes_map_every_other_view_and_register_the_rest(room: Path, tm
     assert (facts["registered"], facts["unregistered"]) == (24, ["blank0", "blank1"])
     assert m["ate_rmse_m"] < 0.03 and m["rot_err_deg_median"] < 0.6
     assert facts["agreement"]["agrees"]
+
+
+def test_sfm_keyframes_with_sequential_pairs_leave_out_those_between_registered_views(
+    room: Path, tmp_path: Path
+):
+    """Sequential matching with keyframes: the pairs between two views registered to the
+    keyframes' model, more than 2 apart, are not matched (keyframes.skip_pairs), and the
+    model is the one all the pairs give, as accurate and with as many views."""
+    cap = _with_blanks(read_layout(room), 2, tmp_path)
+    got = {}
+    for skip in (True, False):
+        keyframes = KeyframesConfig(at_least=10, hold=0.3, skip_pairs=skip)
+        work = tmp_path / str(skip)
+        work.mkdir()
+        got[skip] = _run_sfm(
+            cap,
+            work,
+            threads=1,
+            max_features=2048,
+            keyframes=keyframes,
+            matching=MatchingConfig(kind="sequential"),
+        )
+    (cap_s, skip), (cap_a, every) = got[True], got[False]
+    # 26 views, steps 1 ... 16: those of 4, 8 and 16 steps between odd views, 11 + 9 + 5
+    assert skip["match_pairs"]["pairs_left_out"] == 25
+    assert "pairs_left_out" not in every["match_pairs"]
+    assert skip["match_pairs"]["pairs"] == every["match_pairs"]["pairs"] - 25
+    assert skip["keyframes"]["every"] == every["keyframes"]["every"] == 2
+    assert skip["registered"] == every["registered"] >= 23  # the subset holds 5 of 13
+    gt = _gt_poses(room)
+    ms, ma = (pose_metrics({f.stem: f.pose for f in c.frames}, gt) for c in (cap_s, cap_a))
+    assert ms["ate_rmse_m"] < ma["ate_rmse_m"] + 0.003 and ms["ate_rmse_m"] < 0.03
+    assert ms["rot_err_deg_median"] < ma["rot_err_deg_median"] + 0.1
 
 
 def test_sfm_keyframes_that_do_not_hold_map_every_view(room: Path, tmp_path: Path) -> None:

@@ -150,3 +150,22 @@ def test_retrieval_closes_the_walk_and_registers_every_view(tmp_path: Path) -> N
     assert p["pairs"] < p["exhaustive_pairs"] / 2  # cheaper than every pair
     assert p["loop_pairs_verified"] >= n // 2  # most retrieved pairs see the same surfaces
     assert p["longest_gap"] >= n - 4  # the walk's end matched with its start: the loop closes
+
+
+def test_keyframe_pairs_leave_out_only_long_pairs_between_odd_views() -> None:
+    """With keyframes, the sequential pairs between two odd-numbered views (registered to
+    the keyframes' model, never mapped) more than two steps apart are left out; every pair
+    of an even view, and each odd view's pairs one and two steps on, stay."""
+    from stages.poses.matching import keyframe_pairs
+
+    seq = sequential_pairs(480, 10)
+    got = keyframe_pairs(480, 10)
+    assert got < seq and (len(seq), len(got)) == (3809, 2383)
+    assert all(i % 2 == 0 or j - i <= 2 for i, j in got)
+    assert seq - got == {(i, j) for i, j in seq if i % 2 and j % 2 and j - i > 2}
+    for k in (2, 4, 8):  # every subset mapped first keeps all its pairs
+        sub = set(range(0, 480, k))
+        assert {p for p in seq if sub.issuperset(p)} <= got
+    odd = 101  # an odd view still has its neighbours one and two steps on and back
+    assert {(100, 101), (101, 102), (99, 101), (101, 103)} <= got
+    assert not any(odd in p and (p[1] - p[0]) > 2 and p[0] % 2 and p[1] % 2 for p in got)
