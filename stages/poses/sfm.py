@@ -441,6 +441,8 @@ def _incremental(
         if held >= cfg.keyframes.hold * len(sub):
             o = _incremental_options(cfg, threads, fixed)
             o.fix_existing_frames = True  # the subset's poses held: registering is local
+            o.ba_local_max_refinements = cfg.keyframes.register_refinements
+            o.ba_local_max_num_iterations = cfg.keyframes.register_iterations
             o.ba_global_frames_ratio = o.ba_global_points_ratio = NO_GROWTH
             o.ba_global_frames_freq = o.ba_global_points_freq = NO_FREQ
             rest = models / "rest"

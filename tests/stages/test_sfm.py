@@ -119,6 +119,8 @@ def test_bad_config_names_the_field(bad: dict, field: str) -> None:
     [
         (MatchingConfig, {"kind": "vocabtree"}, "matching.kind"),
         (MatchingConfig, {"overlap": 0}, "matching.overlap"),
+        (KeyframesConfig, {"register_refinements": 0}, "keyframes.register_refinements"),
+        (KeyframesConfig, {"register_iterations": 0}, "keyframes.register_iterations"),
         (RetrievalConfig, {"neighbours": 0}, "matching.retrieval.neighbours"),
         (RetrievalConfig, {"words": 64, "sample": 10}, "matching.retrieval.sample"),
         (BundleAdjustmentConfig, {"global_max_refinements": 0}, "ba.global_max_refinements"),
