@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
+from pipeline.bench.depth import _report_stage_file as stage_file
 from stages.common.classes import WALL_NAME, ids_named
 from stages.common.errors import BlunfError
 from stages.common.points import read_points
@@ -142,16 +143,9 @@ def _summary(offsets: list[float | None]) -> dict:
     }
 
 
-def _stage_file(run: Path, stage: str, name: str) -> Path | None:
-    """run/stage/<key>/name for the key report.json names (else the newest), None if none."""
-    from pipeline.bench.depth import _report_stage_file
-
-    return _report_stage_file(run, stage, name)
-
-
 def _wall_points(run: Path) -> np.ndarray:
     """The run's projected wall points, floor xy [N, 2] in its world."""
-    path = _stage_file(run, "project", "points.npz")
+    path = stage_file(run, "project", "points.npz")
     if path is None:
         raise BlunfError(f"{run}: no project/*/points.npz (not a finished run folder)")
     xyz, label, _, classes = read_points(path)
@@ -161,7 +155,7 @@ def _wall_points(run: Path) -> np.ndarray:
 def sfm_points(run: Path) -> np.ndarray | None:
     """The run's SfM points (poses/<key>/sparse.ply) in the aligned world, floor xy [N, 2];
     None when the run has none (poses given) or no align transform."""
-    ply, align = _stage_file(run, "poses", "sparse.ply"), _stage_file(run, "align", "align.json")
+    ply, align = stage_file(run, "poses", "sparse.ply"), stage_file(run, "align", "align.json")
     if ply is None or align is None:
         return None
     import trimesh  # the project's mesh reader; the PLY is COLMAP's point export

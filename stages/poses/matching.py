@@ -267,18 +267,15 @@ def match(cfg: PosesConfig, db: Path, names: list[str], threads: int) -> dict:
         facts |= {"detail": f"all {n * (n - 1) // 2} pairs", "pairs": n * (n - 1) // 2}
         return facts | closure(verified(db, names), set(), n)
     loops: set[tuple[int, int]] = set()
-    detail = f"steps 1, 2, 4 ... 2^{m.overlap - 1} (quadratic overlap), no loop detection"
+    steps = f"steps 1, 2, 4 ... 2^{m.overlap - 1} (quadratic overlap)"
     kf = cfg.keyframes
     if kf.skip_pairs and cfg.mapper != "global" and keyframe_stride(n, kf.at_least) > 1:
         # the incremental mapper maps one view in two (or fewer) first: the pairs between
         # the other views but the nearest are left out (keyframe_pairs)
         pairs = keyframe_pairs(n, m.overlap)
         _match_list(db, names, pairs, mo, vo, "keyframe-pairs.txt")
-        facts["pairs_left_out"] = len(sequential_pairs(n, m.overlap)) - len(pairs)
-        detail = (
-            f"steps 1, 2, 4 ... 2^{m.overlap - 1} (quadratic overlap) but between two views "
-            "registered to the keyframes' model more than 2 apart, no loop detection"
-        )
+        facts["pairs_left_out"] = len(sequential_pairs(n, m.overlap) - pairs)
+        steps += " but between two views registered to the keyframes' model more than 2 apart"
     else:
         # the sequential pairs by pycolmap's own pairing (as before retrieval existed: the
         # same database, the same model), then the loop pairs from a list
@@ -294,11 +291,12 @@ def match(cfg: PosesConfig, db: Path, names: list[str], threads: int) -> dict:
             verification_options=vo,
             device=pycolmap.Device.cpu,
         )
+    detail = f"{steps}, no loop detection"
     if kind == "retrieval":
         loops = retrieval_pairs(db, names, m, cfg.seed)[1]
         r = m.retrieval
-        detail = detail.replace(", no loop detection", "") + (
-            f" and {r.neighbours} retrieved a view (VLAD over {r.words} words of the "
+        detail = (
+            f"{steps} and {r.neighbours} retrieved a view (VLAD over {r.words} words of the "
             "capture's own SIFT)"
         )
         facts["loop_pairs"] = len(loops)
