@@ -51,13 +51,17 @@ def _count(span: str) -> int:
     return int(span.rsplit("(", 1)[1].rstrip(")")) if span.endswith(")") else 1
 
 
-def describe(models: list[list[int]], stems: list[str]) -> dict:
+def describe(models: list[list[int]], stems: list[str], mapper: str = "incremental") -> dict:
     """Facts for sfm.json about the models SfM made.
 
     Args:
         models: per model, the capture indices of the photos it registered; the first is
             the model kept (the largest).
         stems: the capture's frame stems, in capture order.
+        mapper: the mapper that made them; a split left by the incremental mapper is told
+            that the global mapper may join it (it needs no triangulated points to cross a
+            weak link in the walk, but places the joined parts less precisely:
+            docs/figures.md#poses-mapper).
     Returns:
         {"groups": [{"frames": n, "spans": [...], "kept": bool}, ...],
          "left_out": spans of the photos in no kept model, "warnings": [one line, ...]}
@@ -77,6 +81,7 @@ def describe(models: list[list[int]], stems: list[str]) -> dict:
             f"SfM made {len(big)} models it could not join ({parts}): the photos may show "
             f"different places, or parts that no photo links; only the largest "
             f"({len(models[0])} photos) is used"
+            + ("" if mapper == "global" else "; poses.mapper=global may join them")
         )
     if n and len(left) > DROPPED_WARN_FRAC * n:
         warnings.append(

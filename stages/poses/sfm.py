@@ -102,7 +102,7 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
     rec = recs[0] if recs else None
     index = {name: i for i, name in enumerate(names)}
     members = [sorted(index[im.name] for im in r.images.values() if im.has_pose) for r in recs]
-    facts.update(models_detail.describe(members, stems))
+    facts.update(models_detail.describe(members, stems, facts["mapper"]))
     if not facts["agreement"].get("agrees", True):
         facts["warnings"].append(agreement.warning(facts["agreement"]))
         log.warning("sfm: %s", facts["warnings"][-1])

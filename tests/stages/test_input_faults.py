@@ -160,6 +160,11 @@ def test_describe_warns_on_split_and_on_many_left_out() -> None:
     assert len(d["warnings"]) == 2
     assert "2 models" in d["warnings"][0] and "b0..b4 (5); a0..a4 (5)" in d["warnings"][0]
     assert d["warnings"][1].startswith("5 of 10 photos (50 %) are left out")
+    assert d["warnings"][0].endswith("; poses.mapper=global may join them")
+    # the global mapper's own split: no hint to run it
+    assert (
+        "mapper" not in describe([[5, 6, 7, 8, 9], [0, 1, 2, 3, 4]], stems, "global")["warnings"][0]
+    )
     # a second model of 2 photos, 2 of 10 left out (20 %, not more): no warning
     d = describe([[0, 1, 2, 3, 4, 5, 6, 7], [8, 9]], stems)
     assert d["warnings"] == [] and d["left_out"] == ["b3..b4 (2)"]
