@@ -26,6 +26,12 @@ class AlignConfig:
     #                            mean up direction (cameras looking down tilt that mean)
     min_floor_fraction: float = 0.05  # a height counts as a floor when it holds this fraction
     #                                   of the horizontal points below the cameras
+    # floor impl: when no floor plane can be fitted, the up is the direction square to the
+    # cameras' x axes if they are level to within this RMS roll, degrees (planes.level_up;
+    # 0 = never). The honest procedural room from photos: up 4.74 -> 0.03 degrees from its
+    # sensor's, plan against the sensor at SfM poses 81.1 -> see docs/figures.md#align-level;
+    # the kitchen's and office's floors are fitted and their runs unchanged
+    level_roll_deg: float = 1.0
     normal_neighbours: int = 16  # nearest neighbours (within one frame) for point normals
     manhattan: bool = True  # also turn about z so that the main wall directions (azimuths of
     #                         the near-horizontal normals, modulo 90 deg) lie on x and y
@@ -49,6 +55,10 @@ class AlignConfig:
             raise BlunfError(
                 "align.manhattan_min_confidence: must be in [0, 1], got "
                 f"{self.manhattan_min_confidence}"
+            )
+        if not 0 <= self.level_roll_deg < 90:
+            raise BlunfError(
+                f"align.level_roll_deg: must be in [0, 90) degrees, got {self.level_roll_deg}"
             )
         if not 0 < self.min_floor_fraction <= 1:
             raise BlunfError(

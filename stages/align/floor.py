@@ -25,6 +25,7 @@ from stages.align.planes import (
     dominant_up,
     find_floor,
     finish,
+    level_up,
     load,
     rotation_between,
     sample,
@@ -55,16 +56,27 @@ def solve(cap: Capture, cfg: AlignConfig, where: Path) -> tuple[np.ndarray, floa
     def floor_at(R: np.ndarray) -> Floor:
         return find_floor(s.points @ R.T, s.normals @ R.T, (centres @ R.T)[:, 2], cfg, s.sparse)
 
-    for _ in range(REFINE_STEPS):
+    def refined(R: np.ndarray, up_from: str) -> tuple[np.ndarray, str, Floor]:
+        for _ in range(REFINE_STEPS):
+            fl = floor_at(R)
+            if fl.normal is None or angle_deg(fl.normal, UP) < CONVERGED_DEG:
+                break
+            R = rotation_between(fl.normal, UP) @ R
+            up_from = "floor"
         fl = floor_at(R)
-        if fl.normal is None or angle_deg(fl.normal, UP) < CONVERGED_DEG:
-            break
-        R = rotation_between(fl.normal, UP) @ R
-        up_from = "floor"
-    fl = floor_at(R)
-    if fl.normal is not None:
-        up_from = "floor"
-    elif up_from != "floor":
+        return R, ("floor" if fl.normal is not None else up_from), fl
+
+    R, up_from, fl = refined(R, up_from)
+    level, level_facts = level_up(poses, cfg.level_roll_deg)
+    if up_from != "floor" and level is not None:
+        # no floor to fit: the normals of a plain room's few SfM points lean (the honest
+        # procedural room's by 4.7 degrees, its cameras' x axes 0.03)
+        notes.append(
+            f"no floor plane with the up from the {up_from}; the cameras are level (RMS roll "
+            f"{level_facts['level_roll_deg']:.2f} deg): up square to their x axes"
+        )
+        R, up_from, fl = refined(rotation_between(level, UP), "level cameras")
+    if fl.normal is None and up_from not in ("floor", "level cameras"):
         notes.append(f"too few floor inliers to fit the floor plane; up from the {up_from}")
     if fl.note:
         notes.append(fl.note)
@@ -73,7 +85,7 @@ def solve(cap: Capture, cfg: AlignConfig, where: Path) -> tuple[np.ndarray, floa
         notes.append(f"up is {cam_dev:.0f} deg from the cameras' mean up (> up_cone_deg)")
     R, yaw, note = square_up(R, s.normals, cfg)  # about z: keeps the floor height and tilt
     notes += [note] if note else []
-    info = describe("floor", up_from, notes, s, fl, cam_dev, yaw, t0)
+    info = describe("floor", up_from, notes, s, fl, cam_dev, yaw, t0) | level_facts
     return R, fl.z, info
 
 
