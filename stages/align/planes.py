@@ -16,7 +16,7 @@ import open3d as o3d
 
 from stages.align.config import AlignConfig, AlignInputs, AlignOutputs
 from stages.align.manhattan import heading_turn, rot_z
-from stages.common.camera import check_pose, depth_to_points
+from stages.common.camera import check_pose, depth_to_points, x_axes_square
 from stages.common.capture import Capture
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth, write_json
@@ -135,28 +135,20 @@ def cameras_up(poses: np.ndarray) -> np.ndarray:
 
 
 def level_up(poses: np.ndarray, max_roll_deg: float) -> tuple[np.ndarray | None, dict]:
-    """(up or None, facts): the direction square to every camera's x axis, when the cameras
-    were held level (COLMAP's model_orientation_aligner reads gravity from the images'
-    orientations on the same assumption). Photos taken with no roll have their x axes
-    (OpenCV: to the right) horizontal, whatever their pitch, so the up is the least singular
-    direction of the stacked x axes over poses [C, 4, 4]. Trusted only when the axes are
-    level to within max_roll_deg RMS (the least singular value over sqrt(C): the RMS sine
-    of the roll) and turn through at least MIN_TURN_DEG (the second singular value: axes
-    that all point one way leave the up free about them). A handheld capture rolls a few
-    degrees (7-Scenes kitchen: median 4 degrees) and is not read this way; a tripod, a gimbal
-    or a rendered walk is. facts: the RMS roll and turn in degrees (None with fewer than 3
-    cameras)."""
-    x = np.asarray(poses, np.float64)[:, :3, 0]
-    if len(x) < 3 or max_roll_deg <= 0:
+    """(up or None, facts): the direction square to every camera's x axis over poses
+    [C, 4, 4] (x_axes_square), when the cameras were held level (COLMAP's
+    model_orientation_aligner reads gravity from the images' orientations on the same
+    assumption): trusted only when the axes are level to within max_roll_deg RMS and turn
+    through at least MIN_TURN_DEG. A handheld capture rolls a few degrees (the 7-Scenes
+    kitchen: 5.3 RMS) and is not read this way; a tripod, a gimbal or a rendered walk is.
+    facts: the RMS roll and turn in degrees (None with fewer than 3 cameras)."""
+    if len(poses) < 3 or max_roll_deg <= 0:
         return None, {"level_roll_deg": None, "level_turn_deg": None}
-    _, sv, vt = np.linalg.svd(x, full_matrices=False)
-    k = np.sqrt(len(x))
-    roll = float(np.degrees(np.arcsin(min(sv[2] / k, 1.0))))
-    turn = float(np.degrees(np.arcsin(min(sv[1] / k, 1.0))))
-    facts = {"level_roll_deg": round(roll, 3), "level_turn_deg": round(turn, 1)}
+    up, rms = x_axes_square(np.asarray(poses, np.float64)[:, :3, 0])
+    roll, turn = np.degrees(np.arcsin(np.clip(rms[[2, 1]], 0.0, 1.0)))
+    facts = {"level_roll_deg": round(float(roll), 3), "level_turn_deg": round(float(turn), 1)}
     if roll > max_roll_deg or turn < MIN_TURN_DEG:
         return None, facts
-    up = vt[2] / np.linalg.norm(vt[2])
     return (up if up @ cameras_up(poses) >= 0 else -up), facts
 
 

@@ -199,3 +199,20 @@ def depth_to_points(
     d = depth[stride // 2 :: stride, stride // 2 :: stride].reshape(-1)
     keep = np.flatnonzero(np.isfinite(d) & (d > 0))
     return unproject(uv[keep], d[keep], K, c2w), keep
+
+
+def x_axes_square(x_axes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(unit direction most nearly square to every camera's x axis [C, 3], sign free; the
+    RMS component of the axes along their three principal directions, largest first [3]).
+
+    A camera held with no roll has its x axis (OpenCV: image right) horizontal whatever its
+    pitch, so for level cameras the direction is the world's up and the last RMS the sine of
+    their RMS roll; the middle one says how far the axes turn (near 0 when every camera faces
+    one way, and the up is then free about them). Used for the metric scale's up
+    (stages/poses/scale.py) and the align stage's (stages/align/planes.py).
+    """
+    x = np.asarray(x_axes, np.float64).reshape(-1, 3)
+    _, sv, vt = np.linalg.svd(x, full_matrices=False)
+    rms = np.zeros(3)
+    rms[: len(sv)] = sv / np.sqrt(max(len(x), 1))
+    return vt[-1] / np.linalg.norm(vt[-1]), rms

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from stages.common.camera import x_axes_square
 from stages.common.errors import BlunfError
 
 FLOOR_PERCENTILE = 2.0  # camera_height: the floor is this low percentile of point heights
@@ -113,10 +114,10 @@ def up_from_cameras(x_axes: np.ndarray, y_axes: np.ndarray) -> tuple[np.ndarray,
     if np.linalg.norm(y0) < 1e-6:
         raise BlunfError("sfm: metric scale: cannot tell up from the cameras (mean axes cancel)")
     y0 /= np.linalg.norm(y0)
-    vals, vecs = np.linalg.eigh(x.T @ x)  # ascending
-    if vals[1] < X_SPAN * vals[2]:  # x axes nearly parallel: the pitch is not observable
+    normal, rms = x_axes_square(x)
+    if rms[1] ** 2 < X_SPAN * rms[0] ** 2:  # x axes nearly parallel: pitch not observable
         return y0, "minus the cameras' mean image-down axis (their x axes span no plane)"
-    up = vecs[:, 0] * (1.0 if vecs[:, 0] @ y0 >= 0 else -1.0)
+    up = normal * (1.0 if normal @ y0 >= 0 else -1.0)
     return up, "normal of the cameras' x axes (hand-held cameras are rolled little)"
 
 

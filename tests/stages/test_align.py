@@ -208,3 +208,84 @@ def test_kitchen_gravity_and_floor_agree(tmp_path):
     zg, zf = (c @ Ts["gravity"].T)[:, 2], (c @ Ts["floor"].T)[:, 2]
     assert 1.0 < np.median(zg) < 2.0
     assert np.abs(zg - zf).max() < 0.10
+
+
+def _walls_only(folder, M: np.ndarray) -> object:
+    """The exact room seen with depth on its walls alone, 1 m above the floor and up (the
+    floor, the counter and the walls' feet read as nothing, as SfM leaves a plain floor and
+    counter), the world moved by M."""
+    from stages.common.camera import pixel_grid
+    from stages.common.io import write_depth_png, write_image
+    from tests.stages.exact_room import INTR, make_scene, render, room_poses
+
+    scene = make_scene()
+    folder.mkdir(parents=True)
+    frames = []
+    for i, pose in enumerate(room_poses()):
+        depth, normals = render(scene, pose)
+        uv = pixel_grid(*depth.shape[::-1])
+        ray_z = ((uv[..., 0] - INTR.cx) / INTR.fx) * pose[2, 0]
+        ray_z += ((uv[..., 1] - INTR.cy) / INTR.fy) * pose[2, 1] + pose[2, 2]
+        height = pose[2, 3] + depth * ray_z  # z-depth along rays of camera z = 1
+        depth = np.where((np.abs(normals[..., 2]) < 0.5) & (height > 1.0), depth, 0.0)
+        stem = f"v{i:02d}"
+        write_image(folder / f"{stem}.png", np.full((*depth.shape, 3), 128, np.uint8))
+        write_depth_png(folder / f"{stem}.png.depth.png", depth)
+        frames.append(
+            Frame(
+                stem,
+                folder / f"{stem}.png",
+                INTR,
+                depth=folder / f"{stem}.png.depth.png",
+                pose=M @ pose,
+            )
+        )
+    Capture(folder, tuple(frames)).save(folder / "frames.json")
+    return folder / "frames.json"
+
+
+def test_level_up_is_square_to_the_x_axes_of_level_cameras():
+    from stages.align.planes import level_up
+    from tests.stages.exact_room import look_at
+
+    M = motion()
+    rng = np.random.default_rng(0)
+    yaw = np.radians(np.linspace(0, 120, 12))
+    poses = [
+        M @ look_at((0, 0, 1.5), (np.cos(a), np.sin(a), 1.5 - rng.uniform(0.0, 0.8))) for a in yaw
+    ]
+    up, facts = level_up(np.stack(poses), 1.0)
+    # pitched 0-39 degrees down, rolled not at all: the x axes give the moved world's up
+    assert angle_deg(up, M[:3, :3] @ UP) < 1e-6 and facts["level_roll_deg"] < 1e-6
+    assert facts["level_turn_deg"] > 20
+    # rolled 3 degrees RMS (a hand-held capture): not level, no up
+    rolled = []
+    for p in poses:
+        a = np.radians(rng.normal(0.0, 3.0))
+        r = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+        q = p.copy()
+        q[:3, :3] = p[:3, :3] @ r  # about the optical axis
+        rolled.append(q)
+    up, facts = level_up(np.stack(rolled), 1.0)
+    assert up is None and facts["level_roll_deg"] > 1.0
+    # every camera facing one way: the up is free about their x axis
+    up, facts = level_up(np.stack([poses[0]] * 5), 1.0)
+    assert up is None and facts["level_turn_deg"] < 1
+    # 0 turns it off
+    assert level_up(np.stack(poses), 0.0)[0] is None
+
+
+def test_floor_impl_takes_the_level_cameras_up_when_no_floor_can_be_fitted(tmp_path):
+    M = motion()
+    frames = _walls_only(tmp_path / "cap", M)
+    _, info = align("floor", frames, tmp_path / "out")
+    # no floor under the normals' up: the level cameras' up, kept as it is (the band's
+    # lower edge has a few up-facing normals, and a plane fitted to them leans 0.8 degrees)
+    assert info["up_from"] == "level cameras"
+    assert "cameras are level (RMS roll 0.00 deg)" in info["notes"]
+    assert info["level_roll_deg"] < 1e-3 and info["level_turn_deg"] > 20
+    assert angle_deg((np.array(info["T"]) @ M)[:3, :3] @ UP, UP) < 0.01
+    # without the cue the up is the cameras' mean up axis, which their pitch tilts
+    _, off = align("floor", frames, tmp_path / "off", AlignConfig(stride=2, level_roll_deg=0))
+    assert "level" not in off["notes"]
+    assert angle_deg((np.array(off["T"]) @ M)[:3, :3] @ UP, UP) > 5.0
