@@ -28,9 +28,10 @@ class AlignConfig:
     #                                   of the horizontal points below the cameras
     # floor impl: when no floor plane can be fitted, the up is the direction square to the
     # cameras' x axes if they are level to within this RMS roll, degrees (planes.level_up;
-    # 0 = never). The honest procedural room from photos: up 4.74 -> 0.03 degrees from its
-    # sensor's, plan against the sensor at SfM poses 81.1 -> see docs/figures.md#align-level;
-    # the kitchen's and office's floors are fitted and their runs unchanged
+    # 0 = never). The honest procedural room from photos (rendered, no roll): up 4.74 ->
+    # 0.03 degrees from its sensor's, plan against the sensor at SfM poses 81.10 -> 87.37;
+    # the 7-Scenes kitchen rolls 5.3 degrees RMS and is not read so; its floor and the
+    # office's are fitted, their align unchanged (docs/figures.md#align-level)
     level_roll_deg: float = 1.0
     normal_neighbours: int = 16  # nearest neighbours (within one frame) for point normals
     manhattan: bool = True  # also turn about z so that the main wall directions (azimuths of

@@ -212,7 +212,9 @@ def x_axes_square(x_axes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     (stages/poses/scale.py) and the align stage's (stages/align/planes.py).
     """
     x = np.asarray(x_axes, np.float64).reshape(-1, 3)
-    _, sv, vt = np.linalg.svd(x, full_matrices=False)
-    rms = np.zeros(3)
-    rms[: len(sv)] = sv / np.sqrt(max(len(x), 1))
-    return vt[-1] / np.linalg.norm(vt[-1]), rms
+    # the eigenvectors of the axes' scatter (ascending), as the metric scale has always
+    # read them: an SVD of the axes gives the same direction to the last bits only, and
+    # the kitchen's plan moves by half a point with its scale's 15th digit
+    vals, vecs = np.linalg.eigh(x.T @ x)
+    rms = np.sqrt(np.clip(vals[::-1], 0.0, None) / max(len(x), 1))
+    return vecs[:, 0], rms
