@@ -43,7 +43,7 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from pipeline.bench.runs import run_poses
+from pipeline.bench.runs import run_poses, stage_file
 from stages.common.capture import Capture
 from stages.common.classes import FLOOR_NAME, OBJECT_NAME, WALL_NAME
 from stages.common.errors import BlunfError
@@ -93,7 +93,7 @@ def sensor_views(ref_run: Path) -> tuple[Capture, dict[str, Path], dict[int, str
     label PNG; class id -> name) of a run made from sensor depth. The ingested maps lie in
     the depth camera's pixels: on the 7-Scenes kitchen (focal 585 px against the colour
     camera's ~526) 10 % off the colour's at the image's edges."""
-    found = _report_stage_file(ref_run, "align", "frames.json")
+    found = stage_file(ref_run, "align", "frames.json")
     cap = Capture.load(found or _stage_file(ref_run, "ingest", "frames.json"))
     sem = Capture.load(_stage_file(ref_run, "semantics", "frames.json"))
     labels = {f.stem: Path(f.label) for f in sem.frames if f.label is not None}
@@ -202,27 +202,11 @@ def track_maps(run: Path) -> tuple[Capture, dict[str, Path]] | None:
     """(the capture the depth stage read, stem -> its SfM track depth map) of a photos-only
     run: the align stage's frames.json that report.json names (else the newest); None when
     there is none."""
-    found = _report_stage_file(run, "align", "frames.json")
+    found = stage_file(run, "align", "frames.json")
     if found is None:
         return None
     cap = Capture.load(found)
     return cap, {f.stem: Path(f.depth) for f in cap.frames if f.depth is not None}
-
-
-def _report_stage_file(run: Path, stage: str, name: str) -> Path | None:
-    """run/stage/<key>/name of the key report.json names (else the newest), None when none."""
-    run = Path(run)
-    found = []
-    report = run / "report.json"
-    if report.is_file():
-        for s in read_json(report).get("stages", []):
-            if s.get("name") == stage and s.get("key"):
-                found.append(run / stage / s["key"] / name)
-    found = [p for p in found if p.is_file()] or sorted(
-        (Path(p) for p in glob.glob(str(run / stage / "*" / name))),
-        key=lambda p: p.stat().st_mtime,
-    )
-    return found[-1] if found else None
 
 
 def _bands(tally: dict, sel: np.ndarray, got: np.ndarray, ref: np.ndarray) -> None:

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from pipeline.bench.depth import _report_stage_file as stage_file
+from pipeline.bench.runs import stage_file
 from stages.common.classes import WALL_NAME, ids_named
 from stages.common.errors import BlunfError
 from stages.common.points import read_points

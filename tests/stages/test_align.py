@@ -4,6 +4,7 @@ with its floor at z = 0 and up = +z; and the 7-Scenes kitchen, with and without 
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import open3d as o3d
@@ -210,11 +211,11 @@ def test_kitchen_gravity_and_floor_agree(tmp_path):
     assert np.abs(zg - zf).max() < 0.10
 
 
-def _walls_only(folder, M: np.ndarray) -> object:
+def _walls_only(folder, M: np.ndarray) -> Path:
     """The exact room seen with depth on its walls alone, 1 m above the floor and up (the
     floor, the counter and the walls' feet read as nothing, as SfM leaves a plain floor and
     counter), the world moved by M."""
-    from stages.common.camera import pixel_grid
+    from stages.common.camera import pixel_grid, unproject
     from stages.common.io import write_depth_png, write_image
     from tests.stages.exact_room import INTR, make_scene, render, room_poses
 
@@ -223,10 +224,8 @@ def _walls_only(folder, M: np.ndarray) -> object:
     frames = []
     for i, pose in enumerate(room_poses()):
         depth, normals = render(scene, pose)
-        uv = pixel_grid(*depth.shape[::-1])
-        ray_z = ((uv[..., 0] - INTR.cx) / INTR.fx) * pose[2, 0]
-        ray_z += ((uv[..., 1] - INTR.cy) / INTR.fy) * pose[2, 1] + pose[2, 2]
-        height = pose[2, 3] + depth * ray_z  # z-depth along rays of camera z = 1
+        uv = pixel_grid(*depth.shape[::-1]).reshape(-1, 2)
+        height = unproject(uv, depth.reshape(-1), INTR.K, pose)[:, 2].reshape(depth.shape)
         depth = np.where((np.abs(normals[..., 2]) < 0.5) & (height > 1.0), depth, 0.0)
         stem = f"v{i:02d}"
         write_image(folder / f"{stem}.png", np.full((*depth.shape, 3), 128, np.uint8))
