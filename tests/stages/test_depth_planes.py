@@ -260,6 +260,24 @@ def test_the_floor_keeps_the_aligned_z_where_it_holds_the_floor():
     assert abs(np.degrees(np.arccos(got[0][2])) - 1.0) < 0.1
 
 
+def test_the_floor_plane_itself_stays_level_where_the_aligned_z_holds_it(monkeypatch):
+    """The floor's peak is refitted within 2 degrees of its axis, so readings leaning 0.3
+    degrees near the cameras lean the floor plane too, even with the axes kept level, and
+    the walls' feet are cast onto that plane (the honest room's far wall: 3 cm out). Where z
+    holds the peak's points as well, the floor is the level plane through their median."""
+    rng = np.random.default_rng(6)
+    pts, nrm = _patch(rng, 3000, 2, 0.02, (0, 0, 0), (1.5, 1, 0), (0, 0, 1))
+    pts[:, 2] += np.tan(np.radians(0.3)) * pts[:, 0]
+    floor = find_planes(pts, nrm.astype(np.float64), PlanesConfig())[0]
+    assert floor.kind == "floor"
+    np.testing.assert_array_equal(floor.normal, [0.0, 0.0, 1.0])
+    assert floor.offset == pytest.approx(np.median(pts[:, 2]), abs=1e-3)  # of the 2 cm voxels
+    # the peak's own refit: the readings' lean
+    monkeypatch.setattr("stages.depth.planes.hypotheses._level_floor", lambda f, *a: f)
+    leant = find_planes(pts, nrm.astype(np.float64), PlanesConfig())[0]
+    assert np.degrees(np.arccos(leant.normal[2])) == pytest.approx(0.3, abs=0.05)
+
+
 def _horizontal_normals(rng, n, yaw_deg, noise_deg):
     """n wall normals about the four directions of a room turned yaw_deg from x, each off by
     Gaussian noise_deg, and as many floor normals."""
