@@ -105,6 +105,12 @@ class PlanesConfig:
     #                 kitchen: fill undone either way (39 % dropped), 72.02 the same; demo
     #                 room and homes: no fill runs (docs/depth.md#local-tops)
     normal_cos: float = 0.9  # a stereo point votes on an axis its normal is within ~25° of
+    axes_yaw_deg: float = 10.0  # the wall axes turn at most this far from the align stage's
+    #                 to the peak of the readings' normals (hypotheses.room_axes); 0 keeps
+    #                 the align stage's. Bounded: on the 7-Scenes kitchen stereo's normals
+    #                 (100 views at 1/5) spread evenly over every direction, and the unbounded
+    #                 peak of their angle lay at 48.7°, so every wall and front was
+    #                 hypothesised on the diagonals (the office's peak: 2.2°, clear)
     # per view (view.py)
     width: int = 320  # pixels: working width of the superpixels and the data term
     superpixels: int = 800  # SLIC segments per view at `width`
@@ -183,6 +189,10 @@ class PlanesConfig:
             raise BlunfError(f"depth.planes.sample_every must be >= 0, got {self.sample_every}")
         if not 0.0 <= self.feet_views <= 1.0:
             raise BlunfError(f"depth.planes.feet_views must be in [0, 1], got {self.feet_views}")
+        if not 0.0 <= self.axes_yaw_deg <= 45.0:
+            raise BlunfError(
+                f"depth.planes.axes_yaw_deg must be in [0, 45], got {self.axes_yaw_deg}"
+            )
         if self.free_planes < 0:
             raise BlunfError(f"depth.planes.free_planes must be >= 0, got {self.free_planes}")
         if self.neighbours < 1 or self.cycles < 1 or self.check_views < 1:

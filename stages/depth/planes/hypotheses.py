@@ -43,13 +43,8 @@ from stages.depth.planes.config import PlanesConfig
 log = logging.getLogger(__name__)
 
 KINDS = (FLOOR_NAME, CEILING_NAME, WALL_NAME, "top", "front")
-# the wall axes are looked for within this of the align stage's x and y: on the 7-Scenes
-# kitchen stereo's normals (100 views at 1/5) spread evenly over every direction, and the
-# unbounded peak of their angle lay at 48.7°, so every wall and front was hypothesised on
-# the diagonals (the office's peak: 2.2°, clear)
-MAX_YAW_DEG = 10.0
-YAW_PEAK = 1.5  # ... where their peak holds this many times the mean bin (office 2.0,
-#                kitchen 1.3: there the align stage's axes stay)
+YAW_PEAK = 1.5  # the wall axes turn to the normals' peak where it holds this many times the
+#                mean bin (room_axes; office 2.0, kitchen 1.3: there the align stage's stay)
 FLOOR_SEARCH = 0.3  # metres: the floor is sought this far either side of z = 0
 FREE_ITERS = 1000  # RANSAC hypotheses per free plane, and for the floor's normal
 FLOOR_TILT_DEG = 10.0  # the floor's normal is taken as up within this of the aligned z
@@ -201,12 +196,14 @@ def thin(points: np.ndarray, normals: np.ndarray, voxel: float) -> tuple[np.ndar
     return points[first], normals[first]
 
 
-def room_axes(normals: np.ndarray, max_yaw_deg: float = MAX_YAW_DEG) -> list[np.ndarray]:
+def room_axes(
+    normals: np.ndarray, max_yaw_deg: float = PlanesConfig.axes_yaw_deg
+) -> list[np.ndarray]:
     """The room's three axes [up, wall 1, wall 2] from the points' normals: up is the mean
     of the normals within 25° then 10° of z (flipped upward; z where fewer than 50), the wall
     directions the peak of the horizontal normals' angle modulo 90° about it, within
     `max_yaw_deg` of the align stage's x and y (the world's walls; its axes can be a few
-    degrees off, not more)."""
+    degrees off, not more); 0 keeps the align stage's (`PlanesConfig.axes_yaw_deg`)."""
     unit = normals[np.linalg.norm(normals, axis=1) > 0.5]
     up = np.array([0.0, 0.0, 1.0])
     for cos in (np.cos(np.radians(25)), np.cos(np.radians(10))):
@@ -220,7 +217,7 @@ def room_axes(normals: np.ndarray, max_yaw_deg: float = MAX_YAW_DEG) -> list[np.
     e2 = np.cross(up, e1)
     horiz = unit[np.abs(unit @ up) < 0.3]
     yaw = 0.0
-    if len(horiz) >= 50:
+    if len(horiz) >= 50 and max_yaw_deg > 0:
         # the angle modulo the right angle, in [-45°, 45°): 0 is the align stage's walls
         ang = np.mod(np.arctan2(horiz @ e2, horiz @ e1) + np.pi / 4, np.pi / 2) - np.pi / 4
         hist, _ = np.histogram(ang, bins=180, range=(-np.pi / 4, np.pi / 4))
@@ -254,7 +251,7 @@ def find_planes(
         at most cfg.max_planes planes, the floor first, then by decreasing support.
     """
     pts, nrm = thin(np.asarray(points, np.float64), np.asarray(normals, np.float64), cfg.voxel)
-    axes = floor_axes(pts, nrm, room_axes(nrm), cfg)
+    axes = floor_axes(pts, nrm, room_axes(nrm, cfg.axes_yaw_deg), cfg)
     known = np.linalg.norm(nrm, axis=1) > 0.5
     found: list[Found] = []
     tops: list[Found] = []  # the local tops (_local_tops), kept ahead of weaker planes
