@@ -232,5 +232,6 @@ def _facts(
         },
         "fills_dropped_by_check": round(1 - kept / filled, 4) if filled else 0.0,
         "stereo_dropped": round(sum(m.dropped for m in merged) / readings, 4),
+        "stereo_snapped": round(sum(m.snapped for m in merged) / readings, 4),
         "planes": [p.to_json() for p in planes],
     }

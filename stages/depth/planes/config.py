@@ -155,6 +155,8 @@ class PlanesConfig:
     furniture_extra: float = 0.0  # ... plus this for a top or front plane; 0.3: office 64.2 %
     #                    within 5 cm (61.0) but coverage 71.5 % (79.2), kitchen 36.6 % (41.8)
     boundary_px: int = 2  # readings disagreeing with a plane this near a region edge drop
+    snap: bool = False  # readings agreeing (tol) with their filled region's floor, wall or
+    #                     ceiling take its depth (piecewise-planar stereo's output)
     check_tol: float = 0.05  # relative: a fill is kept where another view agrees within this;
     #                         0.02: kitchen coverage 44.1 % (45.8), within 5 cm 42.6 % (41.9)
     check_agree: int = 1  # ... this many other views must agree with a fill

@@ -8,10 +8,14 @@ import numpy as np
 from scipy.ndimage import maximum_filter, minimum_filter
 
 from stages.common.camera import pixel_grid
+from stages.common.classes import CEILING_NAME, FLOOR_NAME, WALL_NAME
 from stages.depth.planes.config import PlanesConfig
 from stages.depth.planes.geometry import plane_depth, rays
 from stages.depth.planes.hypotheses import Plane
 from stages.depth.planes.view import Labelling
+
+# the room's own planes: a reading that agrees with one is moved onto it (cfg.snap)
+ROOM_KINDS = (FLOOR_NAME, CEILING_NAME, WALL_NAME)
 
 
 @dataclass
@@ -23,6 +27,7 @@ class Merged:
     plane: np.ndarray  # [h, w] int16 index of the filling plane (-1 = none)
     dropped: int  # readings dropped as disagreeing with a plane at a region's edge
     region: np.ndarray  # [h, w] int16 plane of the pixel's region (-1 = none)
+    snapped: int = 0  # readings moved onto their region's floor, wall or ceiling (cfg.snap)
 
 
 def merge_view(
@@ -61,8 +66,13 @@ def merge_view(
     agree = np.abs(r - t) <= cfg.tol * np.maximum(t, 1e-6)
     drop = (r > 0) & is_plane & ~agree & edge & strong[lab_px]
     kept = np.where((r > 0) & ~drop, r, 0.0).astype(np.float32)
+    snap = np.zeros_like(drop)
+    if cfg.snap:
+        room = np.array([p.kind in ROOM_KINDS for p in planes] + [False])
+        snap = (kept > 0) & is_plane & agree & fillable[seg] & room[lab_px]
+        kept = np.where(snap, t, kept).astype(np.float32)
     fill_px = (kept == 0) & is_plane & fillable[seg]
     fill = np.where(fill_px, t, 0.0).astype(np.float32)
     plane = np.where(fill_px, lab_px, -1).astype(np.int16)
     region = np.where(lab_px < n_p, lab_px, -1).astype(np.int16)
-    return Merged(kept, fill, plane, int(drop.sum()), region)
+    return Merged(kept, fill, plane, int(drop.sum()), region, int(snap.sum()))
