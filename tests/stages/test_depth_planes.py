@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from scipy.ndimage import uniform_filter
 
+from stages.common.camera import pixel_grid
 from stages.common.capture import read_layout
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth, read_image, read_label
@@ -18,10 +19,11 @@ from stages.depth import planes as planes_fill
 from stages.depth.planes import PlanesConfig, fill
 from stages.depth.planes.appearance import colour_cost, plane_colours
 from stages.depth.planes.bases import wall_feet
-from stages.depth.planes.geometry import plane_depth, plane_valid
+from stages.depth.planes.geometry import plane_depth, plane_valid, rays
 from stages.depth.planes.hypotheses import Plane, find_planes, floor_axes, room_axes
+from stages.depth.planes.merge import merge_view
 from stages.depth.planes.solve import energy, expand
-from stages.depth.planes.view import ViewData, data_costs
+from stages.depth.planes.view import Labelling, ViewData, data_costs
 
 
 def test_expansion_reaches_the_optimum_of_tiny_graphs():
@@ -290,14 +292,17 @@ def test_room_axes_take_the_walls_near_the_aligned_axes_and_only_those():
     rng = np.random.default_rng(4)
     yaw = lambda axes: np.degrees(np.arctan2(axes[1][1], axes[1][0]))  # noqa: E731
     # a room turned 4° from the align stage's axes (its walls a few degrees off): found
-    assert yaw(room_axes(_horizontal_normals(rng, 4000, 4.0, 2.0))) == pytest.approx(4.0, abs=0.5)
+    turned = _horizontal_normals(rng, 4000, 4.0, 2.0)
+    assert yaw(room_axes(turned, 10.0)) == pytest.approx(4.0, abs=0.5)
+    # at 0 the align stage's axes are kept, exactly, however clear the normals' peak
+    np.testing.assert_array_equal(room_axes(turned, 0.0)[1], [1.0, 0.0, 0.0])
     # normals spread over every direction (stereo's on the 7-Scenes kitchen): no peak stands
     # out, the align stage's axes stay (not a noise peak, up to 45° away)
     a = rng.uniform(0, 2 * np.pi, 4000)
     flat = np.concatenate([np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], 1), [[0, 0, 1]] * 99])
-    assert yaw(room_axes(flat)) == 0.0
+    assert yaw(room_axes(flat, 10.0)) == 0.0
     # a clear peak 40° away is not the room's walls (the align stage put them on x and y)
-    assert yaw(room_axes(_horizontal_normals(rng, 4000, 40.0, 2.0))) == 0.0
+    assert yaw(room_axes(_horizontal_normals(rng, 4000, 40.0, 2.0), 10.0)) == 0.0
     # ... unless asked to look that far
     assert yaw(room_axes(_horizontal_normals(rng, 4000, 40.0, 2.0), 45.0)) == pytest.approx(
         40.0, abs=0.5
@@ -681,3 +686,39 @@ def test_a_floor_that_other_views_see_furniture_in_front_of_is_not_filled():
         # with it the floor loses where the neighbour saw the sofa (the strips it sees)
         seen = cost[PlanesConfig().w_hidden][:, 0] > none + 0.4
         assert seen.sum() >= (8 if hidden else 0) and (hidden or not seen.any())
+
+
+def test_snap_moves_the_readings_that_agree_with_a_wall_onto_it_and_only_those():
+    """A view square to a wall 5 m away, its stereo scattered 2 cm about it, a box 1 m in
+    front of the wall in one corner, and the bottom rows on a table top: with snap the wall's
+    agreeing readings take the wall's depth exactly; the box (off the wall by more than tol)
+    and the top's readings (furniture: its plane is less sure) keep stereo's."""
+    h, w = 40, 60
+    K = np.array([[50.0, 0, 29.5], [0, 50.0, 19.5], [0, 0, 1]])
+    pose = np.eye(4)  # looking along +z
+    wall = Plane(np.array([0.0, 0.0, 1.0]), 5.0, "wall", np.zeros(3), np.zeros(3), 10**6)
+    top = Plane(np.array([0.0, -1.0, 0.0]), -0.9, "top", np.zeros(3), np.zeros(3), 10**6)
+    seg = np.zeros((h, w), np.int64)
+    seg[30:] = 1  # the table's rows
+    lab = Labelling(
+        seg=seg,
+        unary=np.array([[0.0, 1.0, 1.0], [1.0, 0.0, 1.0]]),  # each region's plane by far
+        labels=np.array([0, 1]),
+        edges=np.array([[0, 1]]),
+        energy=0.0,
+    )
+    rng = np.random.default_rng(0)
+    depth = (5.0 + rng.normal(0, 0.02, (h, w))).astype(np.float32)
+    depth[5:15, 5:15] = 4.0  # the box
+    uv = pixel_grid(w, h).reshape(-1, 2)
+    t_top = plane_depth(rays(uv, K, pose), pose[:3, 3], [top])[0].reshape(h, w)
+    depth[30:] = (t_top[30:] * 1.01).astype(np.float32)  # the table read 1 % long
+    off = merge_view(lab, depth, K, pose, [wall, top], PlanesConfig())
+    on = merge_view(lab, depth, K, pose, [wall, top], PlanesConfig(snap=True))
+    np.testing.assert_array_equal(off.kept, depth)
+    agree = np.zeros((h, w), bool)
+    agree[:30] = True
+    agree[5:15, 5:15] = False
+    np.testing.assert_allclose(on.kept[agree], 5.0, atol=1e-6)
+    np.testing.assert_array_equal(on.kept[~agree], depth[~agree])  # the box, the table
+    assert on.snapped == agree.sum() and off.snapped == 0
