@@ -105,12 +105,17 @@ class PlanesConfig:
     #                 kitchen: fill undone either way (39 % dropped), 72.02 the same; demo
     #                 room and homes: no fill runs (docs/depth.md#local-tops)
     normal_cos: float = 0.9  # a stereo point votes on an axis its normal is within ~25° of
-    axes_yaw_deg: float = 10.0  # the wall axes turn at most this far from the align stage's
+    axes_yaw_deg: float = 0.0  # the wall axes turn at most this far from the align stage's
     #                 to the peak of the readings' normals (hypotheses.room_axes); 0 keeps
-    #                 the align stage's. Bounded: on the 7-Scenes kitchen stereo's normals
-    #                 (100 views at 1/5) spread evenly over every direction, and the unbounded
-    #                 peak of their angle lay at 48.7°, so every wall and front was
-    #                 hypothesised on the diagonals (the office's peak: 2.2°, clear)
+    #                 the align stage's, whose Manhattan yaw (align/manhattan.py) lies nearer
+    #                 the sensor's walls than that peak: office 0.55 against ~2.7 degrees,
+    #                 honest room 0.05 against 2.2. 10 -> 0 against the sensor at SfM poses:
+    #                 office plan 78.88 -> 79.62 (wall 33.3 -> 43.8; seed 1: 78.99 -> 79.35),
+    #                 plane fills 86.0 -> 88.3 % within 5 cm (61.2 -> 66.4 within 3 cm);
+    #                 honest room 89.02 -> 88.53, its fills 96.1 -> 94.3 % (95.6 -> 94.0);
+    #                 kitchen: fill undone, 71.68 either way; demo room and homes: no fill
+    #                 runs. 10 kept the 7-Scenes kitchen off its diagonals, where stereo's
+    #                 normals spread over every direction (docs/figures.md#depth-planes-axes)
     # per view (view.py)
     width: int = 320  # pixels: working width of the superpixels and the data term
     superpixels: int = 800  # SLIC segments per view at `width`
@@ -155,8 +160,13 @@ class PlanesConfig:
     furniture_extra: float = 0.0  # ... plus this for a top or front plane; 0.3: office 64.2 %
     #                    within 5 cm (61.0) but coverage 71.5 % (79.2), kitchen 36.6 % (41.8)
     boundary_px: int = 2  # readings disagreeing with a plane this near a region edge drop
-    snap: bool = False  # readings agreeing (tol) with their filled region's floor, wall or
-    #                     ceiling take its depth (piecewise-planar stereo's output)
+    snap: bool = True  # readings agreeing (tol) with their filled region's floor, wall or
+    #                     ceiling take its depth (piecewise-planar stereo's output: a wall read
+    #                     2-3 cm either side of its plane draws a band of plan cells). Off -> on
+    #                     (axes_yaw_deg 0): office plan 79.62 -> 80.06 (wall 43.8 -> 48.6),
+    #                     its stereo 73.6 -> 77.8 % within 5 cm; honest room 88.53 -> 88.78,
+    #                     stereo 81.3 -> 82.5 %; kitchen: fill undone, no change; demo room and
+    #                     homes: no fill runs (docs/figures.md#depth-planes-axes)
     check_tol: float = 0.05  # relative: a fill is kept where another view agrees within this;
     #                         0.02: kitchen coverage 44.1 % (45.8), within 5 cm 42.6 % (41.9)
     check_agree: int = 1  # ... this many other views must agree with a fill
