@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from stages.common.classes import FLOOR_NAME
-from stages.depth.planes.hypotheses import Plane
+from stages.depth.planes.hypotheses import FURNITURE_KINDS, Plane
 
 MIN_DEPTH = 0.05  # metres: a plane closer than this along a ray is not a surface seen
 MIN_COS = 0.08  # |cos| between ray and plane normal below this: grazing, depth unstable
@@ -64,7 +64,7 @@ def plane_valid(
     up, base = (floor.normal, floor.offset) if floor else (np.array([0.0, 0.0, 1.0]), 0.0)
     for k, p in enumerate(planes):
         x = centre + t[k][:, None] * r  # [N, 3]
-        m = m2[1] if p.kind in ("top", "front") else m2[0]
+        m = m2[1] if p.kind in FURNITURE_KINDS else m2[0]
         inside = np.all((x >= p.lo - m) & (x <= p.hi + m), axis=1)
         if p.cells is not None:  # and within `m` of the cells its inliers fill
             inside[inside] = p.cells.near(x[inside], m)

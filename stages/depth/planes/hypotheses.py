@@ -42,7 +42,9 @@ from stages.depth.planes.config import PlanesConfig
 
 log = logging.getLogger(__name__)
 
-KINDS = (FLOOR_NAME, CEILING_NAME, WALL_NAME, "top", "front")
+ROOM_KINDS = (FLOOR_NAME, CEILING_NAME, WALL_NAME)  # the room's own planes
+FURNITURE_KINDS = ("top", "front")  # horizontal 0.2-1.5 m above the floor; other vertical
+KINDS = ROOM_KINDS + FURNITURE_KINDS
 YAW_PEAK = 1.5  # the wall axes turn to the normals' peak where it holds this many times the
 #                mean bin (room_axes; office 2.0, kitchen 1.3: there the align stage's stay)
 FLOOR_SEARCH = 0.3  # metres: the floor is sought this far either side of z = 0

@@ -8,14 +8,10 @@ import numpy as np
 from scipy.ndimage import maximum_filter, minimum_filter
 
 from stages.common.camera import pixel_grid
-from stages.common.classes import CEILING_NAME, FLOOR_NAME, WALL_NAME
 from stages.depth.planes.config import PlanesConfig
 from stages.depth.planes.geometry import plane_depth, rays
-from stages.depth.planes.hypotheses import Plane
+from stages.depth.planes.hypotheses import FURNITURE_KINDS, ROOM_KINDS, Plane
 from stages.depth.planes.view import Labelling
-
-# the room's own planes: a reading that agrees with one is moved onto it (cfg.snap)
-ROOM_KINDS = (FLOOR_NAME, CEILING_NAME, WALL_NAME)
 
 
 @dataclass
@@ -47,7 +43,7 @@ def merge_view(
     n_p = len(planes)
     per_sp = lab.labels
     margin = lab.unary[:, n_p] - lab.unary[np.arange(len(per_sp)), np.minimum(per_sp, n_p)]
-    extra = np.array([cfg.furniture_extra if p.kind in ("top", "front") else 0.0 for p in planes])
+    extra = np.array([cfg.furniture_extra if p.kind in FURNITURE_KINDS else 0.0 for p in planes])
     need = cfg.margin + np.append(extra, 0.0)[np.minimum(per_sp, n_p)]
     fillable = (per_sp < n_p) & (margin >= need)
     lab_px = per_sp[seg]  # [h, w]
@@ -66,12 +62,13 @@ def merge_view(
     agree = np.abs(r - t) <= cfg.tol * np.maximum(t, 1e-6)
     drop = (r > 0) & is_plane & ~agree & edge & strong[lab_px]
     kept = np.where((r > 0) & ~drop, r, 0.0).astype(np.float32)
+    filled = is_plane & fillable[seg]  # the regions a plane wins by the margin
     snap = np.zeros_like(drop)
-    if cfg.snap:
+    if cfg.snap:  # a reading that agrees with the room's own plane takes its depth
         room = np.array([p.kind in ROOM_KINDS for p in planes] + [False])
-        snap = (kept > 0) & is_plane & agree & fillable[seg] & room[lab_px]
+        snap = (kept > 0) & filled & agree & room[lab_px]
         kept = np.where(snap, t, kept).astype(np.float32)
-    fill_px = (kept == 0) & is_plane & fillable[seg]
+    fill_px = (kept == 0) & filled
     fill = np.where(fill_px, t, 0.0).astype(np.float32)
     plane = np.where(fill_px, lab_px, -1).astype(np.int16)
     region = np.where(lab_px < n_p, lab_px, -1).astype(np.int16)
