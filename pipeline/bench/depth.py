@@ -22,7 +22,9 @@ no plane's depth matches are counted in `planes_unmatched`). `tracks`: the SfM t
 the depth stage started from (the align stage's frames.json), scored the same way: the
 agreement of the run's own geometry with the sensor, which no depth method on those poses
 and intrinsics can beat (the 7-Scenes kitchen's colour camera at its stated focal: its
-tracks lie within 5 cm of the sensor no more often than its stereo does).
+tracks lie within 5 cm of the sensor no more often than its stereo does), again per class of
+the reference's labels (`tracks.classes`: on the kitchen at SfM's own focal, 69 % of the
+tracks on the floor, 52 % of those on the walls).
 Sensor readings next to a depth edge or a hole are left out within `erode_px` pixels (the
 7-Scenes Kinect's colour and depth are not registered: its edges sit a few pixels off the
 colour's).
@@ -283,6 +285,7 @@ def depth_metrics(
     bands: dict[str, _Tally] = {}
     tracks = _Tally()
     by_track_band: dict[str, _Tally] = {}
+    by_track_class = {n: _Tally() for n in CLASSES}
     sfm = track_maps(photos_run)
     planes = fill_planes(photos_run)
     by_plane = [_Tally() for _ in planes]
@@ -303,6 +306,11 @@ def depth_metrics(
             tref = at_centres(sensor_depth(cap, stem, erode_px), t.shape)
             tracks.add(np.ones(t.shape, bool), t, tref)
             _bands(by_track_band, np.ones(t.shape, bool), t, tref)
+            if stem in labels:
+                tlab = at_centres(read_label(labels[stem]), t.shape)
+                for cid, name in classes.items():
+                    if name in by_track_class:
+                        by_track_class[name].add(tlab == cid, t, tref)
         view = _Tally()
         view.add(everything, got, ref)
         per_view[stem] = view.result()
@@ -352,6 +360,11 @@ def depth_metrics(
         out["tracks"]["bands"] = {
             n: {k: v for k, v in t.result().items() if k != "coverage"}
             for n, t in by_track_band.items()
+            if t.compared
+        }
+        out["tracks"]["classes"] = {
+            n: {k: v for k, v in t.result().items() if k != "coverage"}
+            for n, t in by_track_class.items()
             if t.compared
         }
     out.update(

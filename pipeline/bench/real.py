@@ -288,8 +288,10 @@ def summary(res: dict) -> str:
         )
         t = d.get("tracks")
         if t:  # the run's own geometry against the sensor: what no depth method can beat
+            classes = t.get("classes", {}).items()
+            by = " ".join(f"{n} {v['within_5cm']:.1f}" for n, v in classes if v["compared"])
             lines.append(
-                f"SfM tracks vs sensor: within 5 cm {t['within_5cm']:.1f} % AbsRel "
+                f"SfM tracks vs sensor: within 5 cm {t['within_5cm']:.1f} % ({by}) AbsRel "
                 f"{t['absrel']:.3f} median ratio {t['median_ratio']:.3f} ({t['compared']} tracks)"
             )
     return "\n".join(lines)

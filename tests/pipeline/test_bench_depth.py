@@ -192,6 +192,12 @@ def test_depth_metrics_ratio_bands_and_tracks(tmp_path):
     assert t["within_5cm"] == pytest.approx(50.0, abs=0.01)  # every track read; half off
     assert t["median_ratio"] >= 1.0
     assert sum(b["compared"] for b in t["bands"].values()) == t["compared"]
+    # per class of the reference's labels: the planted error is the floor's (the lower half)
+    by = t["classes"]
+    assert set(by) == {"floor", "wall", "object"}
+    assert sum(c["compared"] for c in by.values()) == t["compared"]
+    assert by["floor"]["within_5cm"] == 0.0 and by["floor"]["median_ratio"] > 1.0
+    assert by["wall"]["within_5cm"] == by["object"]["within_5cm"] == 100.0
 
 
 def test_sensor_depth_is_read_as_the_reference_plan_read_it(tmp_path):
