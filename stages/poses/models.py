@@ -18,6 +18,7 @@ from stages.common.camera import Intrinsics
 from stages.common.capture import Capture
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth
+from stages.poses import calib
 from stages.poses import scale as scale_mod
 from stages.poses.config import PosesConfig
 
@@ -94,17 +95,34 @@ def describe(models: list[list[int]], stems: list[str], mapper: str = "increment
     return {"groups": groups, "left_out": spans(left, stems), "warnings": warnings}
 
 
-def sparse_depth(rec: pycolmap.Reconstruction, im: pycolmap.Image, intr: Intrinsics) -> np.ndarray:
-    """z-depth (metres) of the image's triangulated keypoints at their nearest pixel, 0
-    elsewhere; the nearest point wins where two fall in one pixel. Returns float32 [H, W]."""
+def track_pixels(
+    rec: pycolmap.Reconstruction, im: pycolmap.Image, intr: Intrinsics
+) -> tuple[np.ndarray, np.ndarray]:
+    """(pixel [N, 2], integer centres; z-depth [N]) of the image's triangulated keypoints in
+    the frame's camera `intr`: where they were detected, or, when the frame was made pinhole
+    (undistort.py: `intr` has no distortion, SfM's camera has), where that pinhole camera
+    sees their points."""
     obs = im.get_observation_points2D()
-    d = np.zeros((intr.height, intr.width), np.float32)
-    if not len(obs):
-        return d
-    xy = np.array([p.xy for p in obs], np.float64).reshape(-1, 2) - 0.5  # integer centres
-    xyz = np.array([rec.points3D[p.point3D_id].xyz for p in obs]).reshape(-1, 3)
+    xyz = np.array([rec.points3D[p.point3D_id].xyz for p in obs], np.float64).reshape(-1, 3)
     w2c = im.cam_from_world().matrix()  # [3, 4]
-    z = xyz @ w2c[2, :3] + w2c[2, 3]  # [N]
+    pc = xyz @ w2c[:, :3].T + w2c[:, 3]  # [N, 3] camera frame
+    z = pc[:, 2]
+    if any(intr.dist) or not any(calib.intrinsics_of(rec.camera(im.camera_id)).dist):
+        return np.array([p.xy for p in obs], np.float64).reshape(-1, 2) - 0.5, z
+    safe = np.where(z > 1e-12, z, 1e-12)  # behind the camera: dropped by the callers (z > 0)
+    return np.stack(
+        [intr.fx * pc[:, 0] / safe + intr.cx, intr.fy * pc[:, 1] / safe + intr.cy], 1
+    ), z
+
+
+def sparse_depth(rec: pycolmap.Reconstruction, im: pycolmap.Image, intr: Intrinsics) -> np.ndarray:
+    """z-depth (metres) of the image's triangulated keypoints at their nearest pixel
+    (track_pixels), 0 elsewhere; the nearest point wins where two fall in one pixel.
+    Returns float32 [H, W]."""
+    d = np.zeros((intr.height, intr.width), np.float32)
+    if not im.num_points3D:
+        return d
+    xy, z = track_pixels(rec, im, intr)
     u, v = np.round(xy[:, 0]).astype(int), np.round(xy[:, 1]).astype(int)
     ok = (z > 0) & (u >= 0) & (v >= 0) & (u < intr.width) & (v < intr.height)
     order = np.argsort(-z[ok])  # far first, so nearer points overwrite
@@ -131,15 +149,11 @@ def metric_scale(
         ratios = []
         for im, i in zip(ims, kept, strict=True):
             f = cap.frames[i]
-            obs = im.get_observation_points2D()
-            xy = np.array([p.xy for p in obs], np.float64).reshape(-1, 2)  # [N, 2]
-            xyz = np.array([rec.points3D[p.point3D_id].xyz for p in obs]).reshape(-1, 3)
-            w2c = im.cam_from_world().matrix()  # [3, 4]
-            z = xyz @ w2c[2, :3] + w2c[2, 3]  # [N]
+            xy, z = track_pixels(rec, im, f.intrinsics)  # [N, 2], [N]
             depth = read_depth(f.depth, cap.depth_scale, cap.depth_invalid)  # type: ignore[arg-type]
             cam = rec.camera(im.camera_id)
             wh = (int(cam.width), int(cam.height))
-            ratios.append(scale_mod.depth_ratios(xy - 0.5, z, depth, wh))
+            ratios.append(scale_mod.depth_ratios(xy, z, depth, wh))
         return scale_mod.scale_from_depth(ratios)
     if how == "distance":
         first, last = cap.frames[0].stem, cap.frames[-1].stem

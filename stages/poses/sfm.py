@@ -25,6 +25,7 @@ from stages.common.io import image_size, write_depth_npy, write_json
 from stages.common.progress import Progress, progress
 from stages.poses import agreement, calib, fullsize, matching, stated
 from stages.poses import models as models_detail
+from stages.poses import undistort as lens
 from stages.poses.config import PosesConfig, PosesInputs, PosesOutputs
 from stages.poses.matching import keyframe_stride
 from stages.poses.models import metric_scale, sparse_depth
@@ -138,7 +139,9 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
     else:
         facts["intrinsics"] = {"source": "self-calibrated" if refine else "given"}
     if refine:  # the frames take the estimate, their sensor depth follows it
-        cap = _refined(cap, rec, [(i, ids[names[i]]) for i in kept], out / "depth")
+        cap, facts["undistorted"] = _refined(
+            cap, rec, [(i, ids[names[i]]) for i in kept], out, cfg.undistort
+        )
         facts["depth_registered"] = (out / "depth").is_dir()
 
     t4 = time.perf_counter()
@@ -188,14 +191,26 @@ def run(cfg: PosesConfig, inputs: PosesInputs, out: Path) -> PosesOutputs:
     return outs
 
 
-def _refined(cap: Capture, rec: pycolmap.Reconstruction, kept: list, folder: Path) -> Capture:
-    """`cap` with each registered frame (kept: (capture index, image id)) taking SfM's
-    estimate of its camera, its sensor depth map resampled into that camera under `folder`
-    (stated.register_depth: a depth map shares its frame's intrinsics)."""
+def _refined(
+    cap: Capture, rec: pycolmap.Reconstruction, kept: list, out: Path, undistort: bool
+) -> tuple[Capture, int]:
+    """(`cap` with each registered frame (kept: (capture index, image id)) taking SfM's
+    estimate of its camera, the number of frames made pinhole). With `undistort`, a frame
+    whose lens model moves its pixels by more than undistort.MIN_SHIFT_PX takes an
+    undistorted copy of its photo under out/images and that camera without distortion
+    (undistort.py). Its sensor depth map is resampled into the camera it takes, under
+    out/depth (stated.register_depth: a depth map shares its frame's intrinsics)."""
     frames = list(cap.frames)
+    made = 0
     for i, iid in kept:
         f = frames[i]
         intr = calib.intrinsics_of(rec.camera(rec.image(iid).camera_id))
+        if undistort and lens.largest_shift_px(intr) > lens.MIN_SHIFT_PX:
+            dst = out / "images" / f"{f.stem}.png"
+            intr = lens.undistorted_copy(Path(f.image), intr, dst)
+            f = replace(f, image=dst)
+            made += 1
+        folder = out / "depth"
         if f.depth is not None and intr != f.intrinsics:
             folder.mkdir(exist_ok=True)
             dst = folder / f"{f.stem}.npy"
@@ -204,7 +219,7 @@ def _refined(cap: Capture, rec: pycolmap.Reconstruction, kept: list, folder: Pat
             )
             f = replace(f, depth=dst)
         frames[i] = replace(f, intrinsics=intr, calib="self-calibrated")
-    return cap.with_frames(tuple(frames))
+    return cap.with_frames(tuple(frames)), made
 
 
 @contextlib.contextmanager

@@ -13,7 +13,7 @@ from PIL import Image
 from stages.common.camera import Intrinsics
 from stages.common.capture import Capture, Frame, read_layout
 from stages.common.errors import BlunfError
-from stages.common.io import read_json
+from stages.common.io import read_depth, read_json
 from stages.evaluate.poses import pose_metrics
 from stages.poses import IMPLS, PosesConfig, PosesInputs, PosesOutputs
 from stages.poses.config import (
@@ -525,3 +525,119 @@ def test_sfm_keyframes_that_do_not_hold_map_every_view(room: Path, tmp_path: Pat
 def test_keyframe_stride_leaves_at_least_so_many_views() -> None:
     assert [keyframe_stride(n, 200) for n in (100, 399, 400, 799, 800, 1600)] == [1, 1, 2, 2, 4, 8]
     assert keyframe_stride(5000, 0) == 1  # 0: always every view
+
+
+# ---- a lens with distortion: the frames made pinhole -----------------------------------------
+
+
+def _through_lens(rgb: np.ndarray, intr: Intrinsics, k1: float) -> np.ndarray:
+    """The pinhole photo `rgb` as a lens with radial distortion k1 (same focal and principal
+    point) takes it: each pixel of the result reads the pinhole photo where its ray lands
+    (the ray undistorted by fixed-point iteration; bilinear)."""
+    from scipy import ndimage
+
+    h, w = rgb.shape[:2]
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    xd, yd = (u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy
+    x, y = xd.copy(), yd.copy()
+    for _ in range(30):
+        r2 = x * x + y * y
+        x, y = xd / (1 + k1 * r2), yd / (1 + k1 * r2)
+    rows, cols = y * intr.fy + intr.cy, x * intr.fx + intr.cx
+    return (
+        np.stack(
+            [
+                ndimage.map_coordinates(
+                    rgb[..., c].astype(np.float64), [rows, cols], order=1, mode="nearest"
+                )
+                for c in range(3)
+            ],
+            -1,
+        )
+        .round()
+        .astype(np.uint8)
+    )
+
+
+def test_largest_shift_is_where_the_lens_moves_the_corners_most() -> None:
+    from stages.poses.undistort import largest_shift_px
+
+    intr = Intrinsics(100.0, 100.0, 49.5, 39.5, 100, 80)
+    assert largest_shift_px(intr) == 0.0
+    # corner (0, 0): x = -0.495, y = -0.395, r^2 = 0.4011; moved k1 r^2 of its radius
+    r = np.hypot(49.5, 39.5)
+    got = largest_shift_px(Intrinsics(100.0, 100.0, 49.5, 39.5, 100, 80, (-0.05, 0.0, 0.0, 0.0)))
+    assert got == pytest.approx(0.05 * (r / 100) ** 2 * r, rel=1e-9)
+
+
+def _track_errors(got: Capture, cap: Capture, s: float) -> np.ndarray:
+    """Relative error of every track depth (photos-only frames: the tracks are the depth, in
+    SfM units times s) against the exact depth map of the pinhole render at its pixel."""
+    exact = {f.stem: f.depth for f in cap.frames}
+    errs = []
+    for f in got.frames:
+        t = np.load(f.depth) * s
+        d = read_depth(exact[f.stem], cap.depth_scale, cap.depth_invalid)
+        ok = (t > 0) & (d > 0)
+        errs.append(np.abs(t[ok] - d[ok]) / d[ok])
+    return np.concatenate(errs)
+
+
+def test_photos_through_a_barrel_lens_become_pinhole_frames(room: Path, tmp_path: Path) -> None:
+    """Photos taken through a barrel lens (k1 -0.08: the corners 6 px in at 192x144): SfM
+    finds the lens, and with poses.undistort the frames take undistorted copies and pinhole
+    intrinsics, so that the sweep, the plane fill and fusion (pinhole) read the rays SfM
+    found; each track's depth lies where that pinhole camera sees it. Off, the frames keep
+    SfM's k1 and the photos, and the tracks sit where the lens put them."""
+    k1 = -0.08
+    cap = read_layout(room)
+    true = cap.frames[0].intrinsics
+    (tmp_path / "lens").mkdir()
+    frames = []
+    for f in cap.frames:
+        rgb = np.asarray(Image.open(f.image).convert("RGB"))
+        path = _write_png(tmp_path / "lens" / f"{f.stem}.png", _through_lens(rgb, true, k1))
+        frames.append(Frame(f.stem, path, true))  # photos only: the tracks are the depth
+    lens = Capture(tmp_path / "lens", tuple(frames))
+    runs = {}
+    for on in (True, False):
+        work = tmp_path / str(on)
+        work.mkdir()
+        runs[on] = _run_sfm(
+            lens,
+            work,
+            threads=1,
+            max_features=2048,
+            self_calibrate=True,
+            scale_from="none",
+            undistort=on,
+        )
+    got, facts = runs[True]
+    (est,) = facts["camera"]["estimated"]
+    assert est["dist"][0] == pytest.approx(k1, abs=0.01)  # SfM found the lens (-0.0797)
+    assert facts["undistorted"] == len(got.frames) == 24
+    rendered = {f.stem: f.image for f in cap.frames}
+    inner = (slice(8, -8), slice(8, -8))  # away from the border the lens did not see
+    for f in got.frames:
+        assert (
+            f.intrinsics.dist == ()
+            and f.image == tmp_path / "True" / "out" / "images" / f"{f.stem}.png"
+        )
+        und, lensed, pinhole = (
+            np.asarray(Image.open(p).convert("RGB")).astype(np.float64)
+            for p in (f.image, tmp_path / "lens" / f"{f.stem}.png", rendered[f.stem])
+        )
+        # back where the pinhole render has it: mean |difference| ~1/4 of the lens's
+        assert np.abs(und - pinhole)[inner].mean() < 0.5 * np.abs(lensed - pinhole)[inner].mean()
+    off, facts_off = runs[False]
+    assert facts_off["undistorted"] == 0
+    assert (
+        off.frames[0].intrinsics.dist[0] == est["dist"][0]
+        and off.frames[0].image == lens.frames[0].image
+    )
+    # the same model both ways (one seed): its scale to metres from the exact poses
+    s = pose_metrics({f.stem: f.pose for f in got.frames}, _gt_poses(room))["align_scale"]
+    on_err, off_err = _track_errors(got, cap, s), _track_errors(off, cap, s)
+    # measured: median 0.27 % against 0.37 %, 90th percentile 1.0 % against 1.5 %
+    assert np.median(on_err) < 0.005
+    assert np.percentile(on_err, 90) < 0.8 * np.percentile(off_err, 90)
