@@ -55,7 +55,10 @@ def run(cfg: FusionConfig, inputs: FusionInputs, out: Path) -> FusionOutputs:
     notes = []
     distorted = sum(any(abs(k) > 0 for k in f.intrinsics.dist) for f in cap.frames)
     if distorted:
-        notes.append(f"lens distortion of {distorted} frames ignored (pinhole assumed)")
+        notes.append(
+            f"lens distortion of {distorted} frames ignored (pinhole assumed; "
+            "poses.undistort=true reads undistorted copies)"
+        )
         log.warning("fusion: %s", notes[-1])
 
     t0 = time.perf_counter()
