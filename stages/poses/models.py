@@ -18,7 +18,6 @@ from stages.common.camera import Intrinsics
 from stages.common.capture import Capture
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth
-from stages.poses import calib
 from stages.poses import scale as scale_mod
 from stages.poses.config import PosesConfig
 
@@ -103,16 +102,16 @@ def track_pixels(
     (undistort.py: `intr` has no distortion, SfM's camera has), where that pinhole camera
     sees their points."""
     obs = im.get_observation_points2D()
-    xyz = np.array([rec.points3D[p.point3D_id].xyz for p in obs], np.float64).reshape(-1, 3)
+    xyz = np.array([rec.points3D[p.point3D_id].xyz for p in obs]).reshape(-1, 3)
     w2c = im.cam_from_world().matrix()  # [3, 4]
-    pc = xyz @ w2c[:, :3].T + w2c[:, 3]  # [N, 3] camera frame
-    z = pc[:, 2]
-    if any(intr.dist) or not any(calib.intrinsics_of(rec.camera(im.camera_id)).dist):
+    z = xyz @ w2c[2, :3] + w2c[2, 3]  # [N]
+    cam = rec.camera(im.camera_id)
+    lens = any(cam.params[i] != 0 for i in cam.extra_params_idxs())  # SfM's distortion
+    if any(intr.dist) or not lens:
         return np.array([p.xy for p in obs], np.float64).reshape(-1, 2) - 0.5, z
     safe = np.where(z > 1e-12, z, 1e-12)  # behind the camera: dropped by the callers (z > 0)
-    return np.stack(
-        [intr.fx * pc[:, 0] / safe + intr.cx, intr.fy * pc[:, 1] / safe + intr.cy], 1
-    ), z
+    x, y = xyz @ w2c[0, :3] + w2c[0, 3], xyz @ w2c[1, :3] + w2c[1, 3]  # [N] each
+    return np.stack([intr.fx * x / safe + intr.cx, intr.fy * y / safe + intr.cy], 1), z
 
 
 def sparse_depth(rec: pycolmap.Reconstruction, im: pycolmap.Image, intr: Intrinsics) -> np.ndarray:

@@ -570,6 +570,41 @@ def test_largest_shift_is_where_the_lens_moves_the_corners_most() -> None:
     assert got == pytest.approx(0.05 * (r / 100) ** 2 * r, rel=1e-9)
 
 
+def _one_track(model: str, params: list[float]) -> tuple[pycolmap.Reconstruction, pycolmap.Image]:
+    """A model of one 64x48 camera at the origin seeing the point (0.2, 0.1, 1) detected at
+    (40, 30) in COLMAP's pixels, where a pinhole of focal 50 and centre (32, 24) projects it to
+    (42, 29): a keypoint 2.2 px off its point's projection."""
+    rec = pycolmap.Reconstruction()
+    cam = pycolmap.Camera(model=model, width=64, height=48, params=params)
+    cam.camera_id = 1
+    rec.add_camera_with_trivial_rig(cam)
+    kp = pycolmap.Point2DList([pycolmap.Point2D(np.array([40.0, 30.0]))])
+    rec.add_image_with_trivial_frame(
+        pycolmap.Image(name="a", points2D=kp, camera_id=1, image_id=1), pycolmap.Rigid3d()
+    )
+    track = pycolmap.Track()
+    track.add_element(1, 0)
+    rec.add_point3D(np.array([0.2, 0.1, 1.0]), track)
+    return rec, rec.image(1)
+
+
+def test_track_pixels_are_the_keypoints_unless_the_frame_was_made_pinhole() -> None:
+    from stages.poses.models import track_pixels
+
+    pinhole = Intrinsics(50.0, 50.0, 31.5, 23.5, 64, 48)  # the project's pixels
+    lensed = Intrinsics(50.0, 50.0, 31.5, 23.5, 64, 48, (-0.1, 0.0, 0.0, 0.0))
+    # a pinhole camera (stated intrinsics): where the keypoint was detected
+    xy, z = track_pixels(*_one_track("PINHOLE", [50, 50, 32, 24]), pinhole)
+    assert xy.tolist() == [[39.5, 29.5]] and z.tolist() == [1.0]
+    # SfM's lens kept by the frame: the detection, through that lens
+    radial = [50, 32, 24, -0.1]
+    xy, _ = track_pixels(*_one_track("SIMPLE_RADIAL", radial), lensed)
+    assert xy.tolist() == [[39.5, 29.5]]
+    # the frame made pinhole (poses.undistort): where that pinhole camera sees the point
+    xy, z = track_pixels(*_one_track("SIMPLE_RADIAL", radial), pinhole)
+    assert xy == pytest.approx(np.array([[41.5, 28.5]])) and z.tolist() == [1.0]
+
+
 def _track_errors(got: Capture, cap: Capture, s: float) -> np.ndarray:
     """Relative error of every track depth (photos-only frames: the tracks are the depth, in
     SfM units times s) against the exact depth map of the pinhole render at its pixel."""
