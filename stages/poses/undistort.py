@@ -5,15 +5,16 @@ SfM estimates one radial coefficient per camera (calib.py's SIMPLE_RADIAL, k1) w
 intrinsics are not given or disagree with the photos. The stages after it read a frame as
 a pinhole camera: the plane sweep warps views by homographies, the plane fill by plane
 homographies, fusion and the fields cast straight rays. A frame that kept its k1 was read
-by them as pinhole and by the project stage through its distortion. Each such frame takes
-instead an undistorted copy of its photo (kornia's `undistort_image`: bilinear, the same
+by them as pinhole and by the project stage through its distortion. With poses.undistort
+(off by default: docs/figures.md#poses-undistort) each such frame takes instead an
+undistorted copy of its photo (kornia's `undistort_image`: bilinear, the same
 focal and principal point, pixel centres on integers as in camera.py) and intrinsics
 without distortion, so that every stage reads the same rays. Its sensor depth, if any, is
 then registered to that pinhole camera (stated.register_depth).
 
 A lens whose model moves no pixel by MIN_SHIFT_PX is left as it is: resampling would blur
 the photo more than the model moves it (a procedural room's renders are pinhole; SfM gives
-them a k1 of ~1e-3).
+the default room's 60 photos a k1 of -1e-4).
 """
 
 from __future__ import annotations
