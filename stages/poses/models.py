@@ -14,7 +14,7 @@ import logging
 import numpy as np  # noqa: I001  (numpy must be loaded before pycolmap, see stages/__init__.py)
 import pycolmap
 
-from stages.common.camera import Intrinsics
+from stages.common.camera import Intrinsics, project
 from stages.common.capture import Capture
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth
@@ -109,9 +109,8 @@ def track_pixels(
     lens = any(cam.params[i] != 0 for i in cam.extra_params_idxs())  # SfM's distortion
     if any(intr.dist) or not lens:
         return np.array([p.xy for p in obs], np.float64).reshape(-1, 2) - 0.5, z
-    safe = np.where(z > 1e-12, z, 1e-12)  # behind the camera: dropped by the callers (z > 0)
-    x, y = xyz @ w2c[0, :3] + w2c[0, 3], xyz @ w2c[1, :3] + w2c[1, 3]  # [N] each
-    return np.stack([intr.fx * x / safe + intr.cx, intr.fy * y / safe + intr.cy], 1), z
+    c2w = np.linalg.inv(np.vstack([w2c, [0.0, 0.0, 0.0, 1.0]]))  # [4, 4]
+    return project(xyz, intr.K, c2w)[0], z  # behind the camera: dropped by callers (z > 0)
 
 
 def sparse_depth(rec: pycolmap.Reconstruction, im: pycolmap.Image, intr: Intrinsics) -> np.ndarray:

@@ -202,15 +202,15 @@ def _refined(
     out/depth (stated.register_depth: a depth map shares its frame's intrinsics)."""
     frames = list(cap.frames)
     made = 0
+    folder = out / "depth"
     for i, iid in kept:
         f = frames[i]
         intr = calib.intrinsics_of(rec.camera(rec.image(iid).camera_id))
         if undistort and lens.largest_shift_px(intr) > lens.MIN_SHIFT_PX:
-            dst = out / "images" / f"{f.stem}.png"
-            intr = lens.undistorted_copy(Path(f.image), intr, dst)
-            f = replace(f, image=dst)
+            photo = out / "images" / f"{f.stem}.png"
+            intr = lens.undistorted_copy(Path(f.image), intr, photo)
+            f = replace(f, image=photo)
             made += 1
-        folder = out / "depth"
         if f.depth is not None and intr != f.intrinsics:
             folder.mkdir(exist_ok=True)
             dst = folder / f"{f.stem}.npy"

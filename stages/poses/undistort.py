@@ -49,16 +49,14 @@ def largest_shift_px(intr: Intrinsics) -> float:
 def undistorted_copy(src: Path, intr: Intrinsics, dst: Path) -> Intrinsics:
     """Write the photo `src` of the camera `intr` as the same camera without its distortion
     sees it to `dst` (a .png: lossless, the sweep matches its pixels); returns that pinhole
-    camera. Pixels the lens did not see (the corners of a pincushion
-    lens) are black."""
+    camera. Pixels the lens did not see (the corners of a pincushion lens) are black."""
     rgb = read_image(src)  # [H, W, 3] uint8
     h, w = rgb.shape[:2]
     k = intr.scaled(w, h)
-    img = (
-        torch.tensor(rgb).permute(2, 0, 1)[None].float()
-    )  # [1, 3, H, W] (a copy: rgb is read-only)
+    img = torch.tensor(rgb).permute(2, 0, 1)[None].float()  # [1, 3, H, W]; a copy (read-only)
     K = torch.tensor(k.K, dtype=torch.float32)  # [3, 3]
-    dist = torch.tensor((tuple(k.dist) + (0.0,) * 4)[: max(4, len(k.dist))], dtype=torch.float32)
+    coeffs = tuple(k.dist) + (0.0,) * (4 - len(k.dist))  # kornia takes 4, 5, 8, ... of them
+    dist = torch.tensor(coeffs, dtype=torch.float32)
     with torch.no_grad():
         out = undistort_image(img, K, dist)  # [1, 3, H, W]
     got = out[0].permute(1, 2, 0).round().clamp(0, 255).to(torch.uint8).numpy()

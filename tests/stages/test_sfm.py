@@ -540,6 +540,8 @@ def _through_lens(rgb: np.ndarray, intr: Intrinsics, k1: float) -> np.ndarray:
     v, u = np.mgrid[0:h, 0:w].astype(np.float64)
     xd, yd = (u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy
     x, y = xd.copy(), yd.copy()
+    # by hand, not kornia's undistort_points: the product undistorts with kornia, and a
+    # convention both shared would pass unseen
     for _ in range(30):
         r2 = x * x + y * y
         x, y = xd / (1 + k1 * r2), yd / (1 + k1 * r2)
