@@ -294,8 +294,10 @@ def depth_metrics(
     per_view = {}
     has_sources = (folder / "sources").is_dir()
     for stem, path in maps:
+        label = read_label(labels[stem]) if stem in labels else None  # the reference's classes
         got = _metres(path, s)  # [h, w]
-        ref = at_centres(sensor_depth(cap, stem, erode_px), got.shape)
+        sensor = sensor_depth(cap, stem, erode_px)  # [H, W] metres, read once a view
+        ref = at_centres(sensor, got.shape)
         code = _sources(folder, stem, path, got)
         everything = np.ones(got.shape, bool)
         total.add(everything, got, ref)
@@ -303,11 +305,11 @@ def depth_metrics(
         if sfm is not None and stem in sfm[1]:
             t = read_depth(sfm[1][stem], sfm[0].depth_scale, sfm[0].depth_invalid)
             t = np.where(np.isfinite(t) & (t > 0), t.astype(np.float64) * s, 0.0)
-            tref = at_centres(sensor_depth(cap, stem, erode_px), t.shape)
+            tref = at_centres(sensor, t.shape)
             tracks.add(np.ones(t.shape, bool), t, tref)
             _bands(by_track_band, np.ones(t.shape, bool), t, tref)
-            if stem in labels:
-                tlab = at_centres(read_label(labels[stem]), t.shape)
+            if label is not None:
+                tlab = at_centres(label, t.shape)
                 for cid, name in classes.items():
                     if name in by_track_class:
                         by_track_class[name].add(tlab == cid, t, tref)
@@ -324,8 +326,8 @@ def depth_metrics(
                 by_plane[i].add(k == i, got, ref)
         for name, g in of.items():
             by_source[name].add(everything, g, ref)
-        if stem in labels:
-            lab = at_centres(read_label(labels[stem]), got.shape)
+        if label is not None:
+            lab = at_centres(label, got.shape)
             for cid, name in classes.items():
                 if name in by_class:
                     sel = lab == cid
