@@ -8,13 +8,18 @@ alpha-expansion on photo-consistency, agreement with stereo, free space and smoo
 or lie in a `none` region stay; readings disagreeing with a well-supported plane within
 `boundary_px` of a region's edge drop (stereo fattens objects); plane depth fills the rest
 of a region whose plane beats `none` by `margin`; the fills pass the multi-view consistency
-check against the other views' merged maps (a wrong single-view choice drops).
+check against the other views' merged maps (a wrong single-view choice drops). When the
+check drops over `max_dropped` of the fills, the planes it drops that much of fill nothing
+(`undo` "plane": the views disagree on them, so the part of their fills that passes is no
+better) and the rest is checked again; the fill as a whole is undone when what is left still
+drops that much.
 """
 
 from __future__ import annotations
 
 import logging
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -60,7 +65,9 @@ def fill(
     and facts for report.json (CPU-s, coverage before/after by plane kind, share of fills the
     multi-view check dropped, the planes found with kind/normal/offset/support). Where the
     check drops more than cfg.max_dropped of the fills (on a sample of the views first:
-    cfg.sample_every), the maps come back as they came, facts "ran" false with the "reason".
+    cfg.sample_every), with cfg.undo "plane" the planes it drops that much of are taken out of
+    every view's fill and the rest checked again (facts "planes_undone"); where it still does
+    (or "all"), the maps come back as they came, facts "ran" false with the "reason".
     threads: views labelled side by side, one per torch thread (0: the caller's count, the
     stage's); the labels do not depend on it."""
     n = len(images)
@@ -109,19 +116,36 @@ def fill(
     # sample's labels are the full run's)
     k = cfg.sample_every
     sample = list(range(0, n, k)) if k > 1 and len(range(0, n, k)) >= SAMPLE_VIEWS else []
+    undone: list[dict] = []  # the planes taken out, with what the check dropped of them
     if sample:
         label(sample, "plane fill (sample)")
         part = [got[i] for i in sample]
         s_out, s_src, s_chk = _check(part, [views[i] for i in sample], cfg)
         facts = _facts([depths[i] for i in sample], s_out, s_src, part, s_chk, planes, before)
-        if facts["fills_dropped_by_check"] > cfg.max_dropped:
+        if facts["fills_dropped_by_check"] > cfg.max_dropped and cfg.undo == "plane":
+            (part, s_out, s_src, s_chk), undone = _undo_planes(
+                part, (s_out, s_src, s_chk), [views[i] for i in sample], planes, cfg, "sample"
+            )
+            got.update(zip(sample, part, strict=True))
+            facts = _facts([depths[i] for i in sample], s_out, s_src, part, s_chk, planes, before)
+        facts["planes_undone"] = undone
+        if facts["fills_dropped_by_check"] > cfg.max_dropped or not _any_fill(part, undone):
             facts["sample"] = {"every": k, "views": len(sample)}
             of = f"the fills of one view in {k} ({len(sample)} views)"
             return _undone(depths, facts, cfg, of, cpu0, t0)
     label([i for i in range(n) if i not in got], "plane fill")
     merged = [got[i] for i in range(n)]
+    if undone:  # the sample's verdict holds for the views labelled after it
+        merged = [_without(m, {u["plane"] for u in undone}) for m in merged]
     out, src, checked_fill = _check(merged, views, cfg)
     facts = _facts(depths, out, src, merged, checked_fill, planes, before)
+    if facts["fills_dropped_by_check"] > cfg.max_dropped and cfg.undo == "plane":
+        (merged, out, src, checked_fill), more = _undo_planes(
+            merged, (out, src, checked_fill), views, planes, cfg, "all"
+        )
+        undone += more
+        facts = _facts(depths, out, src, merged, checked_fill, planes, before)
+    facts["planes_undone"] = undone
     facts["cpu_seconds"] = round(time.process_time() - cpu0, 2)
     facts["seconds"] = round(time.perf_counter() - t0, 2)
     log.info(
@@ -133,9 +157,78 @@ def fill(
         100 * facts["fills_dropped_by_check"],
         facts["cpu_seconds"],
     )
-    if facts["fills_dropped_by_check"] > cfg.max_dropped:
+    if facts["fills_dropped_by_check"] > cfg.max_dropped or not _any_fill(merged, undone):
         return _undone(depths, facts, cfg, "its fills", cpu0, t0)
     return out, src, facts
+
+
+def _plane_drops(merged: list[Merged], checked: list[np.ndarray], n_planes: int) -> np.ndarray:
+    """[n_planes, 2] int64: per plane, the pixels it filled before the multi-view check and
+    those the check kept."""
+    got = np.zeros((n_planes, 2), np.int64)
+    for m, c in zip(merged, checked, strict=True):
+        filled = (m.fill > 0) & (m.plane >= 0)
+        got[:, 0] += np.bincount(m.plane[filled], minlength=n_planes)[:n_planes]
+        kept = filled & (c > 0)
+        got[:, 1] += np.bincount(m.plane[kept], minlength=n_planes)[:n_planes]
+    return got
+
+
+def _undo_planes(
+    merged: list[Merged],
+    checked: tuple,
+    views: list,
+    planes: list[Plane],
+    cfg: PlanesConfig,
+    views_of: str,
+) -> tuple[tuple, list[dict]]:
+    """(merged, out, src, checked) with the fills of every plane the check dropped over
+    cfg.max_dropped of taken out and the rest checked again (the other views' maps it is
+    checked against lose those fills too), and those planes [{plane, kind, offset, fills,
+    dropped, views}] (`views_of`: which views were counted, "sample" or "all"); as given when
+    no plane is over."""
+    counts = _plane_drops(merged, checked[2], len(planes))
+    share = 1.0 - counts[:, 1] / np.maximum(counts[:, 0], 1)
+    bad = [k for k in range(len(planes)) if counts[k, 0] > 0 and share[k] > cfg.max_dropped]
+    if not bad:
+        return (merged, *checked), []
+    undone = [
+        {
+            "plane": k,
+            "kind": planes[k].kind,
+            "offset": round(float(planes[k].offset), 3),
+            "fills": int(counts[k, 0]),
+            "dropped": round(float(share[k]), 4),
+            "views": views_of,
+        }
+        for k in bad
+    ]
+    log.info(
+        "depth/planes: %d of %d planes give no fill: the check dropped over %.0f %% of their "
+        "%d fills (%.0f %% of all)",
+        len(bad),
+        len(planes),
+        100 * cfg.max_dropped,
+        int(counts[bad, 0].sum()),
+        100 * counts[bad, 0].sum() / max(1, int(counts[:, 0].sum())),
+    )
+    merged = [_without(m, set(bad)) for m in merged]
+    return (merged, *_check(merged, views, cfg)), undone
+
+
+def _without(m: Merged, planes: set[int]) -> Merged:
+    """m with the fills of `planes` taken out (its kept readings stay)."""
+    drop = np.isin(m.plane, sorted(planes)) & (m.fill > 0)
+    return replace(
+        m,
+        fill=np.where(drop, 0, m.fill).astype(m.fill.dtype),
+        plane=np.where(drop, -1, m.plane).astype(m.plane.dtype),
+    )
+
+
+def _any_fill(merged: list[Merged], undone: list[dict]) -> bool:
+    """Whether any fill is left (no plane was undone, or some plane still fills)."""
+    return not undone or any((m.fill > 0).any() for m in merged)
 
 
 def _undone(
@@ -149,6 +242,13 @@ def _undone(
         f" % of {of}, over depth.planes.max_dropped {100 * cfg.max_dropped:.0f} % (the views "
         "disagree on the room's planes)"
     )
+    if facts.get("planes_undone") and facts["fills_dropped_by_check"] <= cfg.max_dropped:
+        where = "" if of == "its fills" else f" ({of})"
+        reason = (
+            f"no plane fill: the multi-view check dropped over depth.planes.max_dropped "
+            f"{100 * cfg.max_dropped:.0f} % of each plane's fills{where} (the views disagree "
+            "on the room's planes)"
+        )
     facts.update(ran=False, reason=reason, coverage_planes=0.0)
     facts["coverage_after"] = facts["coverage_before"]
     facts["cpu_seconds"] = round(time.process_time() - cpu0, 2)

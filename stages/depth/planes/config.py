@@ -9,6 +9,7 @@ plane-filled pixels within 5 cm of the sensor and the coverage after the fill.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 from stages.common.errors import BlunfError
 
@@ -30,6 +31,16 @@ class PlanesConfig:
     #                 (60 views) 21 % (26 %), 52.8 -> 62.4; kitchen 34 % (41 %; glossy cabinet
     #                 fronts, counters), 67.8 with the field fill against 59.9 with the planes;
     #                 demo room: stereo covers 81 %, no fill (docs/depth.md#when-the-fill-runs)
+    # what a fill over max_dropped undoes: "plane": first the planes whose fills the check
+    # drops over max_dropped of (their other fills are no better), then the whole fill if
+    # what is left still drops over it; "all": the whole fill. all -> plane against the
+    # sensor at SfM poses (bench.real, phone.yaml): kitchen (its sample drops 41 %; 33 of its
+    # 40 planes give none, the floor among them; the 7 left fill 11.9 % of the pixels, 94.1 %
+    # within 5 cm) plan fwIoU 72.0 -> 75.1 (floor 60.2 -> 67.0, wall 27.7 -> 18.6), SfM seed
+    # 1 71.1 -> SEED1; office, honest procedural room: under max_dropped, the same; demo room:
+    # stereo covers 81 %, no fill (docs/depth.md#when-the-fill-runs). Taking out the planes
+    # over it where the fill is under it too: office 80.25 -> 79.7, honest room 88.3 -> 86.6
+    undo: Literal["plane", "all"] = "plane"
     sample_every: int = 3  # one view in this many is labelled and checked first (among
     #                 themselves), and over max_dropped the fill is undone before the rest is
     #                 labelled; 0 or 1: all views, then the one decision. A sample checks
@@ -178,6 +189,8 @@ class PlanesConfig:
         for k in ("below", "max_dropped"):
             if not 0.0 <= getattr(self, k) <= 1.0:
                 raise BlunfError(f"depth.planes.{k} must be in [0, 1], got {getattr(self, k)}")
+        if self.undo not in ("plane", "all"):
+            raise BlunfError(f"depth.planes.undo: {self.undo!r} is not one of 'plane', 'all'")
         pos = ("voxel", "bin", "band", "tol", "tex_std", "check_tol")
         for k in pos:
             if not getattr(self, k) > 0:
