@@ -82,6 +82,7 @@ def _valid_other(cfg, name, value):
         "sqrt",
         "rays",
         "height",
+        "all",
     ):
         if cand == value:
             continue

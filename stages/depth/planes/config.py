@@ -37,7 +37,8 @@ class PlanesConfig:
     # sensor at SfM poses (bench.real, phone.yaml): kitchen (its sample drops 41 %; 33 of its
     # 40 planes give none, the floor among them; the 7 left fill 11.9 % of the pixels, 94.1 %
     # within 5 cm) plan fwIoU 72.0 -> 75.1 (floor 60.2 -> 67.0, wall 27.7 -> 18.6), SfM seed
-    # 1 71.1 -> SEED1; office, honest procedural room: under max_dropped, the same; demo room:
+    # 1 71.1 -> 75.7 (fills 88.2 %); office, honest procedural room: under max_dropped, the
+    # same; demo room:
     # stereo covers 81 %, no fill (docs/depth.md#when-the-fill-runs). Taking out the planes
     # over it where the fill is under it too: office 80.25 -> 79.7, honest room 88.3 -> 86.6
     undo: Literal["plane", "all"] = "plane"
