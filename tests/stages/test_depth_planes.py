@@ -601,7 +601,8 @@ def test_fill_reads_blank_walls_from_the_planes(plain_room):
     # paste them on the plain walls at different depths and the check undoes the whole fill
     # (undo "all"), or those planes (undo "plane", the default), keeping the few the views
     # agree on (measured 8 % of the pixels, 89 % within 3 cm, against 36 % and 99 % above)
-    _, src3, off = fill(images, Ks, poses, sparse, depths, PlanesConfig(wall_feet=False, undo="all"))
+    every = PlanesConfig(wall_feet=False, undo="all")
+    _, src3, off = fill(images, Ks, poses, sparse, depths, every)
     assert not off["ran"] and not any((s == 2).any() for s in src3)
     out4, src4, few = fill(images, Ks, poses, sparse, depths, PlanesConfig(wall_feet=False))
     assert few["ran"] and few["fills_dropped_by_check"] <= PlanesConfig().max_dropped
@@ -637,7 +638,8 @@ def _shifted_views(room, n: int = 8):
 
 def _fills_near(out, src, truth, rel: float) -> float:
     """Share of the plane-filled pixels within `rel` of the exact depth."""
-    err = np.concatenate([np.abs(o[s == 2] / t[s == 2] - 1) for o, s, t in zip(out, src, truth)])
+    err = [np.abs(o[s == 2] / t[s == 2] - 1) for o, s, t in zip(out, src, truth, strict=True)]
+    err = np.concatenate(err)
     return float((err < rel).mean())
 
 
@@ -711,6 +713,7 @@ def test_the_planes_the_views_disagree_on_fill_nothing_and_the_others_stay(plain
     )
     for o, s, d in zip(out, src, depths, strict=True):
         np.testing.assert_array_equal(o, d)
+        np.testing.assert_array_equal(s, (d > 0).astype(np.uint8))
     with pytest.raises(BlunfError, match="depth.planes.undo"):
         PlanesConfig(undo="view")
 

@@ -19,6 +19,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.ndimage import maximum_filter, minimum_filter
@@ -190,7 +191,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--set", nargs="*", default=[], help="PlanesConfig overrides key=value")
     a = ap.parse_args(argv)
-    over = {}
+    over: dict[str, Any] = {}  # PlanesConfig checks each value's range and choice
     for kv in a.set:
         key, val = kv.split("=", 1)
         if not hasattr(PlanesConfig(), key):
