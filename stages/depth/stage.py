@@ -98,17 +98,14 @@ def _run(cfg: DepthConfig, inputs: DepthInputs, out: Path, sweep: bool) -> Depth
                 facts["plane_fill"] = pf
                 need, reason = pf["ran"], pf.get("reason", reason)  # max_dropped may undo it
                 if need:
-                    undone = pf.get("planes_undone") or []
                     reason += (
                         f"; the multi-view check dropped {100 * pf['fills_dropped_by_check']:.0f}"
                         f" % of its fills (depth.planes.max_dropped "
                         f"{100 * cfg.planes.max_dropped:.0f} %)"
-                    ) + (
-                        f" after {len(undone)} of its {len(pf['planes'])} planes, over it, "
-                        "gave none"
-                        if undone
-                        else ""
                     )
+                    if pf["planes_undone"]:
+                        n_off, n_all = len(pf["planes_undone"]), len(pf["planes"])
+                        reason += f" after {n_off} of its {n_all} planes, over it, gave none"
             facts["plane_fill_reason"] = reason
             log.info("depth: %s", reason)
             parts["planes"] = _part(sources, time.process_time() - c0, ran=need)

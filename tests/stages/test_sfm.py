@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -192,6 +193,19 @@ def _run_sfm(cap: Capture, work: Path, **cfg) -> tuple[Capture, dict]:
     outs = IMPLS["sfm"](PosesConfig(**cfg), PosesInputs(work / "frames.json"), work / "out")
     assert outs == PosesOutputs.at(work / "out")
     return Capture.load(outs.frames), json.loads(outs.sfm.read_text())
+
+
+def _run_sfm_on_off(
+    cap: Capture, tmp_path: Path, setting: Callable[[bool], dict], **cfg
+) -> dict[bool, tuple[Capture, dict]]:
+    """_run_sfm on one thread (2048 features) with `setting(on)` beside cfg, for on True and
+    False, each in its own folder under tmp_path."""
+    runs = {}
+    for on in (True, False):
+        work = tmp_path / str(on)
+        work.mkdir()
+        runs[on] = _run_sfm(cap, work, threads=1, max_features=2048, **setting(on), **cfg)
+    return runs
 
 
 def test_blank_images_do_not_register(tmp_path: Path) -> None:
@@ -484,19 +498,12 @@ def test_sfm_keyframes_with_sequential_pairs_leave_out_those_between_registered_
     keyframes' model, more than 2 apart, are not matched (keyframes.skip_pairs), and the
     model is the one all the pairs give, as accurate and with as many views."""
     cap = _with_blanks(read_layout(room), 2, tmp_path)
-    got = {}
-    for skip in (True, False):
-        keyframes = KeyframesConfig(at_least=10, hold=0.3, skip_pairs=skip)
-        work = tmp_path / str(skip)
-        work.mkdir()
-        got[skip] = _run_sfm(
-            cap,
-            work,
-            threads=1,
-            max_features=2048,
-            keyframes=keyframes,
-            matching=MatchingConfig(kind="sequential"),
-        )
+    got = _run_sfm_on_off(
+        cap,
+        tmp_path,
+        lambda skip: {"keyframes": KeyframesConfig(at_least=10, hold=0.3, skip_pairs=skip)},
+        matching=MatchingConfig(kind="sequential"),
+    )
     (cap_s, skip), (cap_a, every) = got[True], got[False]
     # 26 views, steps 1 ... 16: those of 4, 8 and 16 steps between odd views, 11 + 9 + 5
     assert skip["match_pairs"]["pairs_left_out"] == 25
@@ -636,19 +643,9 @@ def test_photos_through_a_barrel_lens_become_pinhole_frames(room: Path, tmp_path
         path = _write_png(tmp_path / "lens" / f"{f.stem}.png", _through_lens(rgb, true, k1))
         frames.append(Frame(f.stem, path, true))  # photos only: the tracks are the depth
     lens = Capture(tmp_path / "lens", tuple(frames))
-    runs = {}
-    for on in (True, False):
-        work = tmp_path / str(on)
-        work.mkdir()
-        runs[on] = _run_sfm(
-            lens,
-            work,
-            threads=1,
-            max_features=2048,
-            self_calibrate=True,
-            scale_from="none",
-            undistort=on,
-        )
+    runs = _run_sfm_on_off(
+        lens, tmp_path, lambda on: {"undistort": on}, self_calibrate=True, scale_from="none"
+    )
     got, facts = runs[True]
     (est,) = facts["camera"]["estimated"]
     assert est["dist"][0] == pytest.approx(k1, abs=0.01)  # SfM found the lens (-0.0797)

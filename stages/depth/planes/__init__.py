@@ -119,16 +119,16 @@ def fill(
     undone: list[dict] = []  # the planes taken out, with what the check dropped of them
     if sample:
         label(sample, "plane fill (sample)")
-        part = [got[i] for i in sample]
-        s_out, s_src, s_chk = _check(part, [views[i] for i in sample], cfg)
-        facts = _facts([depths[i] for i in sample], s_out, s_src, part, s_chk, planes, before)
-        if facts["fills_dropped_by_check"] > cfg.max_dropped and cfg.undo == "plane":
-            (part, s_out, s_src, s_chk), undone = _undo_planes(
-                part, (s_out, s_src, s_chk), [views[i] for i in sample], planes, cfg, "sample"
-            )
-            got.update(zip(sample, part, strict=True))
-            facts = _facts([depths[i] for i in sample], s_out, s_src, part, s_chk, planes, before)
-        facts["planes_undone"] = undone
+        part, _, _, facts, undone = _checked(
+            [got[i] for i in sample],
+            [views[i] for i in sample],
+            [depths[i] for i in sample],
+            planes,
+            before,
+            cfg,
+            "sample",
+        )
+        got.update(zip(sample, part, strict=True))
         if facts["fills_dropped_by_check"] > cfg.max_dropped or not _any_fill(part, undone):
             facts["sample"] = {"every": k, "views": len(sample)}
             of = f"the fills of one view in {k} ({len(sample)} views)"
@@ -137,14 +137,8 @@ def fill(
     merged = [got[i] for i in range(n)]
     if undone:  # the sample's verdict holds for the views labelled after it
         merged = [_without(m, {u["plane"] for u in undone}) for m in merged]
-    out, src, checked_fill = _check(merged, views, cfg)
-    facts = _facts(depths, out, src, merged, checked_fill, planes, before)
-    if facts["fills_dropped_by_check"] > cfg.max_dropped and cfg.undo == "plane":
-        (merged, out, src, checked_fill), more = _undo_planes(
-            merged, (out, src, checked_fill), views, planes, cfg, "all"
-        )
-        undone += more
-        facts = _facts(depths, out, src, merged, checked_fill, planes, before)
+    merged, out, src, facts, more = _checked(merged, views, depths, planes, before, cfg, "all")
+    undone += more
     facts["planes_undone"] = undone
     facts["cpu_seconds"] = round(time.process_time() - cpu0, 2)
     facts["seconds"] = round(time.perf_counter() - t0, 2)
@@ -160,6 +154,30 @@ def fill(
     if facts["fills_dropped_by_check"] > cfg.max_dropped or not _any_fill(merged, undone):
         return _undone(depths, facts, cfg, "its fills", cpu0, t0)
     return out, src, facts
+
+
+def _checked(
+    merged: list[Merged],
+    views: list,
+    depths: list[np.ndarray],
+    planes: list[Plane],
+    before: float,
+    cfg: PlanesConfig,
+    views_of: str,
+) -> tuple[list[Merged], list[np.ndarray], list[np.ndarray], dict, list[dict]]:
+    """The views' fills through the multi-view check: (merged, out, src, facts, planes
+    undone). Over cfg.max_dropped with cfg.undo "plane", the planes over it are taken out
+    first (_undo_planes; `views_of` names the views counted)."""
+    out, src, chk = _check(merged, views, cfg)
+    facts = _facts(depths, out, src, merged, chk, planes, before)
+    undone: list[dict] = []
+    if facts["fills_dropped_by_check"] > cfg.max_dropped and cfg.undo == "plane":
+        (merged, out, src, chk), undone = _undo_planes(
+            merged, (out, src, chk), views, planes, cfg, views_of
+        )
+        facts = _facts(depths, out, src, merged, chk, planes, before)
+    facts["planes_undone"] = undone
+    return merged, out, src, facts, undone
 
 
 def _plane_drops(merged: list[Merged], checked: list[np.ndarray], n_planes: int) -> np.ndarray:
@@ -309,9 +327,10 @@ def _facts(
     kept = sum(int((c > 0).sum()) for c in checked)
     by_kind = {k: 0 for k in KINDS}
     region = {k: np.zeros(3, np.int64) for k in KINDS}  # pixels, with depth before, after
-    for m, c, d, o in zip(merged, checked, depths, out, strict=True):
+    for k, n in enumerate(_plane_drops(merged, checked, len(planes))[:, 1]):
+        by_kind[planes[k].kind] += int(n)
+    for m, d, o in zip(merged, depths, out, strict=True):
         for k, p in enumerate(planes):
-            by_kind[p.kind] += int(((m.plane == k) & (c > 0)).sum())
             r = m.region == k
             region[p.kind] += [int(r.sum()), int((r & (d > 0)).sum()), int((r & (o > 0)).sum())]
     readings = max(1, sum(int((d > 0).sum()) for d in depths))
