@@ -18,10 +18,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from stages.align.config import AlignConfig
+from stages.align.lines import edge_directions
+from stages.common.capture import Capture
+from stages.common.errors import BlunfError
 
 log = logging.getLogger(__name__)
 
 MIN_NORMALS = 100  # fewer near-horizontal normals than this: no walls seen, yaw kept
+MIN_EDGE_VOTES = 500  # fewer votes of horizontal edges (lines.py: one per 4 px of a segment)
+#                       than this: the images show too few of the room's lines to read the
+#                       yaw from (the honest procedural room: 115, from a handful of
+#                       segments 15 degrees off its walls; the kitchen 19 899, the office 17 349)
 BINS = 360  # histogram of ψ = 4θ: 1 degree bins of ψ (0.25 degree of θ)
 SMOOTH_BINS = 8  # the histogram is summed over ± this many bins (± 2 degrees of θ)
 HALF_WIDTH_DEG = 5.0  # refinement: normals within this azimuth of the mode (fold included)
@@ -38,34 +45,48 @@ class Yaw:
     note: str  # why the yaw is kept, else ""
 
 
-def find_yaw(normals: np.ndarray, cfg: AlignConfig) -> Yaw:
+def find_yaw(
+    normals: np.ndarray,
+    cfg: AlignConfig,
+    min_confidence: float | None = None,
+    min_count: int = MIN_NORMALS,
+) -> Yaw:
     """The smallest turn about +z that puts the dominant wall direction on the axes.
 
     Args:
-        normals: [N, 3] unit normals (sign arbitrary) in a frame whose z is up.
+        normals: [N, 3] unit normals (sign arbitrary) in a frame whose z is up (or the
+            horizontal directions of lines: the fold modulo 90 degrees makes them alike).
+        min_confidence: the resultant below which the yaw is kept
+            (cfg.manhattan_min_confidence when None).
+        min_count: fewer near-horizontal normals than this: no walls seen, the yaw is kept.
     The mode of ψ = 4θ is found on a smoothed histogram (robust to furniture at other
     angles), then refined by the median of the normals within `HALF_WIDTH_DEG` of it (a mean
     there is pulled by furniture turned a few degrees to one side).
     """
     horiz = np.abs(normals[:, 2]) <= np.sin(np.radians(cfg.max_tilt_deg))
     n = normals[horiz]  # [M, 3]
-    if len(n) < MIN_NORMALS:
+    if len(n) < min_count:
         return Yaw(
             None,
             0.0,
             len(n),
-            f"manhattan: {len(n)} near-vertical surface points (< {MIN_NORMALS}), no walls "
+            f"manhattan: {len(n)} near-vertical surface points (< {min_count}), no walls "
             "seen; yaw kept",
         )
     psi = np.mod(4.0 * np.arctan2(n[:, 1], n[:, 0]), 2.0 * np.pi)  # [M]
     conf = float(np.abs(np.exp(1j * psi).mean()))
-    if conf < cfg.manhattan_min_confidence:
+    least, name = (
+        (cfg.manhattan_min_confidence, "manhattan_min_confidence")
+        if min_confidence is None
+        else (min_confidence, "lines_min_confidence")
+    )
+    if conf < least:
         return Yaw(
             None,
             conf,
             len(n),
             f"manhattan: wall normals show no dominant direction (resultant {conf:.2f} < "
-            f"manhattan_min_confidence {cfg.manhattan_min_confidence}); yaw kept",
+            f"{name} {least}); yaw kept",
         )
     hist = np.bincount((psi * (BINS / (2.0 * np.pi))).astype(np.int64) % BINS, minlength=BINS)
     smooth = sum(np.roll(hist, s) for s in range(-SMOOTH_BINS, SMOOTH_BINS + 1))  # [BINS]
@@ -86,19 +107,41 @@ def rot_z(deg: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def square_up(R: np.ndarray, normals: np.ndarray, cfg: AlignConfig) -> tuple[np.ndarray, dict, str]:
-    """(Rz @ R, facts for align.json, note) with Rz the Manhattan yaw of the normals [N, 3]
-    seen through R (input world -> z up). Rz = I when `cfg.manhattan` is off or no walls."""
+def square_up(
+    R: np.ndarray, normals: np.ndarray, cfg: AlignConfig, cap: Capture | None = None
+) -> tuple[np.ndarray, dict, str]:
+    """(Rz @ R, facts for align.json, note) with Rz the Manhattan yaw seen through R (input
+    world -> z up): from the images' horizontal edges (lines.py) when `cfg.yaw_from` allows
+    and they show the room's directions, else from the normals [N, 3] of the depth points.
+    Rz = I when `cfg.manhattan` is off or no walls."""
     if not cfg.manhattan:
-        facts = {"yaw_deg": 0.0, "manhattan_confidence": None, "wall_normals": None}
-        return R, {**facts, "squared": False}, ""
+        off = {"yaw_deg": 0.0, "manhattan_confidence": None, "wall_normals": None}
+        return R, {**off, "squared": False}, ""
     y = find_yaw(normals @ R.T, cfg)
-    facts = {
+    facts: dict[str, object] = {
         "yaw_deg": 0.0 if y.yaw_deg is None else y.yaw_deg,
         "manhattan_confidence": y.confidence,
         "wall_normals": y.normals,
-        "squared": y.yaw_deg is not None,  # the walls now lie on x and y
+        "yaw_from": "normals",
     }
+    if cfg.yaw_from != "normals" and cap is not None:
+        idx = np.unique(np.linspace(0, len(cap.frames) - 1, cfg.frames_used).round().astype(int))
+        e = find_yaw(edge_directions(cap, idx, R), cfg, cfg.lines_min_confidence, MIN_EDGE_VOTES)
+        facts |= {
+            "lines_yaw_deg": e.yaw_deg,
+            "lines_confidence": e.confidence,
+            "edge_votes": e.normals,
+            "normals_yaw_deg": y.yaw_deg,
+        }
+        if e.yaw_deg is not None:
+            y = e
+            facts |= {"yaw_deg": e.yaw_deg, "yaw_from": "lines"}
+        elif cfg.yaw_from == "lines":
+            raise BlunfError(
+                f"align.yaw_from=lines: the edges of {cap.root}'s images show no room "
+                f"directions ({e.note}); use auto or normals"
+            )
+    facts["squared"] = y.yaw_deg is not None  # the walls now lie on x and y
     if y.yaw_deg is None:
         log.info("align: %s", y.note)
         return R, facts, y.note

@@ -150,6 +150,24 @@ def distorted(
     )
 
 
+def undistort_pixels(uv: np.ndarray, intr: Intrinsics, iters: int = 20) -> np.ndarray:
+    """Distorted pixels [N, 2] to ideal pinhole pixels (OpenCV k1, k2, p1, p2[, k3] model);
+    `uv` itself when `intr` has no distortion."""
+    if not any(intr.dist):
+        return np.asarray(uv, np.float64)
+    k1, k2, p1, p2, k3 = (tuple(intr.dist) + (0.0,) * 5)[:5]
+    xd = (uv[:, 0] - intr.cx) / intr.fx
+    yd = (uv[:, 1] - intr.cy) / intr.fy
+    x, y = xd.copy(), yd.copy()
+    for _ in range(iters):  # fixed point x = (xd - tangential(x)) / radial(x)
+        r2 = x * x + y * y
+        rad = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
+        dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        x, y = (xd - dx) / rad, (yd - dy) / rad
+    return np.stack([x * intr.fx + intr.cx, y * intr.fy + intr.cy], axis=-1)
+
+
 def project(
     points: np.ndarray, K: np.ndarray, c2w: np.ndarray, dist: tuple[float, ...] = ()
 ) -> tuple[np.ndarray, np.ndarray]:

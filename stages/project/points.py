@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from stages.common.blueprint import Grid
-from stages.common.camera import Intrinsics, depth_at, pixel_grid, unproject
+from stages.common.camera import depth_at, pixel_grid, undistort_pixels, unproject
 from stages.common.capture import UNKNOWN, Capture, Frame, heldout_views, readings_of
 from stages.common.classes import HEIGHT as HEIGHT_CLASSES
 from stages.common.errors import BlunfError
@@ -269,7 +269,7 @@ def _frame_points(
     else:
         inst = np.zeros(len(lab), np.int64)
     intr = f.intrinsics.scaled(w, h)
-    uvk = _undistort(uv[keep], intr) if any(intr.dist) else uv[keep]
+    uvk = undistort_pixels(uv[keep], intr) if any(intr.dist) else uv[keep]
     xyz = unproject(uvk, d[keep], intr.K, np.asarray(f.pose, np.float64), origin)
     if labelling == "height":
         return _height_labels(xyz, inst, cfg, counts, float(origin[2]))
@@ -327,21 +327,6 @@ def _height_labels(
     counts["dropped_height"] += int((~keep).sum())
     lab = np.where(z[keep] < cfg.floor_band, 0, 1).astype(np.int64)
     return xyz[keep], lab, inst[keep]
-
-
-def _undistort(uv: np.ndarray, intr: Intrinsics, iters: int = 20) -> np.ndarray:
-    """Distorted pixels [N, 2] to ideal pinhole pixels (OpenCV k1, k2, p1, p2[, k3] model)."""
-    k1, k2, p1, p2, k3 = (tuple(intr.dist) + (0.0,) * 5)[:5]
-    xd = (uv[:, 0] - intr.cx) / intr.fx
-    yd = (uv[:, 1] - intr.cy) / intr.fy
-    x, y = xd.copy(), yd.copy()
-    for _ in range(iters):  # fixed point x = (xd - tangential(x)) / radial(x)
-        r2 = x * x + y * y
-        rad = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
-        dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-        dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-        x, y = (xd - dx) / rad, (yd - dy) / rad
-    return np.stack([x * intr.fx + intr.cx, y * intr.fy + intr.cy], axis=-1)
 
 
 def _labelling(cfg: ProjectConfig, cap: Capture) -> str:

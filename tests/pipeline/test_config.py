@@ -83,6 +83,7 @@ def _valid_other(cfg, name, value):
         "rays",
         "height",
         "all",
+        "normals",
     ):
         if cand == value:
             continue

@@ -10,13 +10,15 @@ import numpy as np
 import open3d as o3d
 import open3d.core as o3c
 import pytest
+from scipy import ndimage
 
 from stages.align import IMPLS, AlignConfig, AlignInputs
-from stages.align.manhattan import MIN_NORMALS, find_yaw, heading_turn, rot_z
+from stages.align.manhattan import MIN_EDGE_VOTES, MIN_NORMALS, find_yaw, heading_turn, rot_z
+from stages.common.camera import pixel_grid
 from stages.common.capture import Capture, Frame
 from stages.common.errors import BlunfError
-from stages.common.io import write_depth_png
-from tests.stages.exact_room import INTR, render, room_capture, room_poses
+from stages.common.io import write_depth_png, write_image
+from tests.stages.exact_room import INTR, make_scene, render, room_capture, room_poses
 from tests.stages.test_align import align, motion
 
 
@@ -193,3 +195,76 @@ def test_find_yaw_without_a_dominant_direction():
     assert y.yaw_deg is None and y.normals == 0 and "no walls seen" in y.note
     with pytest.raises(BlunfError, match="manhattan_min_confidence"):
         AlignConfig(manhattan_min_confidence=1.5)
+
+
+def shaded_room(folder, M: np.ndarray, size=(320, 240), wall_depth: bool = False):
+    """The room of exact_room turned by M, photographed at `size` with each face shaded by
+    its normal (an edge at every crease, as a room's corners and counter edges are), and
+    depth on the floor alone unless `wall_depth`: walls blank to depth, as white walls are
+    to SfM. Returns frames.json."""
+    scene = make_scene(ceiling=True)
+    intr = INTR.scaled(*size)
+    folder.mkdir()
+    uv = pixel_grid(*size)  # [H, W, 2]
+    rays_cam = np.stack(
+        [(uv[..., 0] - intr.cx) / intr.fx, (uv[..., 1] - intr.cy) / intr.fy, np.ones(uv.shape[:2])],
+        axis=-1,
+    )
+    frames = []
+    for i, pose in enumerate(room_poses()):
+        d = rays_cam @ pose[:3, :3].T
+        rays = np.concatenate([np.broadcast_to(pose[:3, 3], d.shape), d], axis=-1)
+        ans = scene.cast_rays(o3c.Tensor(rays.astype(np.float32)))
+        t = ans["t_hit"].numpy()
+        n = ans["primitive_normals"].numpy()  # [H, W, 3]
+        hit = np.isfinite(t)
+        grey = np.where(hit, 120 + 50 * n[..., 0] + 30 * n[..., 1] + 70 * np.abs(n[..., 2]), 0)
+        write_image(
+            folder / f"v{i}.png", np.repeat(grey.clip(0, 255).astype(np.uint8)[..., None], 3, 2)
+        )
+        keep = hit & ((np.abs(n[..., 2]) > 0.9) | wall_depth)
+        np.save(folder / f"v{i}.npy", np.where(keep, t, 0.0).astype(np.float32))
+        frames.append(
+            Frame(f"v{i}", folder / f"v{i}.png", intr, depth=folder / f"v{i}.npy", pose=M @ pose)
+        )
+    Capture(folder, tuple(frames)).save(folder / "frames.json")
+    return folder / "frames.json"
+
+
+def test_yaw_from_the_images_edges_when_the_walls_are_blank_to_depth(tmp_path):
+    """Depth on the floor and the tops alone gives no wall normals: the normals keep the
+    yaw, the edges of the photos find it (the room's horizontal creases: floor and ceiling
+    lines, the counter's and the box's edges)."""
+    M = turned(17.0)
+    frames = shaded_room(tmp_path / "cap", M)
+    got = {}
+    for how in ("auto", "normals"):
+        _, info = align("floor", frames, tmp_path / how, AlignConfig(stride=2, yaw_from=how))
+        got[how] = (np.array(info["T"]) @ M)[:3, :3], info
+    A, info = got["auto"]
+    assert info["yaw_from"] == "lines" and info["squared"]
+    assert info["normals_yaw_deg"] is None  # no wall normals: the normals alone keep the yaw
+    assert rot_err_deg(A, rot_z(0.0)) < 0.1
+    assert info["yaw_deg"] == pytest.approx(-17.0, abs=0.1)
+    assert info["lines_confidence"] > 0.9 and info["edge_votes"] > MIN_EDGE_VOTES
+    B, info = got["normals"]
+    assert rot_err_deg(B, rot_z(17.0)) < 0.05 and not info["squared"]
+    assert "lines_yaw_deg" not in info
+
+
+def test_edges_without_a_direction_leave_the_yaw_to_the_normals(tmp_path):
+    """Photos of noise (the procedural rooms' textures give edges every way): the edges'
+    resultant is below lines_min_confidence, so "auto" reads the walls' normals, and
+    "lines" alone is an error naming the capture."""
+    M = turned(17.0)
+    frames = shaded_room(tmp_path / "cap", M, size=(160, 120), wall_depth=True)
+    rng = np.random.default_rng(0)
+    for f in Capture.load(frames).frames:
+        blobs = ndimage.zoom(rng.uniform(0, 255, (30, 40)), 4, order=3).clip(0, 255)
+        write_image(f.image, np.repeat(blobs.astype(np.uint8)[..., None], 3, 2))
+    _, info = align("floor", frames, tmp_path / "auto", AlignConfig(stride=2))
+    A = np.array(info["T"]) @ M
+    assert info["yaw_from"] == "normals" and info["lines_confidence"] < 0.2
+    assert rot_err_deg(A[:3, :3], rot_z(0.0)) < 0.1
+    with pytest.raises(BlunfError, match="yaw_from=lines.*show no room directions"):
+        align("floor", frames, tmp_path / "lines", AlignConfig(stride=2, yaw_from="lines"))

@@ -218,8 +218,7 @@ def test_rays_through_a_hole_in_the_surface_do_not_free_what_they_cross(tmp_path
 def test_a_point_projected_through_the_lens_comes_back_through_its_undistortion() -> None:
     # camera.project with distortion (what looked_past reads depth through) is the inverse
     # of the project stage's undistortion of a distorted photo's pixels
-    from stages.common.camera import Intrinsics, depth_at, project
-    from stages.project.points import _undistort
+    from stages.common.camera import Intrinsics, depth_at, project, undistort_pixels
 
     intr = Intrinsics(300.0, 310.0, 160.0, 118.0, 320, 240, (-0.2, 0.05, 0.001, -0.002, 0.01))
     rng = np.random.default_rng(0)
@@ -227,7 +226,7 @@ def test_a_point_projected_through_the_lens_comes_back_through_its_undistortion(
     uv, z = project(pts, intr.K, np.eye(4), intr.dist)
     pin, _ = project(pts, intr.K, np.eye(4))
     assert np.abs(uv - pin).max() > 5  # the lens moves them
-    np.testing.assert_allclose(_undistort(uv, intr), pin, atol=1e-6)
+    np.testing.assert_allclose(undistort_pixels(uv, intr), pin, atol=1e-6)
     depth = np.full((240, 320), 9.0)
     d, _ = depth_at(pts, depth, intr.K, np.eye(4), intr.dist)
     ok = (uv[:, 0] >= -0.5) & (uv[:, 0] < 319.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] < 239.5)

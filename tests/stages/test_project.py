@@ -9,13 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stages.common.camera import Intrinsics
+from stages.common.camera import Intrinsics, undistort_pixels
 from stages.common.capture import Capture, Frame
 from stages.common.errors import BlunfError
 from stages.common.io import write_depth_png, write_image, write_label_png
 from stages.common.points import read_bounds, read_grid, read_instances, read_points
 from stages.project import IMPLS, ProjectConfig, ProjectInputs
-from stages.project.points import _undistort
 
 # An 8x6 camera with fx = fy = 4, cx = 3.5, cy = 2.5 (principal point between the central
 # pixels), 2 m above the floor at world (1, 2, 2), looking straight down. Its axes in the world:
@@ -191,7 +190,7 @@ def test_undistort_inverts_the_opencv_model():
     yd = y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
     uv_d = np.stack([xd * intr.fx + intr.cx, yd * intr.fy + intr.cy], -1)
     ideal = np.stack([x * intr.fx + intr.cx, y * intr.fy + intr.cy], -1)
-    np.testing.assert_allclose(_undistort(uv_d, intr), ideal, atol=1e-6)
+    np.testing.assert_allclose(undistort_pixels(uv_d, intr), ideal, atol=1e-6)
 
 
 def _frames(tmp: Path, views: list[tuple[np.ndarray, np.ndarray, np.ndarray]], classes) -> Path:
