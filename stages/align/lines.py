@@ -100,14 +100,19 @@ def edge_directions(cap: Capture, frames: np.ndarray, R: np.ndarray) -> np.ndarr
     for i in frames:
         f = cap.frames[int(i)]
         img = read_image(f.image)  # [H, W, 3] uint8
-        step = max(1, int(np.ceil(img.shape[1] / WORK_SIDE)))
-        gray = img[::step, ::step].astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)
-        c, t, length = segments(gray)
+        h, w = img.shape[:2]
+        intr = f.intrinsics
+        if (w, h) != (intr.width, intr.height):
+            intr = intr.scaled(w, h)
+        step = max(1, int(np.ceil(w / WORK_SIDE)))
+        # step x step blocks averaged: block j spans pixels j step .. j step + step - 1
+        blocks = img[: h // step * step, : w // step * step].astype(np.float32)
+        blocks = blocks.reshape(h // step, step, w // step, step, 3).mean(axis=(1, 3))
+        c, t, length = segments(blocks @ np.array([0.299, 0.587, 0.114], np.float32))
         if not len(c):
             continue
-        # the ends in full-size pixels (pixel centres of the strided image), then pinhole
+        # the ends in full-size pixels (a block's centre: j step + (step - 1) / 2), pinhole
         ends = [(c + s * t * length[:, None] / 2.0) * step + (step - 1) / 2.0 for s in (-1, 1)]
-        intr = f.intrinsics
         ray = []
         for e in ends:
             p = undistort_pixels(e, intr)

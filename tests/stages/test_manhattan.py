@@ -200,43 +200,67 @@ def test_find_yaw_without_a_dominant_direction():
 def shaded_room(folder, M: np.ndarray, size=(320, 240), wall_depth: bool = False):
     """The room of exact_room turned by M, photographed at `size` with each face shaded by
     its normal (an edge at every crease, as a room's corners and counter edges are), and
-    depth on the floor alone unless `wall_depth`: walls blank to depth, as white walls are
-    to SfM. Returns frames.json."""
+    depth (320x240) on the floor alone unless `wall_depth`: walls blank to depth, as white
+    walls are to SfM. Returns frames.json."""
     scene = make_scene(ceiling=True)
-    intr = INTR.scaled(*size)
     folder.mkdir()
-    uv = pixel_grid(*size)  # [H, W, 2]
-    rays_cam = np.stack(
-        [(uv[..., 0] - intr.cx) / intr.fx, (uv[..., 1] - intr.cy) / intr.fy, np.ones(uv.shape[:2])],
-        axis=-1,
-    )
+
+    def cast(pose: np.ndarray, wh: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        """z-depth [H, W] (inf: no hit) and face normals [H, W, 3] at image size wh."""
+        intr = INTR.scaled(*wh)
+        uv = pixel_grid(*wh)  # [H, W, 2]
+        ray = (
+            np.stack(
+                [
+                    (uv[..., 0] - intr.cx) / intr.fx,
+                    (uv[..., 1] - intr.cy) / intr.fy,
+                    np.ones(uv.shape[:2]),
+                ],
+                axis=-1,
+            )
+            @ pose[:3, :3].T
+        )  # camera z = 1: t is the z-depth
+        ans = scene.cast_rays(
+            o3c.Tensor(
+                np.concatenate([np.broadcast_to(pose[:3, 3], ray.shape), ray], -1).astype(
+                    np.float32
+                )
+            )
+        )
+        return ans["t_hit"].numpy(), ans["primitive_normals"].numpy()
+
     frames = []
     for i, pose in enumerate(room_poses()):
-        d = rays_cam @ pose[:3, :3].T
-        rays = np.concatenate([np.broadcast_to(pose[:3, 3], d.shape), d], axis=-1)
-        ans = scene.cast_rays(o3c.Tensor(rays.astype(np.float32)))
-        t = ans["t_hit"].numpy()
-        n = ans["primitive_normals"].numpy()  # [H, W, 3]
-        hit = np.isfinite(t)
-        grey = np.where(hit, 120 + 50 * n[..., 0] + 30 * n[..., 1] + 70 * np.abs(n[..., 2]), 0)
+        t, n = cast(pose, size)
+        grey = np.where(
+            np.isfinite(t), 120 + 50 * n[..., 0] + 30 * n[..., 1] + 70 * np.abs(n[..., 2]), 0
+        )
         write_image(
             folder / f"v{i}.png", np.repeat(grey.clip(0, 255).astype(np.uint8)[..., None], 3, 2)
         )
-        keep = hit & ((np.abs(n[..., 2]) > 0.9) | wall_depth)
+        t, n = cast(pose, (320, 240))
+        keep = np.isfinite(t) & ((np.abs(n[..., 2]) > 0.9) | wall_depth)
         np.save(folder / f"v{i}.npy", np.where(keep, t, 0.0).astype(np.float32))
         frames.append(
-            Frame(f"v{i}", folder / f"v{i}.png", intr, depth=folder / f"v{i}.npy", pose=M @ pose)
+            Frame(
+                f"v{i}",
+                folder / f"v{i}.png",
+                INTR.scaled(*size),
+                depth=folder / f"v{i}.npy",
+                pose=M @ pose,
+            )
         )
     Capture(folder, tuple(frames)).save(folder / "frames.json")
     return folder / "frames.json"
 
 
-def test_yaw_from_the_images_edges_when_the_walls_are_blank_to_depth(tmp_path):
+@pytest.mark.parametrize("size", [(320, 240), (1280, 960)])
+def test_yaw_from_the_images_edges_when_the_walls_are_blank_to_depth(tmp_path, size):
     """Depth on the floor and the tops alone gives no wall normals: the normals keep the
     yaw, the edges of the photos find it (the room's horizontal creases: floor and ceiling
-    lines, the counter's and the box's edges)."""
+    lines, the counter's and the box's edges). 1280 px photos are read in 2 x 2 blocks."""
     M = turned(17.0)
-    frames = shaded_room(tmp_path / "cap", M)
+    frames = shaded_room(tmp_path / "cap", M, size)
     got = {}
     for how in ("auto", "normals"):
         _, info = align("floor", frames, tmp_path / how, AlignConfig(stride=2, yaw_from=how))
