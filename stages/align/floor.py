@@ -84,7 +84,8 @@ def solve(cap: Capture, cfg: AlignConfig, where: Path) -> tuple[np.ndarray, floa
     cam_dev = angle_deg(R @ up0, UP)
     if cam_dev > cfg.up_cone_deg:
         notes.append(f"up is {cam_dev:.0f} deg from the cameras' mean up (> up_cone_deg)")
-    R, yaw, note = square_up(R, s.normals, cfg, cap)  # about z: keeps the floor height and tilt
+    # about z: keeps the floor height and tilt
+    R, yaw, note = square_up(R, s.normals, cfg, cap, s.sparse)
     notes += [note] if note else []
     info = describe("floor", up_from, notes, s, fl, cam_dev, yaw, t0) | level_facts
     return R, fl.z, info

@@ -41,7 +41,7 @@ def solve(cap: Capture, cfg: AlignConfig, where: Path) -> tuple[np.ndarray, floa
     fl = find_floor(s.points @ R.T, s.normals @ R.T, cam_z, cfg, s.sparse)
     cam_dev = angle_deg(R @ cameras_up(poses), UP)
     notes = [fl.note] if fl.note else []
-    R, yaw, note = square_up(R, s.normals, cfg, cap)
+    R, yaw, note = square_up(R, s.normals, cfg, cap, s.sparse)
     notes += [note] if note else []
     if cam_dev > 90.0:  # hand-held cameras are not upside down on average
         notes.append(f"the cameras' mean up is {cam_dev:.0f} deg from -gravity: check its sign")
