@@ -44,11 +44,12 @@ class AlignConfig:
     # lines_min_confidence, else normals (dense depth's normals agree with the edges within
     # 0.2 degrees on the kitchen and the office: its photos are not read). SfM tracks'
     # normals scatter: the photos-only plan stood turned from the sensor's at the same poses
-    # by 2.7 degrees on the kitchen and 0.55 on the office; by the edges 0.37 and 0.06. Plan
-    # against the sensor at SfM poses, SfM seeds 0 / 1: office 80.25 / 79.58 -> 81.42 /
-    # 81.19, kitchen 75.15 / 75.72 -> 74.18 / 75.45 (its far wall parallel now, 5 cm in front
-    # of the sensor's, as SfM's points on it are). The demo and honest procedural rooms'
-    # textures give too few straight edges: normals, unchanged (docs/figures.md#align-lines)
+    # by 2.7 degrees on the kitchen and 0.55 on the office; by the edges 0.25 and 0.24. Plan
+    # against the sensor at SfM poses, SfM seeds 0 / 1: office 80.25 / 79.58 -> 81.90 /
+    # 81.44 (wall 50.2 / 51.3), kitchen 75.15 / 75.72 -> 73.47 / 75.90 (its far wall parallel
+    # now, 5 cm in front of the sensor's, as SfM's points on it are). The demo and honest
+    # procedural rooms' textures give too few straight edges: normals, unchanged
+    # (docs/figures.md#align-lines)
     yaw_from: Literal["auto", "lines", "normals"] = "auto"
     lines_min_confidence: float = 0.2
 
