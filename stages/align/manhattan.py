@@ -18,17 +18,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from stages.align.config import AlignConfig
-from stages.align.lines import edge_directions
+from stages.align.lines import MIN_EDGE_VOTES, edge_directions
 from stages.common.capture import Capture
 from stages.common.errors import BlunfError
 
 log = logging.getLogger(__name__)
 
 MIN_NORMALS = 100  # fewer near-horizontal normals than this: no walls seen, yaw kept
-MIN_EDGE_VOTES = 500  # fewer votes of horizontal edges (lines.py: one per 4 px of a segment)
-#                       than this: the images show too few of the room's lines to read the
-#                       yaw from (the honest procedural room: 115, from a handful of
-#                       segments 15 degrees off its walls; the kitchen 19 899, the office 17 349)
 BINS = 360  # histogram of ψ = 4θ: 1 degree bins of ψ (0.25 degree of θ)
 SMOOTH_BINS = 8  # the histogram is summed over ± this many bins (± 2 degrees of θ)
 HALF_WIDTH_DEG = 5.0  # refinement: normals within this azimuth of the mode (fold included)

@@ -67,6 +67,9 @@ def _open(path: Path) -> Image.Image:
         raise BlunfError(f"{path}: not a readable image ({e.__class__.__name__})") from None
 
 
+LUMA = (0.299, 0.587, 0.114)  # grey = these weights of R, G, B (ITU-R BT.601 luma)
+
+
 def read_image(path: Path) -> np.ndarray:
     """Read an RGB image. Returns uint8 [H, W, 3]."""
     return np.asarray(_open(Path(path)).convert("RGB"))

@@ -31,14 +31,13 @@ from torch import Tensor
 
 from stages.common.camera import pixel_grid, unproject
 from stages.common.errors import BlunfError
+from stages.common.io import LUMA
 from stages.common.progress import track
 from stages.common.threads import side_by_side
 from stages.depth.config import StereoConfig
 from stages.depth.consistency import consistent_depth, overlap_order
 
 log = logging.getLogger(__name__)
-
-GRAY = (0.299, 0.587, 0.114)  # luma weights of the matched grey image
 
 
 def sweep_depths(
@@ -66,7 +65,7 @@ def sweep_depths(
     everything = np.concatenate([s[s > 0] for s in sparse]) if n else np.zeros(0)
     k = stereo_scale(cfg, Ks, everything)
     grays = [
-        torch.from_numpy(np.asarray(im, np.float32) @ np.asarray(GRAY, np.float32)) for im in images
+        torch.from_numpy(np.asarray(im, np.float32) @ np.asarray(LUMA, np.float32)) for im in images
     ]
     fine = [_level(g, K, k) for g, K in zip(grays, Ks, strict=True)]
     coarse = [_level(g, K, k * cfg.coarse) for g, K in zip(grays, Ks, strict=True)]

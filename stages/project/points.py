@@ -269,7 +269,7 @@ def _frame_points(
     else:
         inst = np.zeros(len(lab), np.int64)
     intr = f.intrinsics.scaled(w, h)
-    uvk = undistort_pixels(uv[keep], intr) if any(intr.dist) else uv[keep]
+    uvk = undistort_pixels(uv[keep], intr)  # uv itself without distortion
     xyz = unproject(uvk, d[keep], intr.K, np.asarray(f.pose, np.float64), origin)
     if labelling == "height":
         return _height_labels(xyz, inst, cfg, counts, float(origin[2]))

@@ -7,12 +7,13 @@ import torch
 import torch.nn.functional as F
 
 from stages.common.errors import BlunfError
+from stages.common.io import LUMA
 from stages.depth.consistency import overlap_order
 from stages.depth.planes.config import PlanesConfig
 from stages.depth.planes.geometry import scale_K
 from stages.depth.planes.view import ViewData
 
-GRAY = np.array([0.299, 0.587, 0.114], np.float32)  # luma weights
+GRAY = np.array(LUMA, np.float32)  # luma weights
 
 
 def view_data(
