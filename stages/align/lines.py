@@ -26,7 +26,7 @@ from scipy import ndimage
 
 from stages.common.camera import undistort_pixels
 from stages.common.capture import Capture
-from stages.common.io import LUMA, read_image
+from stages.common.io import gray, read_image
 
 WORK_SIDE = 640  # images are read at most this wide (edges of a room are long: no loss)
 BLUR_SIGMA = 1.0  # pixels: Gaussian before the Sobel gradients (sensor noise)
@@ -111,7 +111,7 @@ def edge_directions(cap: Capture, frames: np.ndarray, R: np.ndarray) -> np.ndarr
         # step x step blocks averaged: block j spans pixels j step .. j step + step - 1
         blocks = img[: h // step * step, : w // step * step].astype(np.float32)
         blocks = blocks.reshape(h // step, step, w // step, step, 3).mean(axis=(1, 3))
-        c, t, length = segments(blocks @ np.array(LUMA, np.float32))
+        c, t, length = segments(gray(blocks))
         if not len(c):
             continue
         # the ends in full-size pixels (a block's centre: j step + (step - 1) / 2), pinhole

@@ -103,6 +103,14 @@ def rot_z(deg: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+def edges_yaw(cap: Capture, R: np.ndarray, cfg: AlignConfig) -> Yaw:
+    """The Manhattan yaw the horizontal edges of `cfg.frames_used` evenly spaced photos read
+    through R (input world -> z up), at `cfg.lines_min_confidence` and MIN_EDGE_VOTES; its
+    `normals` counts the edges' votes."""
+    idx = np.unique(np.linspace(0, len(cap.frames) - 1, cfg.frames_used).round().astype(int))
+    return find_yaw(edge_directions(cap, idx, R), cfg, cfg.lines_min_confidence, MIN_EDGE_VOTES)
+
+
 def square_up(
     R: np.ndarray,
     normals: np.ndarray,
@@ -130,8 +138,7 @@ def square_up(
         "yaw_from": "normals",
     }
     if cap is not None and (cfg.yaw_from == "lines" or (cfg.yaw_from == "auto" and sparse)):
-        idx = np.unique(np.linspace(0, len(cap.frames) - 1, cfg.frames_used).round().astype(int))
-        e = find_yaw(edge_directions(cap, idx, R), cfg, cfg.lines_min_confidence, MIN_EDGE_VOTES)
+        e = edges_yaw(cap, R, cfg)
         facts |= {
             "lines_yaw_deg": e.yaw_deg,
             "lines_confidence": e.confidence,

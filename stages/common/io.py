@@ -70,6 +70,12 @@ def _open(path: Path) -> Image.Image:
 LUMA = (0.299, 0.587, 0.114)  # grey = these weights of R, G, B (ITU-R BT.601 luma)
 
 
+def gray(rgb: np.ndarray) -> np.ndarray:
+    """float32 [..., 3] (or anything that casts to it) -> float32 [...]: the LUMA-weighted
+    grey the photos are matched and read in (stereo's sweep, the plane fill, the edges)."""
+    return np.asarray(rgb, np.float32) @ np.asarray(LUMA, np.float32)
+
+
 def read_image(path: Path) -> np.ndarray:
     """Read an RGB image. Returns uint8 [H, W, 3]."""
     return np.asarray(_open(Path(path)).convert("RGB"))

@@ -31,7 +31,7 @@ from torch import Tensor
 
 from stages.common.camera import pixel_grid, unproject
 from stages.common.errors import BlunfError
-from stages.common.io import LUMA
+from stages.common.io import gray
 from stages.common.progress import track
 from stages.common.threads import side_by_side
 from stages.depth.config import StereoConfig
@@ -64,9 +64,7 @@ def sweep_depths(
     order = overlap_order(sparse, Ks, poses, stride=1, angle=cfg.select_angle)
     everything = np.concatenate([s[s > 0] for s in sparse]) if n else np.zeros(0)
     k = stereo_scale(cfg, Ks, everything)
-    grays = [
-        torch.from_numpy(np.asarray(im, np.float32) @ np.asarray(LUMA, np.float32)) for im in images
-    ]
+    grays = [torch.from_numpy(gray(im)) for im in images]
     fine = [_level(g, K, k) for g, K in zip(grays, Ks, strict=True)]
     coarse = [_level(g, K, k * cfg.coarse) for g, K in zip(grays, Ks, strict=True)]
     del grays

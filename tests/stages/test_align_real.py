@@ -18,8 +18,7 @@ from skimage.transform import SimilarityTransform
 
 from stages.align import IMPLS as ALIGN
 from stages.align import AlignConfig, AlignInputs
-from stages.align.lines import edge_directions
-from stages.align.manhattan import MIN_EDGE_VOTES, find_yaw
+from stages.align.manhattan import edges_yaw
 from stages.common.blueprint import Blueprint
 from stages.common.capture import UNKNOWN, Capture
 from stages.evaluate.poses import pose_metrics
@@ -151,8 +150,7 @@ def _assert_edges_agree_with_dense_normals(run: Path) -> None:
     (align,) = run.glob("align/*/align.json")
     assert json.loads(align.read_text())["yaw_from"] == "normals"  # dense depth
     cap = Capture.load(align.parent / "frames.json")
-    idx = np.unique(np.linspace(0, len(cap.frames) - 1, 20).round().astype(int))
-    e = find_yaw(edge_directions(cap, idx, np.eye(3)), AlignConfig(), 0.2, MIN_EDGE_VOTES)
+    e = edges_yaw(cap, np.eye(3), AlignConfig())
     assert e.yaw_deg is not None and abs(e.yaw_deg) < 0.5 and e.normals > 5000, e
 
 

@@ -7,13 +7,11 @@ import torch
 import torch.nn.functional as F
 
 from stages.common.errors import BlunfError
-from stages.common.io import LUMA
+from stages.common.io import gray
 from stages.depth.consistency import overlap_order
 from stages.depth.planes.config import PlanesConfig
 from stages.depth.planes.geometry import scale_K
 from stages.depth.planes.view import ViewData
-
-GRAY = np.array(LUMA, np.float32)  # luma weights
 
 
 def view_data(
@@ -53,7 +51,7 @@ def view_data(
         out.append(
             ViewData(
                 rgb=rgb,
-                gray=rgb @ GRAY,
+                gray=gray(rgb),
                 K=scale_K(K, ww / W, hw / H),
                 pose=p,
                 depth=dw,
