@@ -61,6 +61,7 @@ def tune(cfg, **changes):
     return dataclasses.replace(cfg, **top)
 
 
+@pytest.hookimpl(tryfirst=True)  # before xdist's own hook reads the groups into node ids
 def pytest_collection_modifyitems(config, items):
     """Under pytest-xdist (`--dist loadgroup`, as the Makefile runs the suites), keep the tests
     that share a module- or class-scoped fixture on one worker, so that the fixture (often a
@@ -74,3 +75,23 @@ def pytest_collection_modifyitems(config, items):
         )
         if shared:
             item.add_marker(pytest.mark.xdist_group(item.nodeid.split("::")[0]))
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_collection_finish(session):
+    """On an xdist worker under `--dist loadgroup`, the grouped tests' node ids must carry their
+    group (xdist's scheduler reads it from there). A pytest that xdist cannot tag (9.2 with xdist
+    3.8) would deal a module's tests to both workers, each rebuilding the shared fixture: stop
+    with the reason rather than run a suite twice as long."""
+    if not getattr(session.config.option, "loadgroup", False):  # set on xdist workers only
+        return
+    untagged = [
+        it.nodeid
+        for it in session.items
+        if it.get_closest_marker("xdist_group") and "@" not in it.nodeid
+    ]
+    if untagged:
+        raise pytest.UsageError(
+            f"pytest-xdist did not tag {untagged[0]} with its group: this pytest/xdist pair "
+            "breaks --dist loadgroup (make setup installs the pinned pair of constraints.txt)"
+        )
