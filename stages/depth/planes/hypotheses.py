@@ -50,6 +50,7 @@ def find_peaks(x: np.ndarray, **kw):
 
     return peaks(x, **kw)
 
+
 ROOM_KINDS = (FLOOR_NAME, CEILING_NAME, WALL_NAME)  # the room's own planes
 FURNITURE_KINDS = ("top", "front")  # horizontal 0.2-1.5 m above the floor; other vertical
 KINDS = ROOM_KINDS + FURNITURE_KINDS
