@@ -233,7 +233,6 @@ def _terminate_quietly() -> None:
 def _dispatch(args: argparse.Namespace) -> int:
     if args.cmd == "run":
         from pipeline.config import load_config
-        from pipeline.run import run
         from stages.common.io import check_exists
 
         sets = list(args.sets)
@@ -243,6 +242,9 @@ def _dispatch(args: argparse.Namespace) -> int:
         if args.edits is not None and not args.edits.is_file():
             raise BlunfError(f"{args.edits}: edit spec not found")
         check_exists(args.capture, "capture folder")
+        # the stages (torch, Open3D: ~3 s) once the arguments are known to be good
+        from pipeline.run import run
+
         n = setup_runtime(cfg.run.threads)
         log.debug("threads: %d", n)
         report = run(args.capture, args.out, cfg, args.edits)

@@ -27,7 +27,6 @@ from stages.common.capture import Capture
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth, read_image, write_depth_npy, write_image, write_json
 from stages.common.threads import torch_threads
-from stages.depth import planes
 from stages.depth.config import (
     FIELD,
     NONE,
@@ -39,6 +38,7 @@ from stages.depth.config import (
     FieldFillConfig,
 )
 from stages.depth.field import fill as field_fill
+from stages.depth.planes import filling as planes
 from stages.depth.render import upsample_depth
 from stages.depth.sweep import near_edge, sweep_depths
 

@@ -15,10 +15,11 @@ from stages.common.camera import pixel_grid
 from stages.common.capture import read_layout
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth, read_image, read_label
-from stages.depth import planes as planes_fill
-from stages.depth.planes import PlanesConfig, fill
+from stages.depth.planes import PlanesConfig
+from stages.depth.planes import filling as planes_fill
 from stages.depth.planes.appearance import colour_cost, plane_colours
 from stages.depth.planes.bases import wall_feet
+from stages.depth.planes.filling import fill
 from stages.depth.planes.geometry import plane_depth, plane_valid, rays
 from stages.depth.planes.hypotheses import Plane, find_planes, floor_axes, room_axes
 from stages.depth.planes.merge import merge_view

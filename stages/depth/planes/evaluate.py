@@ -29,7 +29,8 @@ from stages.common.capture import Capture
 from stages.common.errors import BlunfError
 from stages.common.io import read_depth, read_image, read_label
 from stages.depth.config import STEREO
-from stages.depth.planes import PlanesConfig, fill
+from stages.depth.planes import PlanesConfig
+from stages.depth.planes.filling import fill
 from stages.depth.planes.geometry import plane_depth, rays, scale_K
 from stages.depth.planes.hypotheses import KINDS, Plane
 
