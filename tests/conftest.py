@@ -77,21 +77,17 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.xdist_group(item.nodeid.split("::")[0]))
 
 
-@pytest.hookimpl(trylast=True)
-def pytest_collection_finish(session):
-    """On an xdist worker under `--dist loadgroup`, the grouped tests' node ids must carry their
-    group (xdist's scheduler reads it from there). A pytest that xdist cannot tag (9.2 with xdist
-    3.8) would deal a module's tests to both workers, each rebuilding the shared fixture: stop
-    with the reason rather than run a suite twice as long."""
-    if not getattr(session.config.option, "loadgroup", False):  # set on xdist workers only
+def pytest_configure(config):
+    """pytest 9.2 builds node ids from a structure that pytest-xdist 3.8 cannot tag with their
+    group, so `--dist loadgroup` groups nothing: each worker would rebuild every module's shared
+    fixture (the batch module's Dask run twice, 41 + 33 s). Refuse that pair at once."""
+    if config.getoption("dist", "no") != "loadgroup":
         return
-    untagged = [
-        it.nodeid
-        for it in session.items
-        if it.get_closest_marker("xdist_group") and "@" not in it.nodeid
-    ]
-    if untagged:
+    import xdist
+
+    xdist_v = tuple(int(x) for x in xdist.__version__.split(".")[:2])
+    if pytest.version_tuple[:2] >= (9, 2) and xdist_v <= (3, 8):
         raise pytest.UsageError(
-            f"pytest-xdist did not tag {untagged[0]} with its group: this pytest/xdist pair "
-            "breaks --dist loadgroup (make setup installs the pinned pair of constraints.txt)"
+            f"pytest {pytest.__version__} with pytest-xdist {xdist.__version__} breaks "
+            "--dist loadgroup: make setup installs the pair pinned in constraints.txt"
         )
