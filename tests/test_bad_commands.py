@@ -40,6 +40,20 @@ def test_render_camera_too_large(tmp_path, capsys) -> None:
     assert not (tmp_path / "v.png").exists()
 
 
+@pytest.mark.parametrize(
+    "make, names",
+    [("file", "notes.txt: not a capture folder"), ("empty", "empty: capture folder is empty")],
+)
+def test_run_on_no_capture_makes_no_run_folder(tmp_path, capsys, make, names) -> None:
+    """A capture that is a plain file or an empty folder: one line, and no run folder left
+    behind (the layout is read before the run folder is made)."""
+    cap = tmp_path / ("notes.txt" if make == "file" else "empty")
+    cap.write_text("x") if make == "file" else cap.mkdir()
+    rc = main(["run", str(cap), "--out", str(tmp_path / "run")])
+    check_error(rc, capsys.readouterr().err, names, subprocess_run=False)
+    assert not (tmp_path / "run").exists()
+
+
 def test_unreadable_photo(tiny_room, tmp_path) -> None:
     """A photo without read permission: one line naming it (not a PermissionError from
     hashing the capture). Root reads any file, so as root the run goes without the
