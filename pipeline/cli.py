@@ -241,13 +241,14 @@ def _dispatch(args: argparse.Namespace) -> int:
         cfg = load_config(args.config, sets)
         if args.edits is not None and not args.edits.is_file():
             raise BlunfError(f"{args.edits}: edit spec not found")
-        check_exists(args.capture, "capture folder")
         if cfg["ingest"].kind == "auto":
-            # the layout read before the run folder is made: a plain file or an empty folder
-            # leaves nothing behind
+            # the layout read before the run folder is made (it checks the path too): a plain
+            # file or an empty folder leaves nothing behind
             from stages.ingest import detect
 
             detect(args.capture)
+        else:
+            check_exists(args.capture, "capture folder")
         # the stages (torch, Open3D: ~3 s) once the arguments are known to be good
         from pipeline.run import run
 

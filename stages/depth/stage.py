@@ -38,7 +38,8 @@ from stages.depth.config import (
     FieldFillConfig,
 )
 from stages.depth.field import fill as field_fill
-from stages.depth.planes import filling as planes
+from stages.depth.planes import PlanesConfig
+from stages.depth.planes.filling import fill as plane_fill
 from stages.depth.render import upsample_depth
 from stages.depth.sweep import near_edge, sweep_depths
 
@@ -92,7 +93,7 @@ def _run(cfg: DepthConfig, inputs: DepthInputs, out: Path, sweep: bool) -> Depth
             need = cfg.planes.enabled and facts["kept"] < cfg.planes.below
             reason = _planes_reason(cfg.planes, facts["kept"])
             if need:
-                depths, sources, pf = planes.fill(
+                depths, sources, pf = plane_fill(
                     images, Ks, poses, sparse, depths, cfg.planes, cfg.threads
                 )
                 facts["plane_fill"] = pf
@@ -231,7 +232,7 @@ def _field_sources(
     return out
 
 
-def _planes_reason(pc: planes.PlanesConfig, kept: float) -> str:
+def _planes_reason(pc: PlanesConfig, kept: float) -> str:
     """Whether the plane fill ran, and why (a line for the log and the report)."""
     if not pc.enabled:
         return "no plane fill (depth.planes.enabled off)"

@@ -17,18 +17,8 @@ drops that much.
 
 from __future__ import annotations
 
-from typing import Any
-
+# the fill itself is stages/depth/planes/filling.py: this package's face stays light, as every
+# config load imports it for PlanesConfig (the fill brings torch and scipy, ~2 s)
 from stages.depth.planes.config import PlanesConfig
 
-__all__ = ["PlanesConfig", "fill"]
-
-
-def __getattr__(name: str) -> Any:
-    """`fill` from stages/depth/planes/filling.py when first asked for: it brings torch and
-    scipy (~2 s), and every config load imports this package for PlanesConfig."""
-    if name == "fill":
-        from stages.depth.planes.filling import fill
-
-        return fill
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__all__ = ["PlanesConfig"]

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.ndimage import binary_dilation, gaussian_filter1d, uniform_filter1d
+from scipy.signal import find_peaks
 from skimage.morphology import remove_small_holes
 
 from stages.common.camera import pixel_grid, unproject
@@ -40,15 +41,6 @@ from stages.common.rows import unique_rows
 from stages.depth.planes.config import PlanesConfig
 
 log = logging.getLogger(__name__)
-
-
-def find_peaks(x: np.ndarray, **kw):
-    """scipy.signal.find_peaks, imported when first used: scipy.signal takes ~0.5 s to import,
-    and every run imports this module (through the depth stage's config) while only the plane
-    fill reads peaks."""
-    from scipy.signal import find_peaks as peaks
-
-    return peaks(x, **kw)
 
 
 ROOM_KINDS = (FLOOR_NAME, CEILING_NAME, WALL_NAME)  # the room's own planes
